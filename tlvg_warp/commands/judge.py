@@ -38,6 +38,7 @@ def run(args) -> int:
             raise InputError(f"{flag} must be positive, got {v}")
     if args.max_views is not None and args.max_views < 1:
         raise InputError(f"--max-views must be at least 1, got {args.max_views}")
+    judge.resolve_inputs(args.a, args.b, args.style, args.max_views)  # bad input fails before any warning
     key = args.api_key or os.environ.get("OPENAI_API_KEY")
     if not key and urlparse(args.base_url).hostname not in ("localhost", "127.0.0.1", "::1"):
         print(f"warning: no --api-key or OPENAI_API_KEY for {args.base_url}", file=sys.stderr)
