@@ -1,0 +1,91 @@
+"""Color: ARF mean/covariance color transfer, differentiable sRGB -> CIE Lab (D65), the Lab chroma
+statistics loss, and the luminance image the style loss sees.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+EIG_FLOOR = 1e-8  # ARF clamps covariance eigenvalues to [1e-8, 1e8]: a flat channel must not blow up
+
+
+def _as_torch(x) -> torch.Tensor:
+    return x if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x))
+
+
+def _sym_pow(cov: torch.Tensor, p: float) -> torch.Tensor:
+    """cov^p for a symmetric PSD 3x3 via its eigendecomposition (the SVD of a PSD matrix is the same)."""
+    e, u = torch.linalg.eigh(cov)
+    return u @ torch.diag(e.clamp(EIG_FLOOR, 1e8) ** p) @ u.T  # [3,3]
+
+
+def color_transfer(images, style):
+    """Recolor ``images`` (a list of [H,W,3] or an array [B,H,W,3], floats in [0,1], numpy or torch) to the
+    palette of ``style`` [h,w,3]: pool all pixels, whiten with the content covariance, color with the
+    style covariance (symmetric square roots, as ARF), shift means, clamp to [0,1].
+
+    Returns ``(recolored, M, t)`` with recolored in the input's container/type and ``x' = M x + t``
+    (M [3,3], t [3], float64 torch) so the same map can be reapplied (:func:`apply_color_transform`).
+    """
+    is_list = isinstance(images, (list, tuple))
+    items = list(images) if is_list else [images]
+    pix = torch.cat([_as_torch(im).detach().reshape(-1, 3).double().cpu() for im in items])  # [N,3]
+    spix = _as_torch(style).detach().reshape(-1, 3).double().cpu()  # [Ns,3]
+    mu_c, mu_s = pix.mean(0), spix.mean(0)  # [3]
+    cov_c = (pix - mu_c).T @ (pix - mu_c) / pix.shape[0]  # [3,3] (population covariance, as ARF)
+    cov_s = (spix - mu_s).T @ (spix - mu_s) / spix.shape[0]
+    m = _sym_pow(cov_s, 0.5) @ _sym_pow(cov_c, -0.5)  # [3,3]
+    t = mu_s - m @ mu_c  # [3]
+    out = [apply_color_transform(im, m, t) for im in items]
+    return (out if is_list else out[0]), m, t
+
+
+def apply_color_transform(img, m: torch.Tensor, t: torch.Tensor, clamp: bool = True):
+    """x' = M x + t on the last axis, clamped to [0,1]; keeps numpy/torch, dtype and device of ``img``."""
+    x = _as_torch(img)
+    y = x.double() @ m.to(x.device).T + t.to(x.device)  # [...,3]
+    y = y.clamp(0.0, 1.0) if clamp else y
+    y = y.to(x.dtype)
+    return y.numpy() if isinstance(img, np.ndarray) else y
+
+
+# sRGB (D65) -> XYZ, the IEC 61966-2-1 matrix, and the D65 white that OpenCV also uses.
+_RGB2XYZ = torch.tensor([[0.412453, 0.357580, 0.180423],
+                         [0.212671, 0.715160, 0.072169],
+                         [0.019334, 0.119193, 0.950227]], dtype=torch.float64)
+_WHITE = torch.tensor([0.950456, 1.0, 1.088754], dtype=torch.float64)
+_EPS_T = (6.0 / 29.0) ** 3  # CIE switch from the cube root to the linear segment
+_TINY = 1e-10  # keeps pow() bases positive so the unused branch of torch.where has a finite gradient
+
+
+def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
+    """sRGB in [0,1], channel-last [...,3] -> Lab (L in [0,100], a/b roughly [-128,127]); differentiable."""
+    c = rgb.clamp_min(0.0)  # renders are >= 0 by construction; negatives have no sRGB meaning
+    lin = torch.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055).clamp_min(_TINY) ** 2.4)
+    xyz = lin @ _RGB2XYZ.to(rgb).T / _WHITE.to(rgb)  # [...,3], normalized by the white point
+    f = torch.where(xyz > _EPS_T, xyz.clamp_min(_TINY) ** (1.0 / 3.0), xyz / (3 * (6.0 / 29.0) ** 2) + 4.0 / 29.0)
+    L = 116.0 * f[..., 1] - 16.0
+    a = 500.0 * (f[..., 0] - f[..., 1])
+    b = 200.0 * (f[..., 1] - f[..., 2])
+    return torch.stack([L, a, b], dim=-1)
+
+
+def lab_chroma_loss(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """½(‖Δμ_ab‖₁ + ‖Δσ_ab‖₁): mean and standard deviation of the a, b channels of the render vs the target
+    (the recolored photo of the same view), in Lab units; L1 norms sum over the two channels.
+    Inputs [H,W,3] (or any [...,3]) sRGB in [0,1]."""
+    ab_r = rgb_to_lab(render).reshape(-1, 3)[:, 1:]  # [N,2]
+    ab_t = rgb_to_lab(target.to(render)).reshape(-1, 3)[:, 1:].detach()
+    d_mu = (ab_r.mean(0) - ab_t.mean(0)).abs().sum()
+    d_sd = (ab_r.std(0, unbiased=False) - ab_t.std(0, unbiased=False)).abs().sum()
+    return 0.5 * (d_mu + d_sd)
+
+
+def luminance(img: torch.Tensor) -> torch.Tensor:
+    """Y = 0.299R + 0.587G + 0.114B replicated to 3 channels (paper §3.3). [...,H,W,3] channel-last, or
+    [B,3,H,W] (4-D with 3 channels on axis 1). Same shape out."""
+    if img.dim() == 4 and img.shape[1] == 3 and img.shape[-1] != 3:
+        w = torch.tensor([0.299, 0.587, 0.114], dtype=img.dtype, device=img.device).view(1, 3, 1, 1)
+        return (img * w).sum(1, keepdim=True).expand_as(img)
+    w = torch.tensor([0.299, 0.587, 0.114], dtype=img.dtype, device=img.device)
+    return (img * w).sum(-1, keepdim=True).expand_as(img)

@@ -1,0 +1,228 @@
+"""The painting's stroke direction field and what is built on it (SPEC §3 "Stroke direction field", §4).
+
+Structure tensor of luminance: Gaussian pre-smoothing σ 1 px, Scharr gradients, tensor smoothed σ 3 px.
+Angles are in pixel coordinates (x = column to the right, y = row downward, as SPEC §1's projected
+means): the stroke direction is v = (cos θ, sin θ), θ in (−π/2, π/2], the eigenvector of the SMALLER
+eigenvalue (along the brushstroke). Coherence c = ((λ1−λ2)/(λ1+λ2+ε))². The field is kept doubled-angle,
+c·(cos 2θ, sin 2θ), so θ and θ+π agree and fields can be averaged and resized.
+Two implementations with the same kernels and borders (reflect-101, OpenCV's default): numpy/OpenCV
+(:func:`stroke_field`) and differentiable torch (:func:`render_orientation`).
+"""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+PRE_SIGMA = 1.0
+TENSOR_SIGMA = 3.0
+# Added to λ1+λ2 (units: Scharr gradient², Scharr = 32 x the per-pixel slope). 1e-4 is a slope of ~3e-4
+# per pixel, far below one 8-bit step (1/255 -> gradient² ~0.016): flat areas get c ~ 0 instead of the
+# direction of float round-off, while any visible texture keeps c ~ (λ1−λ2)/(λ1+λ2).
+EPS_TRACE = 1e-4
+LUMA = (0.299, 0.587, 0.114)
+_SCHARR_X = np.array([[-3, 0, 3], [-10, 0, 10], [-3, 0, 3]], np.float32)  # cv2.Scharr(dx=1), correlation
+
+
+def _ksize(sigma: float) -> int:
+    return 2 * math.ceil(4 * sigma) + 1  # OpenCV's automatic size for float images: 9 (σ 1), 25 (σ 3)
+
+
+def _lum_np(image) -> np.ndarray:
+    a = image.detach().cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
+    a = a.astype(np.float32)
+    return a @ np.array(LUMA, np.float32) if a.ndim == 3 else a  # [H,W]
+
+
+def _field_np(jxx, jxy, jyy):
+    dx, dy = jxx - jyy, 2.0 * jxy  # (λ1−λ2)·(cos 2ψ, sin 2ψ), ψ = gradient (across-stroke) direction
+    r = np.sqrt(dx * dx + dy * dy)
+    c = (r / (jxx + jyy + EPS_TRACE)) ** 2
+    theta = 0.5 * np.arctan2(-dy, -dx)  # θ = ψ + 90°: doubling flips the sign of the doubled vector
+    scale = np.divide(c, r, out=np.zeros_like(r), where=r > 0)
+    return theta.astype(np.float32), c.astype(np.float32), np.stack([-dx * scale, -dy * scale], -1).astype(np.float32)
+
+
+def structure_tensor(image) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Smoothed structure tensor (Jxx, Jxy, Jyy) [H,W] each of an [H,W,3] or [H,W] float image."""
+    y = _lum_np(image)
+    k1, k3 = _ksize(PRE_SIGMA), _ksize(TENSOR_SIGMA)
+    b = cv2.BORDER_REFLECT_101
+    y = cv2.GaussianBlur(y, (k1, k1), PRE_SIGMA, borderType=b)
+    gx = cv2.Scharr(y, cv2.CV_32F, 1, 0, borderType=b)
+    gy = cv2.Scharr(y, cv2.CV_32F, 0, 1, borderType=b)
+    blur = lambda z: cv2.GaussianBlur(z, (k3, k3), TENSOR_SIGMA, borderType=b)  # noqa: E731
+    return blur(gx * gx), blur(gx * gy), blur(gy * gy)
+
+
+def stroke_field(image):
+    """(theta [H,W], coherence [H,W], doubled [H,W,2]) float32 numpy, from an [H,W,3] (or [H,W]) float image."""
+    return _field_np(*structure_tensor(image))
+
+
+def field_from_doubled(doubled):
+    """θ = ½·atan2 and c = |d| of a doubled-angle field [...,2] (numpy or torch, same type back)."""
+    if isinstance(doubled, torch.Tensor):
+        return 0.5 * torch.atan2(doubled[..., 1], doubled[..., 0]), doubled.norm(dim=-1), doubled
+    d = np.asarray(doubled, np.float32)
+    return (0.5 * np.arctan2(d[..., 1], d[..., 0])).astype(np.float32), np.linalg.norm(d, axis=-1), d
+
+
+# ---------------------------------------------------------------- torch, differentiable
+_kcache: dict = {}
+
+
+def _kernels(dtype, device):
+    key = (dtype, str(device))
+    if key not in _kcache:
+        g1 = cv2.getGaussianKernel(_ksize(PRE_SIGMA), PRE_SIGMA, cv2.CV_64F).ravel()
+        g3 = cv2.getGaussianKernel(_ksize(TENSOR_SIGMA), TENSOR_SIGMA, cv2.CV_64F).ravel()
+        t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
+        _kcache[key] = (t(g1), t(g3), t(_SCHARR_X))
+    return _kcache[key]
+
+
+def _pad(x, ph, pw):
+    h, w = x.shape[-2:]  # reflect-101 needs pad < size; tiny images fall back to edge replication
+    return F.pad(x, (pw, pw, ph, ph), mode="reflect" if (ph < h and pw < w) else "replicate")
+
+
+def _sep_blur(x, g):  # x [B,C,H,W], g [k]
+    r, c = g.numel() // 2, x.shape[1]
+    x = F.conv2d(_pad(x, 0, r), g.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(_pad(x, r, 0), g.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+
+def render_orientation(img: torch.Tensor):
+    """Differentiable torch twin of :func:`stroke_field`. img [H,W,3] -> (θ [H,W], c [H,W], doubled [H,W,2]);
+    [B,3,H,W] -> ([B,H,W], [B,H,W], [B,H,W,2])."""
+    single = img.dim() == 3
+    x = img.permute(2, 0, 1).unsqueeze(0) if single else img  # [B,3,H,W]
+    w = torch.tensor(LUMA, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
+    y = (x * w).sum(1, keepdim=True)  # [B,1,H,W]
+    g1, g3, sx = _kernels(x.dtype, x.device)
+    y = _pad(_sep_blur(y, g1), 1, 1)
+    gx = F.conv2d(y, sx.view(1, 1, 3, 3))
+    gy = F.conv2d(y, sx.T.contiguous().view(1, 1, 3, 3))
+    j = _sep_blur(torch.cat([gx * gx, gx * gy, gy * gy], 1), g3)  # [B,3,H,W]
+    jxx, jxy, jyy = j[:, 0], j[:, 1], j[:, 2]
+    dx, dy = jxx - jyy, 2.0 * jxy
+    r = torch.sqrt(dx * dx + dy * dy + 1e-30)  # tiny keeps sqrt's gradient finite at r = 0
+    tr = jxx + jyy + EPS_TRACE
+    c = (r / tr) ** 2
+    doubled = torch.stack([-dx, -dy], -1) * (r / tr ** 2).unsqueeze(-1)  # c·(cos2θ, sin2θ) = −(dx,dy)·c/r
+    theta = 0.5 * torch.atan2(-dy, -dx)
+    if single:
+        return theta[0], c[0], doubled[0]
+    return theta, c, doubled
+
+
+# ---------------------------------------------------------------- mapping onto a view
+def _resize2(d: np.ndarray, h: int, w: int) -> np.ndarray:
+    shrink = h <= d.shape[0] and w <= d.shape[1]
+    return cv2.resize(np.ascontiguousarray(d, np.float32), (w, h),
+                      interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+
+
+def map_field_canvas(doubled, H: int, W: int):
+    """"canvas" mapping: the painting's doubled-angle field [h,w,2] stretched over the H x W view (components
+    resized, INTER_AREA shrinking / INTER_LINEAR growing), then θ and c re-derived (c = |averaged vector|,
+    so disagreeing strokes lower coherence). Returns (θ [H,W], c [H,W], doubled [H,W,2]); torch in, torch out."""
+    if isinstance(doubled, torch.Tensor):
+        d = torch.from_numpy(_resize2(doubled.detach().cpu().numpy(), H, W)).to(doubled.device)
+        return field_from_doubled(d)
+    return field_from_doubled(_resize2(doubled, H, W))
+
+
+def field_at_cells(doubled, cell_shape) -> np.ndarray:
+    """The style field [h,w,2] averaged onto the style's VGG cell grid (hs, ws) -> [hs*ws, 2], row-major like
+    the columns of the style feature matrix."""
+    d = doubled.detach().cpu().numpy() if isinstance(doubled, torch.Tensor) else doubled
+    hs, ws = cell_shape
+    return _resize2(d, hs, ws).reshape(-1, 2)
+
+
+def map_field_matched(doubled_style_at_cells, idx: torch.Tensor, w: torch.Tensor, H: int, W: int, cell_shape):
+    """"matched" mapping (default): each render VGG cell takes the w-weighted mean doubled-angle vector of its
+    matched style cells (``idx``/``w`` [Nc,k] from :func:`match_style_cells` or FAST), the cell grid
+    ``cell_shape`` = (hc, wc) with hc*wc = Nc is upsampled bilinearly to H x W, θ and c re-derived.
+    Returns torch (θ [H,W], c [H,W], doubled [H,W,2]) on idx's device."""
+    ds = torch.as_tensor(np.asarray(doubled_style_at_cells) if not isinstance(doubled_style_at_cells, torch.Tensor)
+                         else doubled_style_at_cells, dtype=torch.float32, device=idx.device)  # [Ns,2]
+    hc, wc = cell_shape
+    if hc * wc != idx.shape[0]:
+        raise ValueError(f"cell_shape {cell_shape} does not match {idx.shape[0]} matched cells")
+    d = (ds[idx] * w.to(ds).unsqueeze(-1)).sum(1)  # [Nc,2]
+    d = d.T.reshape(1, 2, hc, wc)
+    d = F.interpolate(d, size=(H, W), mode="bilinear", align_corners=False)[0].permute(1, 2, 0)  # [H,W,2]
+    return field_from_doubled(d.contiguous())
+
+
+# ---------------------------------------------------------------- evaluation (SPEC §4)
+def _np(x) -> np.ndarray:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def flow_alignment_score(render, target_doubled) -> float:
+    """Flow-alignment score (SPEC §4) of a render [H,W,3] against a target doubled-angle field [H,W,2]:
+    Σ w·cos 2(φ − φ*) / Σ w with φ from the render's own structure tensor (same parameters) and
+    w = c_target · c_render. Weighting by both coherences counts a pixel only where the painting has a
+    stroke direction AND the render has a measurable orientation (φ of a flat or isotropic patch is noise).
+    Since d = c·(cos2φ, sin2φ), this is Σ d_render·d_target / Σ |d_render||d_target|. In [−1, 1];
+    0.0 when the weights vanish (a flat render), so metrics never hold NaN."""
+    _, _, d = stroke_field(_np(render))
+    t = _np(target_doubled).astype(np.float32)
+    num = float((d.astype(np.float64) * t).sum())
+    den = float((np.linalg.norm(d, axis=-1).astype(np.float64) * np.linalg.norm(t, axis=-1)).sum())
+    return float(np.clip(num / den, -1.0, 1.0)) if den > 1e-12 else 0.0  # clip: float round-off only
+
+
+def flow_alignment_score_torch(render: torch.Tensor, target_doubled: torch.Tensor) -> torch.Tensor:
+    """Same score from :func:`render_orientation` (stays on the device, differentiable); a 0-dim tensor."""
+    _, _, d = render_orientation(render)
+    t = target_doubled.to(d)
+    den = (d.norm(dim=-1) * t.norm(dim=-1)).sum()
+    return ((d * t).sum() / den.clamp_min(1e-12)).clamp(-1.0, 1.0)
+
+
+# ---------------------------------------------------------------- picture of the field
+LIC_STEPS = 15  # each way: streaks ~31 px long, visible at painting size without smearing small strokes
+
+
+def field_picture(image, theta, coherence, steps: int = LIC_STEPS, seed: int = 0) -> np.ndarray:
+    """Line-integral convolution of white noise along θ, tinted by the painting: [H,W,3] float32 in [0,1].
+    Sample points are advected ``steps`` 1-px steps both ways with cv2.remap; the direction is re-read from
+    the interpolated doubled-angle field each step and kept pointing the same way as the last step
+    (an orientation field has no sign). Low-coherence areas are drawn with less contrast."""
+    th, c = _np(theta).astype(np.float32), _np(coherence).astype(np.float32)
+    h, w = th.shape
+    img = _np(image).astype(np.float32)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    if img.shape[:2] != (h, w):
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+    noise = np.random.default_rng(seed).random((h, w), dtype=np.float32)
+    c2, s2 = np.cos(2 * th), np.sin(2 * th)
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    acc, n = noise.copy(), 1
+    rm = lambda a, px, py, b: cv2.remap(a, px, py, cv2.INTER_LINEAR, borderMode=b)  # noqa: E731
+    for sign in (1.0, -1.0):
+        px, py = gx.copy(), gy.copy()
+        prev_x, prev_y = sign * np.cos(th), sign * np.sin(th)  # [H,W]
+        for _ in range(steps):
+            a2 = 0.5 * np.arctan2(rm(s2, px, py, cv2.BORDER_REPLICATE), rm(c2, px, py, cv2.BORDER_REPLICATE))
+            ux, uy = np.cos(a2), np.sin(a2)
+            flip = np.where(ux * prev_x + uy * prev_y < 0, -1.0, 1.0).astype(np.float32)
+            ux, uy = ux * flip, uy * flip
+            px, py = px + ux, py + uy
+            acc += rm(noise, px, py, cv2.BORDER_REFLECT_101)
+            n += 1
+            prev_x, prev_y = ux, uy
+    lic = acc / n
+    lo, hi = np.percentile(lic, [1, 99])
+    lic = np.clip((lic - lo) / max(hi - lo, 1e-6), 0, 1)  # [H,W] contrast-stretched
+    lic = 0.5 + (lic - 0.5) * (0.3 + 0.7 * np.clip(c, 0, 1))  # strokes pop where the field is coherent
+    return np.clip(img * (0.5 + lic)[..., None], 0, 1).astype(np.float32)
