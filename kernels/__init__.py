@@ -1,1 +1,31 @@
-"""Warp kernels only (installed as ``tlvg_warp.kernels``). Ops that bridge them to torch live in tlvg_warp."""
+"""Warp kernels only (installed as ``tlvg_warp.kernels``); the ops that bridge them to torch live in
+tlvg_warp.ops. Kernels of one scalar type share one Warp module, built once per process."""
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+
+@functools.lru_cache(maxsize=None)
+def raster_kernels(scalar_name: str) -> SimpleNamespace:
+    """All differentiable-pipeline kernels for ``"float32"`` or ``"float64"``."""
+    from . import binning
+    from .blend import make_blend
+    from .projection import make_projection, module_name
+
+    scalar = {"float32": wp.float32, "float64": wp.float64}[scalar_name]
+    project = make_projection(scalar)
+    forward, backward = make_blend(scalar, module_name(scalar))
+    return SimpleNamespace(
+        scalar=scalar,
+        vec2=wp.types.vector(2, scalar),
+        vec3=wp.types.vector(3, scalar),
+        vec4=wp.types.vector(4, scalar),
+        mat33=wp.types.matrix((3, 3), scalar),
+        project=project,
+        blend_forward=forward,
+        blend_backward=backward,
+        count_tiles=binning.count_tiles_kernel,
+        emit_keys=binning.emit_keys_kernel,
+        tile_ranges=binning.tile_ranges_kernel,
+    )

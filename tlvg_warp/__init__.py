@@ -15,8 +15,8 @@ __all__ = ["Camera", "Gaussians", "InputError", "render", "RenderOutput", "load_
 
 def __getattr__(name):  # lazy: importing the package must not initialize Warp
     if name in ("render", "RenderOutput"):
-        from . import render as _r
-        return getattr(_r, name)
+        from . import renderer
+        return getattr(renderer, name)
     if name in ("load_ply", "save_ply", "save_splat", "load_splat"):
         from .io import ply as _p
         return getattr(_p, name)

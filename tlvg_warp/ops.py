@@ -1,0 +1,183 @@
+"""Bridge between torch tensors and the Warp raster kernels: one op per pipeline stage (project, bin,
+blend) and the autograd Function that carries them on one Warp tape.
+
+Gradients: Warp generates the projection/SH adjoint; the blending backward is hand-written and registered
+on the same tape with ``Tape.record_func``. Every Warp array gets its own torch-allocated grad buffer
+(Warp never writes into a torch ``.grad``, which would double count)."""
+from __future__ import annotations
+
+import contextlib
+import os
+from dataclasses import dataclass
+
+import torch
+import warp as wp
+
+from .types import Camera
+
+TILE = 16
+
+_initialized = False
+
+
+def init_warp() -> None:
+    global _initialized
+    if not _initialized:
+        wp.config.quiet = os.environ.get("TLVG_WARP_VERBOSE", "") == ""
+        wp.init()
+        _initialized = True
+
+
+def kernels_for(dtype: torch.dtype):
+    init_warp()
+    from .kernels import raster_kernels
+
+    return raster_kernels({torch.float32: "float32", torch.float64: "float64"}[dtype])
+
+
+@contextlib.contextmanager
+def warp_on(device: torch.device):
+    """Run Warp launches on torch's current stream so no extra synchronization is needed."""
+    if device.type == "cuda":
+        with wp.ScopedStream(wp.stream_from_torch(device)):
+            yield wp.device_from_torch(device)
+    else:
+        yield wp.device_from_torch(device)
+
+
+def to_warp(t: torch.Tensor, dtype, grad: torch.Tensor | None = None):
+    return wp.from_torch(t.detach().contiguous(), dtype=dtype, grad=grad, requires_grad=grad is not None)
+
+
+@dataclass
+class Projected:
+    """Per-Gaussian screen-space quantities (torch views of the Warp outputs)."""
+
+    means2d: torch.Tensor  # [N, 2]
+    cov2d: torch.Tensor  # [N, 3] (a, b, c) of Σ2D
+    conic: torch.Tensor  # [N, 3] (a, b, c) of Σ2D⁻¹
+    depth: torch.Tensor  # [N]
+    opacity: torch.Tensor  # [N]
+    color: torch.Tensor  # [N, 3]
+    radii: torch.Tensor  # [N] int32
+
+
+def camera_args(cam: Camera, K, device: torch.device):
+    s = K.scalar
+    R = cam.R.tolist()
+    t = cam.t.tolist()
+    c = cam.center.tolist()
+    return [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)), K.vec3(*map(s, c)),
+            s(cam.fx), s(cam.fy), s(cam.cx), s(cam.cy), cam.width, cam.height, s(cam.near), s(cam.far)]
+
+
+def project(K, wargs, cam: Camera, sh_degree: int, n: int, dtype, device, tape: wp.Tape | None):
+    """Launch the projection kernel; returns (Projected, warp output arrays)."""
+    z = lambda *shape: torch.zeros(*shape, dtype=dtype, device=device)  # noqa: E731
+    proj = Projected(z(n, 2), z(n, 3), z(n, 3), z(n), z(n), z(n, 3), torch.zeros(n, dtype=torch.int32, device=device))
+    need_grad = tape is not None
+    outs = [
+        to_warp(proj.means2d, K.vec2, z(n, 2) if need_grad else None),
+        to_warp(proj.cov2d, K.vec3, z(n, 3) if need_grad else None),
+        to_warp(proj.conic, K.vec3, z(n, 3) if need_grad else None),
+        to_warp(proj.depth, K.scalar, z(n) if need_grad else None),
+        to_warp(proj.opacity, K.scalar, z(n) if need_grad else None),
+        to_warp(proj.color, K.vec3, z(n, 3) if need_grad else None),
+        wp.from_torch(proj.radii, dtype=wp.int32),
+    ]
+    with (tape if tape is not None else contextlib.nullcontext()):
+        wp.launch(K.project, dim=n, inputs=wargs + camera_args(cam, K, device) + [sh_degree], outputs=outs,
+                  device=wp.device_from_torch(device))
+    return proj, outs
+
+
+def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = False):
+    """Sorted (tile, depth) keys -> per-tile [start, end) ranges and the sorted Gaussian ids."""
+    device = proj.depth.device
+    wdev = wp.device_from_torch(device)
+    n = proj.depth.shape[0]
+    tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    m2 = wp.from_torch(proj.means2d.float().contiguous(), dtype=wp.vec2)
+    radii = wp.from_torch(proj.radii, dtype=wp.int32)
+    counts = torch.empty(n, dtype=torch.int32, device=device)
+    wp.launch(K.count_tiles, dim=n, inputs=[m2, radii, tiles_x, tiles_y, int(all_tiles)],
+              outputs=[wp.from_torch(counts)], device=wdev)
+    ends = torch.cumsum(counts, 0, dtype=torch.int64)
+    total = int(ends[-1]) if n else 0  # the one host sync per render: the key buffer size
+    ranges = torch.zeros(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)
+    if total == 0:
+        return ranges, torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
+    if total >= 2**31:
+        raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
+    starts = (ends - counts).to(torch.int32)
+    keys = torch.empty(2 * total, dtype=torch.int64, device=device)
+    ids = torch.empty(2 * total, dtype=torch.int32, device=device)
+    depth_bits = proj.depth.float().contiguous().view(torch.int32)  # z > 0: bit order == float order
+    wkeys, wids = wp.from_torch(keys), wp.from_torch(ids)
+    wp.launch(K.emit_keys, dim=n, inputs=[m2, radii, wp.from_torch(depth_bits), wp.from_torch(starts), tiles_x,
+                                          tiles_y, int(all_tiles)], outputs=[wkeys, wids], device=wdev)
+    wp.utils.radix_sort_pairs(wkeys, wids, total)
+    wp.launch(K.tile_ranges, dim=total, inputs=[wkeys, total], outputs=[wp.from_torch(ranges)], device=wdev)
+    return ranges, ids[:total], tiles_x, tiles_y
+
+
+class RasterizeFn(torch.autograd.Function):
+    """(means, quats, log_scales, opacity_logits, sh, means2d_probe) -> color, alpha, depth, radii, weights.
+
+    ``means2d_probe`` is a zero tensor whose gradient receives dL/d(screen mean) for density control."""
+
+    @staticmethod
+    def forward(ctx, means, quats, log_scales, opacity_logits, sh, means2d_probe, cam, settings):
+        K = kernels_for(means.dtype)
+        device, dtype, n = means.device, means.dtype, means.shape[0]
+        H, W = cam.height, cam.width
+        with warp_on(device) as wdev:
+            grads = [torch.zeros_like(t) for t in (means, quats, log_scales, opacity_logits, sh)]
+            wargs = [to_warp(means, K.vec3, grads[0]), to_warp(quats, K.vec4, grads[1]),
+                     to_warp(log_scales, K.vec3, grads[2]), to_warp(opacity_logits, K.scalar, grads[3]),
+                     to_warp(sh, K.vec3, grads[4])]
+            tape = wp.Tape()
+            proj, pouts = project(K, wargs, cam, settings["sh_degree"], n, dtype, device, tape)
+            ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, W, H, settings["all_tiles"])
+            color = torch.empty(H, W, 3, dtype=dtype, device=device)
+            alpha = torch.empty(H, W, dtype=dtype, device=device)
+            depth = torch.empty(H, W, dtype=dtype, device=device)
+            T = torch.empty(H, W, dtype=dtype, device=device)
+            last = torch.empty(H, W, dtype=torch.int32, device=device)
+            weights = torch.zeros(n if settings["weights"] else 1, dtype=dtype, device=device)
+            bg = K.vec3(*map(K.scalar, settings["background"]))
+            w_means2d, _w_cov2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pouts
+            blend_args = [wp.from_torch(ranges), wp.from_torch(ids), w_means2d, w_conic, w_opacity, w_color, w_depth,
+                          bg, W, H, tiles_x]
+            wp.launch(K.blend_forward, dim=tiles_x * tiles_y * TILE * TILE, block_dim=TILE * TILE,
+                      inputs=blend_args + [int(settings["weights"])],
+                      outputs=[wp.from_torch(color, dtype=K.vec3), wp.from_torch(alpha), wp.from_torch(depth),
+                               wp.from_torch(T), wp.from_torch(last), wp.from_torch(weights)],
+                      device=wdev, record_tape=False)
+        ctx.state = (K, tape, pouts, blend_args, depth, T, last, grads, tiles_x * tiles_y, device)
+        ctx.mark_non_differentiable(proj.radii, weights)
+        return color, alpha, depth, proj.radii, weights if settings["weights"] else None
+
+    @staticmethod
+    def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
+        K, tape, pouts, blend_args, depth, T, last, grads, n_tiles, device = ctx.state
+        H, W = depth.shape
+        dtype = depth.dtype
+        upstream = [g if g is not None else torch.zeros(shape, dtype=dtype, device=device)
+                    for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
+        with warp_on(device) as wdev:
+            def blend_backward():
+                wp.launch(K.blend_backward, dim=n_tiles * TILE * TILE, block_dim=TILE * TILE,
+                          inputs=blend_args + [to_warp(depth, K.scalar), to_warp(T, K.scalar), wp.from_torch(last),
+                                               to_warp(upstream[0], K.vec3), to_warp(upstream[1], K.scalar),
+                                               to_warp(upstream[2], K.scalar)],
+                          outputs=[a.grad for a in blend_args[2:7]],
+                          device=wdev)
+                # the projection adjoint consumes (zeroes) its output grads: keep dL/d(screen mean) first
+                screen.append(wp.to_torch(blend_args[2].grad).clone())
+
+            screen = []
+            tape.record_func(backward=blend_backward, arrays=[])
+            tape.backward()
+        ctx.state = None  # free the tape and buffers
+        return (*grads, screen[0], None, None)

@@ -1,0 +1,61 @@
+"""The public rasterizer: ``render(gaussians, camera, background=None) -> RenderOutput`` (SPEC §2)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .errors import InputError
+from .types import Camera, Gaussians
+
+
+@dataclass
+class RenderOutput:
+    color: torch.Tensor  # [H, W, 3]
+    alpha: torch.Tensor  # [H, W]
+    depth: torch.Tensor  # [H, W] expected depth Σ zαT / alpha, 0 where alpha is 0
+    radii: torch.Tensor  # [N] int32 screen radius in pixels, 0 = culled
+    means2d: torch.Tensor  # [N, 2] zero probe; after backward its .grad is dL/d(screen mean)
+    weights: torch.Tensor | None = None  # [N] Σ_pixels αT per Gaussian (when asked for)
+
+    @property
+    def visible(self) -> torch.Tensor:  # [N] bool
+        return self.radii > 0
+
+
+def check_inputs(g: Gaussians, cam: Camera, background) -> tuple:
+    if not isinstance(g, Gaussians):
+        raise InputError(f"render expects Gaussians, got {type(g).__name__}")
+    if not isinstance(cam, Camera):
+        raise InputError(f"render expects a Camera, got {type(cam).__name__}")
+    g.validate()  # tensors may have been swapped since construction
+    if not torch.isfinite(cam.world_to_camera).all():
+        raise InputError("camera world_to_camera has non-finite values")
+    if cam.width <= 0 or cam.height <= 0:
+        raise InputError(f"camera image size must be positive, got {cam.width}x{cam.height}")
+    if background is None:
+        return (0.0, 0.0, 0.0)
+    bg = torch.as_tensor(background, dtype=torch.float64).detach().flatten().cpu()
+    if bg.numel() != 3 or not torch.isfinite(bg).all():
+        raise InputError(f"background must be 3 finite values, got {background!r}")
+    return tuple(bg.tolist())
+
+
+def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None = None,
+           return_weights: bool = False, all_tiles: bool = False) -> RenderOutput:
+    """Rasterize ``g`` into ``cam`` on the device of ``g``'s tensors, differentiably.
+
+    sh_degree: evaluate SH only up to this degree (default: all stored coefficients).
+    return_weights: also return Σ αT per Gaussian (costs one atomic add per contribution).
+    all_tiles: bin every visible Gaussian into every tile (the brute-force check of the binning)."""
+    from .ops import RasterizeFn
+
+    bg = check_inputs(g, cam, background)
+    degree = g.sh_degree if sh_degree is None else int(sh_degree)
+    if not 0 <= degree <= g.sh_degree:
+        raise InputError(f"sh_degree {degree} is outside 0..{g.sh_degree} (the stored degree)")
+    probe = torch.zeros(g.num, 2, dtype=g.dtype, device=g.device, requires_grad=True)
+    settings = {"sh_degree": degree, "background": bg, "weights": bool(return_weights), "all_tiles": bool(all_tiles)}
+    color, alpha, depth, radii, weights = RasterizeFn.apply(
+        g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, probe, cam, settings)
+    return RenderOutput(color, alpha, depth, radii, probe, weights)
