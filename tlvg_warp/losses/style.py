@@ -41,8 +41,9 @@ def _topk_both(a: torch.Tensor, s: torch.Tensor, k: int, need_cols: bool = True)
             v, i = sim.topk(min(kc, i1 - i0), dim=0)  # [k', Ns]
             i = i + i0
             if best_v is not None:
-                v, j = torch.cat([best_v, v]).topk(kc, dim=0)
-                i = torch.cat([best_i, i]).gather(0, j)
+                v, i = torch.cat([best_v, v]), torch.cat([best_i, i])
+                v, j = v.topk(min(kc, v.shape[0]), dim=0)
+                i = i.gather(0, j)
             best_v, best_i = v, i
     return idx_r, best_i
 

@@ -1,0 +1,91 @@
+"""Color transfer (closed-form moments), sRGB->Lab vs OpenCV, the Lab chroma loss, luminance."""
+import cv2
+import numpy as np
+import torch
+
+from tlvg_warp.losses import apply_color_transform, color_transfer, lab_chroma_loss, luminance, rgb_to_lab
+from tlvg_warp.losses.style import fast_loss
+
+MOMENT_TOL = 1e-9  # float64 throughout; the map is exact up to round-off when nothing is clamped
+# OpenCV's float RGB->Lab interpolates the sRGB gamma through a 1024-entry spline table and rounds; 0.37 Lab
+# units measured on random colors. 0.5 is still far below a just-noticeable difference (~2.3).
+LAB_TOL = 0.5
+
+
+def _moments(p):
+    p = p.reshape(-1, 3)
+    return p.mean(0), np.cov(p.T, bias=True)
+
+
+def test_color_transfer_matches_style_moments_when_unclamped():
+    rng = np.random.default_rng(0)
+    mix = np.array([[0.05, 0.02, 0.0], [0.01, 0.04, 0.01], [0.0, 0.02, 0.03]])
+    content = [0.5 + rng.standard_normal((30, 40, 3)) @ mix.T for _ in range(2)]  # correlated, no clamping
+    style = 0.4 + rng.standard_normal((25, 35, 3)) @ (0.6 * mix[::-1]).T
+    out, m, t = color_transfer(content, style)
+    assert isinstance(out, list) and out[0].shape == (30, 40, 3)
+    pooled = np.concatenate([o.reshape(-1, 3) for o in out])
+    assert pooled.min() > 0 and pooled.max() < 1  # the premise: no clamping happened
+    mu, cov = _moments(pooled)
+    mu_s, cov_s = _moments(style)
+    assert np.abs(mu - mu_s).max() < MOMENT_TOL and np.abs(cov - cov_s).max() < MOMENT_TOL
+    # the returned affine map reproduces the result and reapplies to torch batches
+    again = apply_color_transform(torch.from_numpy(np.stack(content)), m, t)
+    assert np.abs(again.numpy() - np.stack(out)).max() < 1e-12
+    b, _, _ = color_transfer(torch.from_numpy(np.stack(content)).float(), torch.from_numpy(style).float())
+    assert b.dtype == torch.float32 and b.shape == (2, 30, 40, 3)
+
+
+def test_color_transfer_clamps():
+    rng = np.random.default_rng(1)
+    out, _, _ = color_transfer(rng.random((2, 8, 8, 3)), rng.random((8, 8, 3)) * 3 - 1)
+    assert out.min() >= 0 and out.max() <= 1
+
+
+def test_rgb_to_lab_matches_opencv_float_path():
+    rng = np.random.default_rng(2)
+    x = rng.random((40, 40, 3)).astype(np.float32)
+    x[0, :8] = [[0, 0, 0], [1, 1, 1], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.02, 0.01, 0.03], [0.5] * 3, [1, 1, 0]]
+    ref = cv2.cvtColor(x, cv2.COLOR_RGB2Lab)
+    got = rgb_to_lab(torch.from_numpy(x).double()).numpy()
+    assert np.abs(got - ref).max() < LAB_TOL
+    # differentiable everywhere, including black (cube root and gamma branches at 0)
+    t = torch.from_numpy(x).double().requires_grad_(True)
+    rgb_to_lab(t).sum().backward()
+    assert torch.isfinite(t.grad).all()
+
+
+def test_lab_chroma_loss_closed_form():
+    rng = np.random.default_rng(3)
+    tgt = torch.from_numpy(rng.random((16, 16, 3)))
+    assert lab_chroma_loss(tgt, tgt).item() < 1e-12
+    r = torch.from_numpy(rng.random((16, 16, 3))).requires_grad_(True)
+    lab_r, lab_t = cv2.cvtColor(r.detach().numpy().astype(np.float32), cv2.COLOR_RGB2Lab), \
+        cv2.cvtColor(tgt.numpy().astype(np.float32), cv2.COLOR_RGB2Lab)
+    ab_r, ab_t = lab_r.reshape(-1, 3)[:, 1:], lab_t.reshape(-1, 3)[:, 1:]
+    expect = 0.5 * (np.abs(ab_r.mean(0) - ab_t.mean(0)).sum() + np.abs(ab_r.std(0) - ab_t.std(0)).sum())
+    loss = lab_chroma_loss(r, tgt)
+    assert abs(loss.item() - expect) < 2 * LAB_TOL  # four L1 terms of statistics of OpenCV's rounded Lab
+    loss.backward()
+    assert torch.isfinite(r.grad).all() and r.grad.abs().sum() > 0
+    # gray images have no chroma: a = b = 0, so gray vs gray costs nothing whatever the brightness
+    g1, g2 = torch.full((4, 4, 3), 0.2), torch.full((4, 4, 3), 0.9)
+    assert lab_chroma_loss(g1, g2).item() < 1e-3
+
+
+def test_luminance_and_chroma_blind_style_loss():
+    x = torch.rand(2, 3, 10, 12, dtype=torch.float64)
+    y = luminance(x)
+    expect = 0.299 * x[:, 0] + 0.587 * x[:, 1] + 0.114 * x[:, 2]
+    assert y.shape == x.shape and torch.allclose(y, expect.unsqueeze(1).expand_as(x))
+    hwc = x[0].permute(1, 2, 0)
+    assert torch.allclose(luminance(hwc), expect[0].unsqueeze(-1).expand(10, 12, 3))
+    # a chroma-only change (orthogonal to the luma weights) leaves the luminance style loss unchanged
+    w = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
+    chroma = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    chroma = chroma - (chroma @ w) / (w @ w) * w  # [3], zero luminance
+    x2 = x + 0.05 * chroma.view(1, 3, 1, 1)
+    assert torch.allclose(luminance(x2), luminance(x), atol=1e-12)
+    feats = lambda im: torch.nn.functional.avg_pool2d(luminance(im), 2)[0].reshape(3, -1)  # noqa: E731
+    s = torch.rand(3, 40, dtype=torch.float64)
+    assert abs(fast_loss(feats(x2), s).item() - fast_loss(feats(x), s).item()) < 1e-9

@@ -1,0 +1,111 @@
+"""VGG-16 relu3 features: torchvision-format weights load, missing/bad weights say how to get them,
+"random" is flagged, shapes, and the lookup order (path > env > TORCH_HOME cache > download)."""
+import numpy as np
+import pytest
+import torch
+import torch.nn as nn
+
+from tlvg_warp.errors import InputError
+from tlvg_warp.losses import load_vgg, resize_style
+from tlvg_warp.losses import vgg as vgg_mod
+
+# torchvision vgg16().features, written out independently: (index, in, out) of every conv; the
+# classifier's shapes too, since a real checkpoint carries them (they must be ignored).
+CONVS = [(0, 3, 64), (2, 64, 64), (5, 64, 128), (7, 128, 128), (10, 128, 256), (12, 256, 256),
+         (14, 256, 256), (17, 256, 512), (19, 512, 512), (21, 512, 512), (24, 512, 512), (26, 512, 512),
+         (28, 512, 512)]
+
+
+def torchvision_like_state_dict(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    sd = {}
+    for i, cin, cout in CONVS:
+        sd[f"features.{i}.weight"] = torch.randn(cout, cin, 3, 3, generator=g) * 0.05
+        sd[f"features.{i}.bias"] = torch.randn(cout, generator=g) * 0.05
+    sd["classifier.0.weight"] = torch.zeros(8, 4)  # shape irrelevant: ignored (kept small for speed)
+    sd["classifier.0.bias"] = torch.zeros(8)
+    return sd
+
+
+def reference_features(sd, x):
+    """relu3_1|relu3_2|relu3_3 with plain functional ops from the state dict (the oracle)."""
+    f = torch.nn.functional
+    x = (x - torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)) / torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    conv = lambda x, i: f.relu(f.conv2d(x, sd[f"features.{i}.weight"], sd[f"features.{i}.bias"], padding=1))  # noqa
+    x = f.max_pool2d(conv(conv(x, 0), 2), 2)
+    x = f.max_pool2d(conv(conv(x, 5), 7), 2)
+    r1 = conv(x, 10)
+    r2 = conv(r1, 12)
+    r3 = conv(r2, 14)
+    return torch.cat([r1, r2, r3], 1)
+
+
+def test_torchvision_layout_loads_and_matches_functional_oracle(tmp_path):
+    sd = torchvision_like_state_dict()
+    p = tmp_path / "vgg16-397923af.pth"
+    torch.save(sd, p)
+    net = load_vgg(str(p))
+    assert not net.is_random and net.source == str(p)
+    assert all(not q.requires_grad for q in net.parameters()) and not net.training
+    x = torch.rand(1, 3, 36, 52)
+    feats = net(x)
+    assert feats.shape == (1, 768, 9, 13)
+    assert torch.allclose(feats, reference_features(sd, x), atol=1e-5)
+    # [H,W,3] input and the x0.5 render scale: 72x104 -> 36x52 -> cells 9x13
+    assert net(torch.rand(72, 104, 3), scale=0.5).shape == (1, 768, 9, 13)
+    # features follow the caller's grad mode (the render needs its gradient)
+    img = torch.rand(1, 3, 16, 16, requires_grad=True)
+    net(img).sum().backward()
+    assert img.grad is not None and img.grad.abs().sum() > 0
+
+
+def test_missing_file_names_path_and_how_to_get_weights(tmp_path):
+    missing = tmp_path / "nope.pth"
+    with pytest.raises(InputError) as e:
+        load_vgg(str(missing))
+    msg = str(e.value)
+    assert str(missing) in msg and vgg_mod.VGG_URL in msg and "random" in msg and "\n" not in msg
+
+
+def test_wrong_state_dict_is_input_error(tmp_path):
+    sd = torchvision_like_state_dict()
+    del sd["features.14.bias"]
+    p = tmp_path / "bad.pth"
+    torch.save(sd, p)
+    with pytest.raises(InputError, match="features.14.bias"):
+        load_vgg(str(p))
+    (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="junk.pth"):
+        load_vgg(str(tmp_path / "junk.pth"))
+
+
+def test_random_is_flagged_and_seeded(monkeypatch):
+    a, b = load_vgg("random"), load_vgg("RANDOM")
+    assert a.is_random and "random" in a.source
+    assert torch.equal(a.features[0].weight, b.features[0].weight)
+    monkeypatch.setenv(vgg_mod.ENV_VAR, "random")
+    assert load_vgg().is_random
+
+
+def test_lookup_order_env_then_cache_then_download(tmp_path, monkeypatch):
+    sd = torchvision_like_state_dict()
+    env_p, home = tmp_path / "env.pth", tmp_path / "th"
+    torch.save(sd, env_p)
+    monkeypatch.setenv("TORCH_HOME", str(home))
+    monkeypatch.setenv(vgg_mod.ENV_VAR, str(env_p))
+    assert load_vgg().source == str(env_p)
+    monkeypatch.delenv(vgg_mod.ENV_VAR)
+    calls = []
+    monkeypatch.setattr(vgg_mod, "_download", lambda d: calls.append(d))  # offline: returns None
+    with pytest.raises(InputError) as e:
+        load_vgg()
+    assert calls == [home / "hub" / "checkpoints"] and vgg_mod.VGG_URL in str(e.value)
+    cached = home / "hub" / "checkpoints" / vgg_mod.VGG_FILE
+    cached.parent.mkdir(parents=True)
+    torch.save(sd, cached)
+    assert load_vgg().source == str(cached) and len(calls) == 1  # cache hit: no download attempt
+
+
+def test_resize_style_to_height_256():
+    out = resize_style(np.random.default_rng(0).random((600, 800, 3)).astype(np.float32))
+    assert out.shape == (256, 341, 3)
