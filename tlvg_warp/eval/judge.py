@@ -257,7 +257,7 @@ def aggregate(records) -> dict:
 def run_judge(run_a, run_b, models, base_url, api_key=None, style=None, seed=0, timeout=60.0, retries=3,
               backoff=1.0, max_views=None, workers=4, log=None) -> dict:
     """Judge every paired view with every model; returns the judge.json dict (records + aggregates)."""
-    models = [m.strip() for m in models if m and m.strip()]
+    models = list(dict.fromkeys(m.strip() for m in models if m and m.strip()))  # a repeat would count twice
     if not models:
         raise InputError("--models: give at least one model name")
     pairs, style_path = resolve_inputs(run_a, run_b, style, max_views)
