@@ -19,6 +19,19 @@ def _sym_pow(cov: torch.Tensor, p: float) -> torch.Tensor:
     return u @ torch.diag(e.clamp(EIG_FLOOR, 1e8) ** p) @ u.T  # [3,3]
 
 
+def _moments(items):
+    """Pooled mean [3] and population covariance [3,3] (as ARF) of all pixels, float64 on the CPU, summed
+    image by image so a whole dataset is never concatenated."""
+    n, s1, s2 = 0, torch.zeros(3, dtype=torch.float64), torch.zeros(3, 3, dtype=torch.float64)
+    for im in items:
+        p = _as_torch(im).detach().reshape(-1, 3).double()  # [N,3]
+        n += p.shape[0]
+        s1 += p.sum(0).cpu()
+        s2 += (p.T @ p).cpu()
+    mu = s1 / n
+    return mu, s2 / n - torch.outer(mu, mu)
+
+
 def color_transfer(images, style):
     """Recolor ``images`` (a list of [H,W,3] or an array [B,H,W,3], floats in [0,1], numpy or torch) to the
     palette of ``style`` [h,w,3]: pool all pixels, whiten with the content covariance, color with the
@@ -29,11 +42,8 @@ def color_transfer(images, style):
     """
     is_list = isinstance(images, (list, tuple))
     items = list(images) if is_list else [images]
-    pix = torch.cat([_as_torch(im).detach().reshape(-1, 3).double().cpu() for im in items])  # [N,3]
-    spix = _as_torch(style).detach().reshape(-1, 3).double().cpu()  # [Ns,3]
-    mu_c, mu_s = pix.mean(0), spix.mean(0)  # [3]
-    cov_c = (pix - mu_c).T @ (pix - mu_c) / pix.shape[0]  # [3,3] (population covariance, as ARF)
-    cov_s = (spix - mu_s).T @ (spix - mu_s) / spix.shape[0]
+    mu_c, cov_c = _moments(items)
+    mu_s, cov_s = _moments([style])
     m = _sym_pow(cov_s, 0.5) @ _sym_pow(cov_c, -0.5)  # [3,3]
     t = mu_s - m @ mu_c  # [3]
     out = [apply_color_transform(im, m, t) for im in items]
