@@ -154,30 +154,39 @@ class RasterizeFn(torch.autograd.Function):
                       outputs=[wp.from_torch(color, dtype=K.vec3), wp.from_torch(alpha), wp.from_torch(depth),
                                wp.from_torch(T), wp.from_torch(last), wp.from_torch(weights)],
                       device=wdev, record_tape=False)
-        ctx.state = (K, tape, pouts, blend_args, depth, T, last, grads, tiles_x * tiles_y, device)
+            n_threads = tiles_x * tiles_y * TILE * TILE
+            io = {}  # filled by backward(): upstream gradients in, dL/d(screen mean) out
+
+            def blend_backward():
+                wp.launch(K.blend_backward, dim=n_threads, block_dim=TILE * TILE,
+                          inputs=blend_args + [to_warp(depth, K.scalar), to_warp(T, K.scalar), wp.from_torch(last),
+                                               *io["upstream"]],
+                          outputs=[a.grad for a in blend_args[2:7]], device=wdev)
+                # the projection adjoint consumes (zeroes) its output grads: keep dL/d(screen mean) first
+                io["screen"] = wp.to_torch(w_means2d.grad).clone()
+
+            tape.record_func(backward=blend_backward, arrays=[])
+        ctx.state = (K, tape, wargs, pouts, grads, io, device)
+        ctx.image_size = (H, W)
         ctx.mark_non_differentiable(proj.radii, weights)
         return color, alpha, depth, proj.radii, weights if settings["weights"] else None
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
-        K, tape, pouts, blend_args, depth, T, last, grads, n_tiles, device = ctx.state
-        H, W = depth.shape
-        dtype = depth.dtype
-        upstream = [g if g is not None else torch.zeros(shape, dtype=dtype, device=device)
-                    for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
-        with warp_on(device) as wdev:
-            def blend_backward():
-                wp.launch(K.blend_backward, dim=n_tiles * TILE * TILE, block_dim=TILE * TILE,
-                          inputs=blend_args + [to_warp(depth, K.scalar), to_warp(T, K.scalar), wp.from_torch(last),
-                                               to_warp(upstream[0], K.vec3), to_warp(upstream[1], K.scalar),
-                                               to_warp(upstream[2], K.scalar)],
-                          outputs=[a.grad for a in blend_args[2:7]],
-                          device=wdev)
-                # the projection adjoint consumes (zeroes) its output grads: keep dL/d(screen mean) first
-                screen.append(wp.to_torch(blend_args[2].grad).clone())
-
-            screen = []
-            tape.record_func(backward=blend_backward, arrays=[])
+        K, tape, wargs, pouts, grads, io, device = ctx.state
+        if "screen" in io:
+            # a second backward through the same graph (gradcheck, retain_graph): fresh input buffers, since
+            # the first call's may be held by the caller, and cleared intermediates
+            for i, a in enumerate(wargs):
+                grads[i] = torch.zeros_like(grads[i])
+                a.grad = wp.from_torch(grads[i], dtype=a.dtype)
+            for a in pouts[:6]:
+                a.grad.zero_()
+        H, W = ctx.image_size
+        dtype = grads[0].dtype
+        ups = [g.contiguous() if g is not None else torch.zeros(shape, dtype=dtype, device=device)
+               for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
+        io["upstream"] = [to_warp(ups[0], K.vec3), to_warp(ups[1], K.scalar), to_warp(ups[2], K.scalar)]
+        with warp_on(device):
             tape.backward()
-        ctx.state = None  # free the tape and buffers
-        return (*grads, screen[0], None, None)
+        return (*grads, io["screen"], None, None)

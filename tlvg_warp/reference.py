@@ -102,7 +102,9 @@ def render_reference(g: Gaussians, cam: Camera, background=None, *, sh_degree: i
     vis = proj.radii > 0
     order = torch.sort(proj.depth.float(), stable=True).indices  # the radix sort's (depth, index) order
     order = order[vis[order]]
-    m2, conic, op, col, dep = (x[order] for x in (proj.means2d, proj.conic, proj.opacity, proj.color, proj.depth))
+    probe = torch.zeros(g.num, 2, dtype=g.dtype, device=g.device, requires_grad=True)  # screen-mean gradient
+    m2 = (proj.means2d + probe)[order]
+    conic, op, col, dep = (x[order] for x in (proj.conic, proj.opacity, proj.color, proj.depth))
     # tile rectangle of each Gaussian, computed like the kernel (float32 means, exclusive upper bounds)
     tiles_x, tiles_y = math.ceil(cam.width / TILE), math.ceil(cam.height / TILE)
     mf, rf = proj.means2d.float()[order], proj.radii.float()[order]
@@ -139,6 +141,5 @@ def render_reference(g: Gaussians, cam: Camera, background=None, *, sh_degree: i
         if return_weights:
             weights = weights.index_add(0, order, w.sum(0))
     color = torch.cat(colors).reshape(H, W, 3)
-    probe = torch.zeros(g.num, 2, dtype=g.dtype, device=g.device)
     return RenderOutput(color, torch.cat(alphas).reshape(H, W), torch.cat(depths).reshape(H, W), proj.radii, probe,
                         weights if return_weights else None)

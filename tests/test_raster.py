@@ -1,0 +1,232 @@
+"""The Warp rasterizer against its float64 torch reference twin (SPEC §2), finite differences, and
+closed-form cases."""
+import math
+
+import pytest
+import torch
+
+from tlvg_warp import Camera, Gaussians, InputError, render
+from tlvg_warp.kernels.blend import ALPHA_MAX, T_MIN
+from tlvg_warp.reference import project_reference, render_reference
+
+# Same arithmetic in float64 on both sides; differences are summation order only.
+F64_TOL = 1e-9
+# Warp float32 against the float64 oracle: ~1e-7 relative per op, over up to a few hundred blended splats.
+F32_TOL = 2e-4
+# gradcheck central differences in float64 with eps 1e-6: truncation error ~eps² times curvature.
+GRADCHECK_ATOL = 1e-5
+FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+
+
+def random_scene(n, degree=1, seed=0, dtype=torch.float64, spread=0.6, log_scale=-2.5, opacity_shift=0.5):
+    gen = torch.Generator().manual_seed(seed)
+    r = lambda *s: torch.randn(*s, generator=gen, dtype=dtype)  # noqa: E731
+    return Gaussians(r(n, 3) * spread, r(n, 4), r(n, 3) * 0.3 + log_scale, r(n) + opacity_shift,
+                     r(n, (degree + 1) ** 2, 3) * 0.3)
+
+
+def camera(width=53, height=37, eye=(0.2, -3.0, 0.3), fov=60.0):
+    return Camera.look_at(eye, [0, 0, 0], width=width, height=height, fov_deg=fov)
+
+
+def leafs(g):
+    return Gaussians(**{f: getattr(g, f).detach().clone().requires_grad_(True) for f in FIELDS})
+
+
+def upstream(out, seed=1):
+    gen = torch.Generator().manual_seed(seed)
+    return [torch.randn(t.shape, generator=gen, dtype=t.dtype) for t in (out.color, out.alpha, out.depth)]
+
+
+def loss_grads(g, out, ups):
+    loss = sum((o * u).sum() for o, u in zip((out.color, out.alpha, out.depth), ups))
+    return torch.autograd.grad(loss, [getattr(g, f) for f in FIELDS] + [out.means2d], allow_unused=True)
+
+
+def assert_close(a, b, tol, what):
+    err = (a - b).abs().max().item() if a.numel() else 0.0
+    scale = max(1.0, b.abs().max().item() if b.numel() else 0.0)
+    assert err <= tol * scale, f"{what}: max error {err:.3g} > {tol:.1g} x {scale:.3g}"
+
+
+def compare(g, cam, tol=F64_TOL, background=None, **kw):
+    g1, g2 = leafs(g), leafs(g)
+    out = render(g1, cam, background, return_weights=True, **kw)
+    ref = render_reference(g2, cam, background, return_weights=True, **kw)
+    for k in ("color", "alpha", "depth", "weights"):
+        assert_close(getattr(out, k), getattr(ref, k), tol, k)
+    assert torch.equal(out.radii, ref.radii)
+    ups = upstream(ref)
+    for name, a, b in zip(FIELDS + ("means2d",), loss_grads(g1, out, ups), loss_grads(g2, ref, ups)):
+        assert_close(a, b, tol, f"d/d{name}")
+    return out, ref
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_matches_reference_each_sh_degree(degree):
+    out, _ = compare(random_scene(250, degree, seed=degree), camera(), background=[0.1, 0.2, 0.3])
+    assert out.alpha.max() > 0.5  # the scene is actually visible
+
+
+def test_float32_matches_float64_reference():
+    g = random_scene(250, 2, seed=5)
+    out = render(g.to(dtype=torch.float32), camera())
+    ref = render_reference(g, camera())
+    for k in ("color", "alpha", "depth"):
+        assert_close(getattr(out, k).double(), getattr(ref, k), F32_TOL, k)
+
+
+def test_gradcheck_warp_path_float64():
+    # low opacity keeps every pixel away from the clamp/stop thresholds, where the image is not smooth
+    g = random_scene(6, 1, seed=3, spread=0.3, log_scale=-1.8, opacity_shift=-1.5)
+    cam = camera(20, 15)
+
+    def fn(*tensors):
+        out = render(Gaussians(*tensors), cam, background=[0.3, 0.2, 0.1])
+        return out.color, out.alpha, out.depth
+
+    inputs = tuple(getattr(g, f).detach().clone().requires_grad_(True) for f in FIELDS)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=GRADCHECK_ATOL, rtol=1e-4)
+
+
+@pytest.mark.parametrize("size", [(16, 16), (33, 17), (17, 33), (1, 1), (70, 5)])
+def test_image_sizes_and_tile_edges(size):
+    w, h = size
+    g = random_scene(120, 1, seed=w * 100 + h)
+    compare(g, camera(w, h))
+
+
+def test_gaussians_on_tile_boundaries():
+    # centers exactly on tile corners/edges: the bounding box touches neighbouring tiles exactly
+    cam = Camera(torch.eye(4), 40.0, 40.0, 24.0, 16.0, 48, 32)
+    uv = torch.tensor([[16.0, 16.0], [32.0, 16.0], [16.0, 0.0], [0.0, 0.0], [48.0, 32.0], [31.5, 15.5]], dtype=torch.float64)
+    z = torch.full((6, 1), 2.0, dtype=torch.float64)
+    means = torch.cat([(uv - torch.tensor([24.0, 16.0], dtype=torch.float64)) / 40.0 * z, z], 1)
+    g = Gaussians.from_colors(means, torch.rand(6, 3, dtype=torch.float64), 0.02, opacity=0.8)
+    out, _ = compare(g, cam)
+    assert (out.radii > 0).all()
+
+
+def test_binned_equals_brute_force():
+    # opacity < 0.35: beyond 3σ alpha < 1/255, so tile membership cannot change the image at all
+    g = random_scene(300, 1, seed=9, opacity_shift=-2.5)
+    g.opacity_logits.data.clamp_(max=math.log(0.34 / 0.66))
+    cam = camera(45, 29)
+    binned = render(g, cam)
+    brute = render(g, cam, all_tiles=True)
+    for k in ("color", "alpha", "depth"):
+        assert_close(getattr(binned, k), getattr(brute, k), F64_TOL, k)
+    # and brute force itself against the reference's brute force, at full opacity
+    compare(random_scene(150, 1, seed=10, opacity_shift=2.0), cam, all_tiles=True)
+
+
+def test_empty_scene_and_everything_culled():
+    cam = camera(20, 12)
+    bg = [0.25, 0.5, 0.75]
+    empty = Gaussians(*(torch.zeros(0, *s, dtype=torch.float64) for s in [(3,), (4,), (3,)]),
+                      torch.zeros(0, dtype=torch.float64), torch.zeros(0, 1, 3, dtype=torch.float64))
+    behind = random_scene(50, 0, seed=2)
+    behind.means.data[:, 1] = -10.0  # behind the camera at y = -3 looking along +y
+    for g in (empty, behind):
+        gl = leafs(g)
+        out = render(gl, cam, background=bg)
+        assert torch.allclose(out.color, torch.tensor(bg, dtype=torch.float64).expand(12, 20, 3))
+        assert (out.alpha == 0).all() and (out.depth == 0).all() and (out.radii == 0).all()
+        grads = torch.autograd.grad(out.color.sum() + out.alpha.sum(), [gl.means, gl.sh], allow_unused=True)
+        assert all(gr is None or (gr == 0).all() for gr in grads)
+
+
+def test_one_gaussian_covering_the_whole_image():
+    cam = camera(40, 30)
+    g = Gaussians.from_colors(torch.zeros(1, 3, dtype=torch.float64), torch.tensor([[0.9, 0.4, 0.1]], dtype=torch.float64),
+                              3.0, opacity=0.7)
+    out, _ = compare(g, cam)
+    assert (out.alpha > 0.3).all()  # every pixel, corners included
+    # closed form at the image center: alpha = o · exp(-½ dᵀΣ⁻¹d) with d ≈ 0
+    assert abs(out.alpha[15, 20].item() - 0.7) < 1e-3
+
+
+def test_thousands_on_one_pixel_stop_early():
+    # 3000 identical splats: each pixel blends k of them, k the largest with (1-α)^k >= T_MIN (closed form)
+    n = 3000
+    g = Gaussians.from_colors(torch.zeros(n, 3, dtype=torch.float64), torch.full((n, 3), 0.6, dtype=torch.float64),
+                              0.05, opacity=0.9)
+    cam = camera(24, 20)
+    out, _ = compare(g, cam)
+    proj = project_reference(g.subset(slice(0, 1)), cam)
+    jj, ii = torch.meshgrid(torch.arange(24, dtype=torch.float64) + 0.5, torch.arange(20, dtype=torch.float64) + 0.5,
+                            indexing="xy")
+    dx, dy = jj - proj.means2d[0, 0], ii - proj.means2d[0, 1]
+    q = proj.conic[0]
+    a = (0.9 * torch.exp(-0.5 * (q[0] * dx * dx + q[2] * dy * dy) - q[1] * dx * dy)).clamp(max=ALPHA_MAX)
+    k = torch.floor(math.log(T_MIN) / torch.log1p(-a) + 1e-9).clamp(max=n)
+    expect = torch.where(a >= 1 / 255, 1 - (1 - a) ** k, torch.zeros_like(a))
+    assert_close(out.alpha, expect, 1e-9, "alpha after the early stop")
+    assert k.min() < 0.01 * n  # the center pixels stopped after a few splats out of thousands
+
+
+def test_sh_degree_argument_truncates():
+    g = random_scene(100, 3, seed=4)
+    low = render(g, camera(), sh_degree=1)
+    ref = render_reference(g.with_sh_degree(1), camera())
+    assert_close(low.color, ref.color, F64_TOL, "color at degree 1")
+
+
+def test_degenerate_gaussians_do_not_poison_others():
+    g = random_scene(60, 1, seed=7)
+    bad = random_scene(5, 1, seed=8)
+    bad.log_scales.data[0] = -torch.inf  # zero scale: a point, blurred to ~one pixel
+    bad.log_scales.data[1] = 200.0  # huge: exp overflows, culled
+    bad.quats.data[2] = 0.0  # zero quaternion: identity rotation
+    cam = camera()
+    bad.means.data[3] = cam.center + 0.005 * cam.R[2]  # 5 mm in front of the camera, inside near
+    bad.means.data[4, 0] = torch.nan  # NaN: culled alone
+    both = Gaussians(**{f: torch.cat([getattr(g, f), getattr(bad, f)]) for f in FIELDS})
+    gl = leafs(both)
+    out = render(gl, camera())
+    ups = upstream(out)
+    grads = loss_grads(gl, out, ups)
+    assert all(torch.isfinite(t).all() for t in (out.color, out.alpha, out.depth))
+    assert all(torch.isfinite(gr[:60]).all() for gr in grads[:5])
+    # removing the culled ones changes nothing
+    keep = torch.tensor([True] * 60 + [True, False, True, False, False])
+    sub = leafs(both.subset(keep))
+    out2 = render(sub, camera())
+    assert_close(out.color, out2.color, F64_TOL, "color without culled")
+    grads2 = loss_grads(sub, out2, ups)
+    for a, b in zip(grads[:5], grads2[:5]):
+        assert_close(a[:60], b[:60], F64_TOL, "gradients of the healthy Gaussians")
+    assert (out.radii[[61, 63, 64]] == 0).all()
+
+
+def test_screen_space_gradient_is_mean2d_gradient():
+    g = random_scene(80, 0, seed=11)
+    gl = leafs(g)
+    out = render(gl, camera())
+    out.color.sum().backward()
+    ref = render_reference(g, camera())
+    (gref,) = torch.autograd.grad(ref.color.sum(), [ref.means2d])
+    assert_close(out.means2d.grad, gref, F64_TOL, "screen-space mean gradient")
+    assert out.means2d.grad[out.radii > 0].abs().sum() > 0
+
+
+def test_bad_input_is_a_clear_error():
+    g = random_scene(10, 0)
+    cam = camera()
+    with pytest.raises(InputError, match="means has shape"):
+        Gaussians(torch.zeros(10, 2), g.quats.float(), g.log_scales.float(), g.opacity_logits.float(), g.sh.float())
+    with pytest.raises(InputError, match="float32 or all float64"):
+        Gaussians(g.means.half(), g.quats.half(), g.log_scales.half(), g.opacity_logits.half(), g.sh.half())
+    with pytest.raises(InputError, match="float32 or all float64"):
+        Gaussians(g.means.float(), g.quats, g.log_scales, g.opacity_logits, g.sh)
+    with pytest.raises(InputError, match="mixed devices"):
+        Gaussians(g.means.to("meta"), g.quats, g.log_scales, g.opacity_logits, g.sh)
+    with pytest.raises(InputError, match="non-finite"):
+        Camera(torch.full((4, 4), float("nan")), 10, 10, 5, 5, 10, 10)
+    with pytest.raises(InputError, match="size must be positive"):
+        Camera(torch.eye(4), 10, 10, 5, 5, 0, 10)
+    cam.world_to_camera[0, 3] = float("inf")  # mutated after construction
+    with pytest.raises(InputError, match="non-finite"):
+        render(g, cam)
+    with pytest.raises(InputError, match="background"):
+        render(g, camera(), background=[1.0, 2.0])
