@@ -217,3 +217,11 @@ def test_blender_bad_json_and_missing_frame(tmp_path):
 def test_missing_image_folder(tmp_path):
     _llff(tmp_path, n=2)
     _raises(lambda: load_dataset(tmp_path, images="images_8"), "images_8", "does not exist")
+
+
+def test_non_finite_blender_pose_names_json(tmp_path):
+    _blender(tmp_path)
+    meta = json.loads((tmp_path / "transforms_test.json").read_text())
+    meta["camera_angle_x"] = 0.0  # focal = 0.5 W / tan(0) -> infinite
+    (tmp_path / "transforms_test.json").write_text(json.dumps(meta))
+    _raises(lambda: load_dataset(tmp_path), "transforms_test.json")
