@@ -24,7 +24,8 @@ def _scene():
     # ids deliberately not in name order: the dataset must sort by image name
     images = [(1, q[0], t[0], 1, "b.png", xys[0], p3d[0]), (2, q[1], t[1], 2, "a.png", xys[1], p3d[1]),
               (5, q[2], t[2], 1, "c.png", xys[2], p3d[2])]
-    points = [(7, [0.1, 0.2, 0.3], [255, 0, 10], 0.5, [(1, 0)]), (9, [1.0, -2.0, 3.5], [1, 2, 3], 0.25, [(5, 0), (1, 1)])]
+    points = [(7, [0.1, 0.2, 0.3], [255, 0, 10], 0.5, [(1, 0)]),
+              (9, [1.0, -2.0, 3.5], [1, 2, 3], 0.25, [(5, 0), (1, 1)])]
     return [PINHOLE, RADIAL], images, points
 
 

@@ -9,7 +9,8 @@ from tlvg_warp import load_dataset
 from tlvg_warp.io import colmap
 
 ROOT = data_root()
-pytestmark = pytest.mark.skipif(ROOT is None, reason="../shared/data (or $TLVG_DATA) not found: real-scene tests skipped")
+pytestmark = pytest.mark.skipif(ROOT is None,
+                                reason="../shared/data (or $TLVG_DATA) not found: real-scene tests skipped")
 
 FERN_INSIDE_MIN = 0.9  # fern is forward-facing: ~96-99% of its SfM points fall inside every view; a wrong
 #                        axis order or a recentred frame puts most of them outside or behind the camera
