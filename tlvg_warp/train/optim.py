@@ -1,0 +1,268 @@
+"""Trainable Gaussian parameters, Adam with per-group learning rates (SPEC §3) and post-step hooks.
+
+``GaussianParams`` holds the parameters as leaf tensors (``requires_grad=True``), with the SH split into
+the DC band and the rest (they have different learning rates). ``GaussianOptimizer`` is one
+``torch.optim.Adam`` (eps 1e-15) with one group per field, the exponential xyz decay, and hooks called
+after every step. Density control adds and removes Gaussians through ``GaussianOptimizer.rebuild`` which
+keeps Adam's ``exp_avg`` / ``exp_avg_sq`` aligned with the parameters (kept rows sliced, new rows zero).
+
+Learning rates (3DGS defaults, SPEC §3): xyz 1.6e-4·extent decaying exponentially to 1.6e-6·extent,
+SH DC 2.5e-3, SH rest 1.25e-4 (= DC/20), opacity 0.05, scale 5e-3, rotation 1e-3. Opacity: graphdeco's
+original release (the one its paper numbers come from) and SPEC §3 use 0.05; their 2024 update lowered
+it to 0.025 together with other changes. We use 0.05 for both reconstruction and stylization.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..types import Gaussians, sh_coeffs
+
+FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+GEOMETRY = ("means", "log_scales", "opacity_logits")  # what the post-process color fit keeps frozen
+
+
+@dataclass
+class LearningRates:
+    means: float = 1.6e-4  # xyz start, multiplied by the scene extent
+    means_final: float = 1.6e-6  # xyz end of the exponential decay, times the extent
+    means_steps: int = 30000  # steps over which xyz decays (then stays at means_final)
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 1.25e-4
+    opacity: float = 0.05
+    scales: float = 5e-3
+    quats: float = 1e-3
+
+    def for_field(self, name: str, extent: float) -> float:
+        return {"means": self.means * extent, "quats": self.quats, "log_scales": self.scales,
+                "opacity_logits": self.opacity, "sh_dc": self.sh_dc, "sh_rest": self.sh_rest}[name]
+
+
+def exp_decay(step: int, start: float, end: float, steps: int) -> float:
+    """3DGS's log-linear interpolation from ``start`` (step 0) to ``end`` (step ``steps``), clamped."""
+    if steps <= 0 or start <= 0 or end <= 0:
+        return start
+    t = min(max(step / steps, 0.0), 1.0)
+    return math.exp((1 - t) * math.log(start) + t * math.log(end))
+
+
+class GaussianParams:
+    """The trainable tensors of a scene. ``sh_rest`` holds the coefficients of the **maximum** degree from
+    the start (zeros above the active degree, which the renderer skips), as 3DGS does."""
+
+    def __init__(self, g: Gaussians, max_sh_degree: int | None = None, frozen=()):
+        max_sh_degree = g.sh_degree if max_sh_degree is None else int(max_sh_degree)
+        g = g.with_sh_degree(max_sh_degree).detach()
+        self.frozen = tuple(frozen)
+        self.max_sh_degree = max_sh_degree
+        tensors = {"means": g.means, "quats": g.quats, "log_scales": g.log_scales,
+                   "opacity_logits": g.opacity_logits, "sh_dc": g.sh[:, :1], "sh_rest": g.sh[:, 1:]}
+        for name, t in tensors.items():
+            setattr(self, name, t.clone().contiguous().requires_grad_(name not in self.frozen))
+
+    # views --------------------------------------------------------------------------------------
+    def tensors(self) -> dict:
+        return {f: getattr(self, f) for f in FIELDS}
+
+    def gaussians(self) -> Gaussians:
+        """A differentiable view (the SH bands concatenated)."""
+        return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits,
+                         torch.cat([self.sh_dc, self.sh_rest], dim=1))
+
+    def detached(self) -> Gaussians:
+        return self.gaussians().clone()
+
+    @property
+    def num(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def device(self):
+        return self.means.device
+
+    def trainable(self) -> list[str]:
+        return [f for f in FIELDS if f not in self.frozen]
+
+    def state_dict(self) -> dict:
+        return {"tensors": {f: t.detach().clone() for f, t in self.tensors().items()},
+                "frozen": list(self.frozen), "max_sh_degree": self.max_sh_degree}
+
+    @staticmethod
+    def from_state_dict(sd: dict, device=None) -> "GaussianParams":
+        t = {k: v.to(device) if device is not None else v for k, v in sd["tensors"].items()}
+        g = Gaussians(t["means"], t["quats"], t["log_scales"], t["opacity_logits"],
+                      torch.cat([t["sh_dc"], t["sh_rest"]], dim=1))
+        return GaussianParams(g, sd["max_sh_degree"], sd.get("frozen", ()))
+
+    def all_finite(self) -> torch.Tensor:
+        """A 0-dim bool tensor on the device (no host sync)."""
+        ok = torch.ones((), dtype=torch.bool, device=self.device)
+        for t in self.tensors().values():
+            ok = ok & torch.isfinite(t).all()
+        return ok
+
+
+class GaussianOptimizer:
+    """Adam (eps 1e-15) with one parameter group per field, xyz decay and post-step hooks.
+
+    A hook is ``fn(params, before)`` where ``before`` maps field names to the values before the step
+    (only the fields asked for at registration are snapshotted). Hooks run under ``torch.no_grad``
+    and may modify the parameters in place."""
+
+    def __init__(self, params: GaussianParams, lrs: LearningRates | None = None, extent: float = 1.0,
+                 decay_steps: int | None = None):
+        self.params, self.lrs, self.extent = params, lrs or LearningRates(), float(extent)
+        self.decay_steps = self.lrs.means_steps if decay_steps is None else int(decay_steps)
+        groups = [{"params": [getattr(params, f)], "lr": self.lrs.for_field(f, self.extent), "name": f}
+                  for f in params.trainable()]
+        self.adam = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        self.hooks: list = []  # (fn, fields)
+
+    # learning rates ------------------------------------------------------------------------------
+    def set_step(self, step: int) -> float:
+        """Set the xyz learning rate for ``step`` (0-based); returns it."""
+        lr = exp_decay(step, self.lrs.means * self.extent, self.lrs.means_final * self.extent, self.decay_steps)
+        for g in self.adam.param_groups:
+            if g["name"] == "means":
+                g["lr"] = lr
+        return lr
+
+    def lr(self, name: str) -> float:
+        return next(g["lr"] for g in self.adam.param_groups if g["name"] == name)
+
+    # hooks -----------------------------------------------------------------------------------------
+    def register_post_step_hook(self, fn, fields=("means",)):
+        """Call ``fn(params, before)`` after each Adam step. Returns a handle with ``.remove()``."""
+        entry = (fn, tuple(fields))
+        self.hooks.append(entry)
+
+        class _Handle:
+            def remove(_self):
+                if entry in self.hooks:
+                    self.hooks.remove(entry)
+        return _Handle()
+
+    # stepping --------------------------------------------------------------------------------------
+    def step(self) -> None:
+        before = {}
+        with torch.no_grad():
+            for _, fields in self.hooks:
+                for f in fields:
+                    if f not in before:
+                        before[f] = getattr(self.params, f).detach().clone()
+        self.adam.step()
+        if self.hooks:
+            with torch.no_grad():
+                for fn, _ in self.hooks:
+                    fn(self.params, before)
+
+    def zero_grad(self) -> None:
+        self.adam.zero_grad(set_to_none=True)
+
+    # structural changes ------------------------------------------------------------------------------
+    def _group(self, name):
+        return next((g for g in self.adam.param_groups if g["name"] == name), None)
+
+    def replace(self, name: str, new: torch.Tensor, reset_state: torch.Tensor | None = None) -> None:
+        """Swap field ``name`` for ``new`` (same shape). ``reset_state``: bool mask [N] of rows whose Adam
+        moments are zeroed (e.g. the opacity reset), None to keep them all."""
+        old = getattr(self.params, name)
+        new = new.detach().contiguous().requires_grad_(old.requires_grad)
+        group = self._group(name)
+        if group is not None:
+            state = self.adam.state.pop(old, {})
+            if reset_state is not None:
+                for k in ("exp_avg", "exp_avg_sq"):
+                    if k in state:
+                        m = reset_state.view(-1, *([1] * (state[k].dim() - 1)))
+                        state[k] = torch.where(m, torch.zeros_like(state[k]), state[k])
+            group["params"][0] = new
+            if state:
+                self.adam.state[new] = state
+        setattr(self.params, name, new)
+
+    def rebuild(self, keep: torch.Tensor | None, appended: dict | None) -> None:
+        """New parameters = ``cat(old[keep], appended[field])`` for every field; Adam moments likewise
+        (kept rows sliced, appended rows zero). ``keep`` is a bool mask or an index tensor (None: all)."""
+        for name in FIELDS:
+            old = getattr(self.params, name)
+            parts = [old.detach() if keep is None else old.detach()[keep]]
+            if appended:
+                parts.append(appended[name].to(dtype=old.dtype, device=old.device))
+            new = torch.cat(parts, dim=0).contiguous().requires_grad_(old.requires_grad)
+            group = self._group(name)
+            if group is not None:
+                state = self.adam.state.pop(old, {})
+                for k in ("exp_avg", "exp_avg_sq"):
+                    if k in state:
+                        s = [state[k] if keep is None else state[k][keep]]
+                        if appended:
+                            s.append(torch.zeros_like(parts[1]))
+                        state[k] = torch.cat(s, dim=0).contiguous()
+                group["params"][0] = new
+                if state:
+                    self.adam.state[new] = state
+            setattr(self.params, name, new)
+
+    # checkpoints -------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        out = {"lr": {g["name"]: g["lr"] for g in self.adam.param_groups}, "state": {}}
+        for g in self.adam.param_groups:
+            st = self.adam.state.get(g["params"][0], {})
+            out["state"][g["name"]] = {k: (v.detach().clone() if torch.is_tensor(v) else v) for k, v in st.items()}
+        return out
+
+    def load_state_dict(self, sd: dict) -> None:
+        for g in self.adam.param_groups:
+            g["lr"] = sd["lr"].get(g["name"], g["lr"])
+            st = sd["state"].get(g["name"])
+            if st:
+                p = g["params"][0]
+                self.adam.state[p] = {k: (v.to(p.device) if torch.is_tensor(v) and k != "step" else v)
+                                      for k, v in st.items()}
+
+
+def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """[N,4] w,x,y,z (any norm) -> [N,3,3] rotation matrices."""
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).view(*q.shape[:-1], 3, 3)
+
+
+def footprint_normals(quats: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
+    """n_i = R(q_i)·e_k with k = argmin scale: the axis of the Gaussian's thinnest extent. [N,3]."""
+    R = quat_to_rotmat(quats)
+    k = log_scales.argmin(dim=-1)
+    return torch.gather(R, 2, k.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(-1)  # column k
+
+
+def tangential_hook(lam: float = 1.0):
+    """Post-step hook (paper eq. 3): μ ← μ_before + Δμ − λ(Δμ·n)n, Δμ the Adam step just taken and n the
+    footprint normal (from the parameters after the step). λ=1 removes the normal component entirely."""
+    lam = float(lam)
+
+    def hook(params: GaussianParams, before: dict) -> None:
+        mu0 = before["means"]
+        delta = params.means.detach() - mu0
+        n = footprint_normals(params.quats.detach(), params.log_scales.detach()).to(delta.dtype)
+        delta = delta - lam * (delta * n).sum(-1, keepdim=True) * n
+        params.means.data.copy_(mu0 + delta)
+
+    hook.fields = ("means",)
+    return hook
+
+
+def build_gaussians_optimizer(g: Gaussians, lrs: LearningRates, extent: float, max_sh_degree=None,
+                              frozen=(), decay_steps=None) -> tuple[GaussianParams, GaussianOptimizer]:
+    params = GaussianParams(g, max_sh_degree, frozen)
+    return params, GaussianOptimizer(params, lrs, extent, decay_steps)
+
+
+__all__ = ["FIELDS", "GEOMETRY", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
+           "quat_to_rotmat", "footprint_normals", "tangential_hook", "build_gaussians_optimizer", "sh_coeffs"]
