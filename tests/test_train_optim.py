@@ -1,0 +1,139 @@
+"""Adam parameter groups, the xyz decay, structural rebuilds of the Adam state, and the tangential hook."""
+import math
+
+import pytest
+import torch
+
+from tlvg_warp import Gaussians
+from tlvg_warp.train.optim import (FIELDS, GaussianOptimizer, GaussianParams, LearningRates, exp_decay,
+                                   footprint_normals, quat_to_rotmat, tangential_hook)
+
+FLOAT_TOL = 1e-6  # float32 arithmetic on O(1) values
+EXTENT = 2.5
+
+
+def random_gaussians(n=40, degree=2, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    k = (degree + 1) ** 2
+    return Gaussians(torch.randn(n, 3, generator=gen), torch.randn(n, 4, generator=gen),
+                     torch.randn(n, 3, generator=gen) * 0.5 - 3, torch.randn(n, generator=gen),
+                     torch.randn(n, k, 3, generator=gen))
+
+
+def fake_grads(params, seed):
+    gen = torch.Generator().manual_seed(seed)
+    for f in params.trainable():
+        p = getattr(params, f)
+        p.grad = torch.randn(p.shape, generator=gen)
+
+
+def test_learning_rates_per_group_and_decay():
+    params = GaussianParams(random_gaussians(), 3)
+    opt = GaussianOptimizer(params, LearningRates(), EXTENT, decay_steps=1000)
+    assert opt.adam.defaults["eps"] == 1e-15
+    expect = {"means": 1.6e-4 * EXTENT, "sh_dc": 2.5e-3, "sh_rest": 1.25e-4, "opacity_logits": 0.05,
+              "log_scales": 5e-3, "quats": 1e-3}
+    for name, lr in expect.items():
+        assert opt.lr(name) == pytest.approx(lr)
+    assert params.sh_rest.shape[1] == 15  # max degree 3 stored from the start
+    assert opt.set_step(0) == pytest.approx(1.6e-4 * EXTENT)
+    assert opt.set_step(1000) == pytest.approx(1.6e-6 * EXTENT)
+    assert opt.set_step(5000) == pytest.approx(1.6e-6 * EXTENT)  # clamped after the decay
+    # log-linear: the midpoint is the geometric mean
+    assert opt.set_step(500) == pytest.approx(math.sqrt(1.6e-4 * 1.6e-6) * EXTENT)
+    assert exp_decay(250, 1.0, 1e-4, 1000) == pytest.approx(10 ** -1)
+
+
+def test_frozen_geometry_is_not_optimized():
+    params = GaussianParams(random_gaussians(), frozen=("means", "log_scales", "opacity_logits"))
+    opt = GaussianOptimizer(params, LearningRates(), EXTENT)
+    before = {f: getattr(params, f).detach().clone() for f in FIELDS}
+    fake_grads(params, 1)
+    opt.step()
+    for f in ("means", "log_scales", "opacity_logits"):
+        assert torch.equal(getattr(params, f), before[f])
+    for f in ("quats", "sh_dc"):
+        assert not torch.equal(getattr(params, f), before[f])
+
+
+def test_rebuild_slices_and_extends_adam_state():
+    params = GaussianParams(random_gaussians(30), 2)
+    opt = GaussianOptimizer(params, LearningRates(), EXTENT)
+    for s in range(3):
+        fake_grads(params, s)
+        opt.step()
+    old_state = {f: {k: opt.adam.state[getattr(params, f)][k].clone() for k in ("exp_avg", "exp_avg_sq")}
+                 for f in FIELDS}
+    old = {f: getattr(params, f).detach().clone() for f in FIELDS}
+    keep = torch.zeros(30, dtype=torch.bool)
+    keep[[0, 3, 4, 17, 29]] = True
+    appended = {f: torch.full((2,) + old[f].shape[1:], 7.0) for f in FIELDS}
+    opt.rebuild(keep, appended)
+    for f in FIELDS:
+        p = getattr(params, f)
+        assert p.shape[0] == 7 and p.is_leaf and p.requires_grad
+        assert torch.equal(p[:5], old[f][keep]) and torch.all(p[5:] == 7)
+        st = opt.adam.state[p]
+        for k in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(st[k][:5], old_state[f][k][keep])
+            assert torch.all(st[k][5:] == 0)
+        assert opt.adam.param_groups[[g["name"] for g in opt.adam.param_groups].index(f)]["params"][0] is p
+    fake_grads(params, 9)
+    opt.step()  # the rebuilt optimizer still steps
+    assert torch.isfinite(params.means).all()
+
+
+def test_footprint_normal_is_thinnest_axis():
+    g = random_gaussians(50)
+    n = footprint_normals(g.quats, g.log_scales)
+    R = quat_to_rotmat(g.quats)
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3).expand(50, 3, 3), atol=1e-5)
+    k = g.log_scales.argmin(1)
+    for i in range(50):  # independent per-Gaussian oracle
+        assert torch.allclose(n[i], R[i][:, k[i]], atol=FLOAT_TOL)
+    # identity rotation, z thinnest -> n = e_z
+    n0 = footprint_normals(torch.tensor([[1.0, 0, 0, 0]]), torch.tensor([[0.0, -1.0, -2.0]]))
+    assert torch.allclose(n0, torch.tensor([[0.0, 0.0, 1.0]]))
+
+
+@pytest.mark.parametrize("lam", [1.0, 0.5, 0.0])
+def test_tangential_hook_closed_form(lam):
+    g = random_gaussians(64, 0, seed=3)
+    pa, pb = GaussianParams(g), GaussianParams(g)
+    opt_a = GaussianOptimizer(pa, LearningRates(means=1e-2), EXTENT)  # plain Adam: the reference step
+    opt_b = GaussianOptimizer(pb, LearningRates(means=1e-2), EXTENT)
+    opt_b.register_post_step_hook(tangential_hook(lam), fields=("means",))
+    mu0 = g.means.clone()
+    for s in range(2):
+        fake_grads(pa, 10 + s)
+        fake_grads(pb, 10 + s)
+        start_b = pb.means.detach().clone()
+        opt_a.step()
+        opt_b.step()
+        if s == 0:
+            delta = pa.means.detach() - mu0  # the step Adam takes (same state, same grads)
+            n = footprint_normals(pb.quats.detach(), pb.log_scales.detach())
+            want = mu0 + delta - lam * (delta * n).sum(1, keepdim=True) * n
+            assert torch.allclose(pb.means, want, atol=FLOAT_TOL)
+            got = pb.means.detach() - mu0
+            normal = (got * n).sum(1)
+            assert torch.allclose(normal, (1 - lam) * (delta * n).sum(1), atol=FLOAT_TOL)
+            tang = got - normal[:, None] * n
+            assert torch.allclose(tang, delta - (delta * n).sum(1, keepdim=True) * n, atol=FLOAT_TOL)
+            assert (delta * n).sum(1).abs().max() > 1e-3  # the step did have a normal part to remove
+        else:
+            n = footprint_normals(pb.quats.detach(), pb.log_scales.detach())
+            if lam == 1.0:
+                assert ((pb.means.detach() - start_b) * n).sum(1).abs().max() < FLOAT_TOL
+
+
+def test_hook_handle_removes():
+    params = GaussianParams(random_gaussians(8, 0))
+    opt = GaussianOptimizer(params, LearningRates(), EXTENT)
+    calls = []
+    h = opt.register_post_step_hook(lambda p, before: calls.append(before["means"].shape))
+    fake_grads(params, 0)
+    opt.step()
+    h.remove()
+    opt.step()
+    assert calls == [torch.Size([8, 3])]
