@@ -11,10 +11,12 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
     """All differentiable-pipeline kernels for ``"float32"`` or ``"float64"``."""
     from . import binning
     from .blend import make_blend
+    from .flow import make_flow_terms
     from .projection import make_projection, module_name
 
     scalar = {"float32": wp.float32, "float64": wp.float64}[scalar_name]
-    project = make_projection(scalar)
+    project, ewa_cov2d = make_projection(scalar)
+    flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d)
     forward, backward = make_blend(scalar, module_name(scalar))
     return SimpleNamespace(
         scalar=scalar,
@@ -23,6 +25,7 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
         vec4=wp.types.vector(4, scalar),
         mat33=wp.types.matrix((3, 3), scalar),
         project=project,
+        flow_terms=flow_terms,
         blend_forward=forward,
         blend_backward=backward,
         count_tiles=binning.count_tiles_kernel,

@@ -28,6 +28,7 @@ def make_projection(scalar):
     vec4 = wp.types.vector(4, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
     mat23 = wp.types.matrix((2, 3), scalar)
+    mat22 = wp.types.matrix((2, 2), scalar)
     mod = module_name(scalar)
     C20, C21, C22, C23, C24 = SH_C2  # kernels capture plain floats, not tuples
     C30, C31, C32, C33, C34, C35, C36 = SH_C3
@@ -82,6 +83,23 @@ def make_projection(scalar):
                     c += scalar(C36) * x * (xx - scalar(3.0) * yy) * sh[i, 15]
         return c
 
+    @wp.func
+    def ewa_cov2d(p: vec3, q: vec4, s: vec3, R: mat33, fx: scalar, fy: scalar, width: int, height: int) -> mat22:
+        """Σ2D = J W Σ Wᵀ Jᵀ (before the blur) of a Gaussian at camera-space p with rotation q, scales s."""
+        M = quat_to_rotation(q) * wp.diag(s)
+        Sigma = M * wp.transpose(M)
+        # EWA: Jacobian of the perspective map at the (clamped) mean
+        lim_x = scalar(FOV_CLAMP) * scalar(0.5) * scalar(width) / fx
+        lim_y = scalar(FOV_CLAMP) * scalar(0.5) * scalar(height) / fy
+        z = p[2]
+        inv_z = scalar(1.0) / z
+        tx = wp.clamp(p[0] * inv_z, -lim_x, lim_x) * z
+        ty = wp.clamp(p[1] * inv_z, -lim_y, lim_y) * z
+        J = mat23(fx * inv_z, scalar(0.0), -fx * tx * inv_z * inv_z,
+                  scalar(0.0), fy * inv_z, -fy * ty * inv_z * inv_z)
+        T = J * R
+        return T * Sigma * wp.transpose(T)
+
     @wp.kernel(module=mod)
     def project_kernel(
         means: wp.array(dtype=vec3),  # [N]
@@ -125,19 +143,7 @@ def make_projection(scalar):
         s = vec3(wp.exp(ls[0]), wp.exp(ls[1]), wp.exp(ls[2]))
         if not wp.isfinite(s):
             return
-        Rq = quat_to_rotation(q)
-        M = Rq * wp.diag(s)
-        Sigma = M * wp.transpose(M)
-        # EWA: Jacobian of the perspective map at the (clamped) mean
-        lim_x = scalar(FOV_CLAMP) * scalar(0.5) * scalar(width) / fx
-        lim_y = scalar(FOV_CLAMP) * scalar(0.5) * scalar(height) / fy
-        inv_z = scalar(1.0) / z
-        tx = wp.clamp(p[0] * inv_z, -lim_x, lim_x) * z
-        ty = wp.clamp(p[1] * inv_z, -lim_y, lim_y) * z
-        J = mat23(fx * inv_z, scalar(0.0), -fx * tx * inv_z * inv_z,
-                  scalar(0.0), fy * inv_z, -fy * ty * inv_z * inv_z)
-        T = J * R
-        S2 = T * Sigma * wp.transpose(T)
+        S2 = ewa_cov2d(p, q, s, R, fx, fy, width, height)
         a = S2[0, 0] + scalar(EWA_BLUR)
         b = S2[0, 1]
         c = S2[1, 1] + scalar(EWA_BLUR)
@@ -147,6 +153,7 @@ def make_projection(scalar):
         mid = scalar(0.5) * (a + c)
         lam_max = mid + wp.sqrt(wp.max(mid * mid - det, scalar(0.0)))
         r = wp.ceil(scalar(SIGMA_CUTOFF) * wp.sqrt(lam_max))
+        inv_z = scalar(1.0) / z
         u = fx * p[0] * inv_z + cx
         v = fy * p[1] * inv_z + cy
         # cull when the 3σ bounding box misses the image (pixel centers lie in [0.5, W-0.5])
@@ -168,4 +175,4 @@ def make_projection(scalar):
         rgb = eval_sh(sh, i, sh_degree, dvec) + vec3(scalar(0.5), scalar(0.5), scalar(0.5))
         color[i] = vec3(wp.max(rgb[0], scalar(0.0)), wp.max(rgb[1], scalar(0.0)), wp.max(rgb[2], scalar(0.0)))
 
-    return project_kernel
+    return project_kernel, ewa_cov2d
