@@ -116,7 +116,8 @@ def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = Fal
     wkeys, wids = wp.from_torch(keys), wp.from_torch(ids)
     wp.launch(K.emit_keys, dim=n, inputs=[m2, radii, wp.from_torch(depth_bits), wp.from_torch(starts), tiles_x,
                                           tiles_y, int(all_tiles)], outputs=[wkeys, wids], device=wdev)
-    wp.utils.radix_sort_pairs(wkeys, wids, total)
+    tile_bits = max(1, (tiles_x * tiles_y - 1).bit_length())
+    wp.utils.radix_sort_pairs(wkeys, wids, total, 0, 32 + tile_bits)  # only the bits keys use
     wp.launch(K.tile_ranges, dim=total, inputs=[wkeys, total], outputs=[wp.from_torch(ranges)], device=wdev)
     return ranges, ids[:total], tiles_x, tiles_y
 
