@@ -191,21 +191,23 @@ def render_views(g, cameras, background=None) -> list[dict]:
 
 
 def scene_metrics(views, painting, net=None, originals=None, targets=None, ks=(SHORT_K, LONG_K),
-                  rel_tol: float = DEPTH_REL_TOL) -> dict:
+                  rel_tol: float = DEPTH_REL_TOL, colors=None) -> dict:
     """All SPEC §4 image metrics of one stylized scene.
 
     views: render_views() output of the stylized scene; painting [h,w,3] in [0,1]; net: VGG (None skips
     the VGG distances); originals: un-stylized colors per view (content distance); targets: stored target
-    doubled-angle fields per view (None entries fall back to the canvas mapping).
+    doubled-angle fields per view (None entries fall back to the canvas mapping); colors: the images the
+    per-view metrics are measured on (default the renders' colors; consistency always uses the renders).
     Returns {"summary": {...}, "per_view": [...], "consistency": {...}}."""
     pd = painting_field(painting)
     sf = style_target_feats(net, painting) if net is not None else None
     per_view = []
     for n, v in enumerate(views):
-        row = {"flow_alignment": flow_alignment(v["color"], pd, None if targets is None else targets[n]),
+        img = v["color"] if colors is None or colors[n] is None else colors[n]
+        row = {"flow_alignment": flow_alignment(img, pd, None if targets is None else targets[n]),
                "nan": nan_count(v["color"], v["depth"], v["alpha"])}
         if net is not None:
-            row |= vgg_distances(net, v["color"], None if originals is None else originals[n], sf)
+            row |= vgg_distances(net, img, None if originals is None else originals[n], sf)
         per_view.append(row)
     cons = multiview_consistency(views, ks, rel_tol)
     summary = {k: mean_or_none([r.get(k) for r in per_view])
