@@ -1,0 +1,231 @@
+"""`python -m tlvg_warp stylize`: turn a 3DGS scene into a walkable painting (issue 5).
+
+No arguments: the built-in demo still life with Van Gogh's The Starry Night, sized for a few minutes on a CPU
+(DEMO_ITERATIONS iterations at 1/DEMO_DOWNSCALE of 160x120 unless --iterations / --downscale say otherwise).
+`--data DATASET` alone fits the scene first; `--scene PLY --data DATASET` stylizes a trained scene.
+Writes DIR/stylized.ply, config.yaml, log.jsonl, cameras.json, renders/, originals/, photos/, style.png,
+comparison.png, orbit.mp4, stroke_field.png, loss_curves.png, metrics.json (and checkpoint.pt)."""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+
+DEMO_ITERATIONS = 240  # the no-argument demo: ~2 minutes on 2 CPU cores (measured, see the report)
+DEMO_DOWNSCALE = 2.0  # 160x120 demo views rendered at 80x60
+MIN_STYLE_PX = 64  # a painting smaller than this has no brushstrokes left at VGG's relu3 (1/4 resolution)
+MAX_STYLE_PX = 8192  # larger paintings are resized (with a warning): the style loss sees height 256 anyway
+REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
+
+
+def add_arguments(p):
+    p.add_argument("--scene", default=None, metavar="PLY", help="a trained 3DGS scene (INRIA PLY); needs --data")
+    p.add_argument("--data", default=None, metavar="DATASET",
+                   help="posed photos (COLMAP, LLFF, Blender, INRIA); alone: the scene is fitted first")
+    p.add_argument("--style", default=None, metavar="IMAGE", help="the painting (default: The Starry Night)")
+    p.add_argument("--config", default=None, metavar="YAML",
+                   help=f"stylization config (default: {REPO_CONFIG.relative_to(REPO_CONFIG.parents[1])} "
+                        "when present, else the built-in defaults it mirrors)")
+    p.add_argument("--out", default=None, metavar="DIR", help="run folder (default: runs/stylize_<time>)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override any config key (repeatable), e.g. --set w_align=0.1")
+    p.add_argument("--iterations", type=int, default=None, help="total steps, split over the phases")
+    p.add_argument("--downscale", type=float, default=None, help="render resolution divisor")
+    p.add_argument("--vgg-weights", default=None, metavar="PATH|random",
+                   help="torchvision vgg16-397923af.pth (also $TLVG_VGG_WEIGHTS); 'random' for smoke runs only")
+    p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR")
+    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
+    p.add_argument("--device", default=None, choices=["cpu", "cuda", "auto"], help="(config: device)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+# --- inputs ----------------------------------------------------------------------------------------------------
+def load_style(path) -> torch.Tensor:
+    """The painting as float32 [H,W,3]; one-line InputError for missing / unreadable / tiny files."""
+    import cv2
+
+    from ..io.images import composite, read_image
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError("style image does not exist", p)
+    if p.is_dir():
+        raise InputError("style image is a folder, not an image file", p)
+    img = read_image(p)  # InputError when unreadable
+    h, w = img.shape[:2]
+    if min(h, w) < MIN_STYLE_PX:
+        raise InputError(f"style image is {w}x{h}; it needs at least {MIN_STYLE_PX} px on each side", p)
+    if img.shape[2] == 4:
+        warnings.warn(f"{p}: style image has an alpha channel; composited onto white")
+        img = composite(img, (1.0, 1.0, 1.0))
+    if max(h, w) > MAX_STYLE_PX:
+        s = MAX_STYLE_PX / max(h, w)
+        warnings.warn(f"{p}: style image is {w}x{h}; resized to fit {MAX_STYLE_PX} px")
+        img = cv2.resize(img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+    img = np.ascontiguousarray(img[:, :, :3], np.float32)
+    if np.abs(img[..., 0] - img[..., 1]).max() < 1e-6 and np.abs(img[..., 1] - img[..., 2]).max() < 1e-6:
+        warnings.warn(f"{p}: style image is grayscale; the stylized scene's chroma will follow it")
+    return torch.from_numpy(img)
+
+
+def _cameras_json_beside(ply: Path):
+    for d in (ply.parent, ply.parent.parent, ply.parent.parent.parent):
+        f = d / "cameras.json"
+        if f.is_file():
+            return f
+    return None
+
+
+def check_scene_matches(scene_path: Path, g, ds) -> None:
+    """A trained PLY and a dataset that do not belong together: camera count / image size against the
+    cameras.json written beside the PLY (INRIA / reconstruct layout), and the scene in front of the cameras."""
+    from ..train.init import points_in_front
+
+    cj = _cameras_json_beside(scene_path)
+    if cj is not None:
+        try:
+            cams = json.loads(cj.read_text())
+        except (OSError, ValueError):
+            cams = None
+        if isinstance(cams, list) and cams and isinstance(cams[0], dict):
+            if len(cams) != len(ds.cameras):
+                raise InputError(f"scene and dataset do not match: {cj} lists {len(cams)} cameras, the dataset "
+                                 f"has {len(ds.cameras)} views", scene_path)
+            w0, h0 = cams[0].get("width"), cams[0].get("height")
+            c = ds.cameras[0]
+            if w0 and h0 and abs(w0 / h0 - c.width / c.height) > 0.02:
+                raise InputError(f"scene and dataset do not match: {cj} has {w0}x{h0} images, the dataset "
+                                 f"{c.width}x{c.height} (a different aspect ratio)", scene_path)
+    sub = g.means[:: max(1, g.num // 20000)]
+    frac = float(points_in_front(sub, ds.cameras).float().mean())
+    if frac < 0.05:
+        raise InputError(f"scene and dataset do not match: only {100 * frac:.1f}% of the Gaussians are in front "
+                         f"of any of the dataset's cameras", scene_path)
+
+
+def _load_dataset(data: str, cfg):
+    from ..io import load_dataset
+
+    return load_dataset(data, downscale=cfg.downscale if cfg.downscale != 1 else None)
+
+
+def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool):
+    """(StylizeInputs, input bytes) from the demo, --scene + --data, or --data alone (fitted first)."""
+    from ..io import load_ply
+    from ..io.demo import builtin_painting, demo_dataset
+    from ..stylize import StylizeInputs
+
+    style = load_style(sources["style"]) if sources.get("style") else builtin_painting()
+    scene, data = sources.get("scene"), sources.get("data")
+    if scene is not None and data is None:
+        raise InputError("--scene needs --data (the cameras and photos the scene was trained from)")
+    if data is None:  # the demo
+        w, h = max(8, round(160 / cfg.downscale)), max(8, round(120 / cfg.downscale))
+        ds = demo_dataset(width=w, height=h)
+        g, bg, in_bytes = ds.gaussians, tuple(ds.background), None
+    else:
+        ds = _load_dataset(data, cfg)
+        bg = (1.0, 1.0, 1.0) if getattr(ds, "kind", "") == "blender" else (0.0, 0.0, 0.0)
+        if scene is not None:
+            sp = Path(scene)
+            g = load_ply(sp)
+            check_scene_matches(sp, g, ds)
+            in_bytes = sp.stat().st_size
+        else:
+            g, in_bytes = _fit_first(ds, cfg, out, quiet)
+            sources["scene"] = str(out / "reconstruct" / "point_cloud.ply")
+    photos = [ds.image(i) for i in range(len(ds.cameras))]
+    return StylizeInputs(g, list(ds.cameras), list(ds.names), photos, style, bg, dict(sources)), in_bytes
+
+
+def _fit_first(ds, cfg, out: Path, quiet: bool):
+    from ..train.reconstruct import ReconstructConfig, fit_scene
+
+    rc = ReconstructConfig(iterations=cfg.fit_iterations, holdout_every=0, device=cfg.device, seed=cfg.seed,
+                           save_renders=False, sh_degree=3 if cfg.keep_sh else 0)
+    if not quiet:
+        print(f"fitting the scene to {len(ds.cameras)} photos first ({cfg.fit_iterations} iterations) ...")
+    g, m = fit_scene(ds, rc, out / "reconstruct", progress=not quiet, overwrite=True)
+    if not quiet:
+        print(f"fitted: PSNR {m['psnr']:.2f} dB, {g.num} Gaussians")
+    return g, m["ply_bytes"]
+
+
+# --- the command -----------------------------------------------------------------------------------------------
+def _user_set(args, key: str) -> bool:
+    return any(s.split("=", 1)[0].strip() == key for s in args.set)
+
+
+def run(args) -> int:
+    from ..stylize import StylizeDiverged, load_checkpoint, load_config, run_stylize
+    from ..stylize.config import config_from_dict
+    from ..stylize.outputs import RANDOM_VGG_NOTE, write_outputs
+
+    wall0 = time.perf_counter()
+    ck = load_checkpoint(args.resume) if args.resume is not None else None
+    overrides = list(args.set)
+    for key, val in (("iterations", args.iterations), ("downscale", args.downscale), ("device", args.device),
+                     ("vgg_weights", args.vgg_weights)):
+        if val is not None:
+            overrides.append(f"{key}={val}")
+    if ck is not None:
+        sources = dict(ck.get("sources") or {})
+        cfg = load_config(None, overrides, config_from_dict(ck["config"]))
+    else:
+        sources = {}
+        cfg_path = args.config if args.config is not None else (REPO_CONFIG if REPO_CONFIG.is_file() else None)
+        demo = args.scene is None and args.data is None
+        base_over = []
+        if demo:  # the demo's size, unless the user chose one
+            if args.iterations is None and not _user_set(args, "iterations"):
+                base_over.append(f"iterations={DEMO_ITERATIONS}")
+            if args.downscale is None and not _user_set(args, "downscale"):
+                base_over.append(f"downscale={DEMO_DOWNSCALE}")
+        cfg = load_config(cfg_path, base_over + overrides)
+    for key, val in (("scene", args.scene), ("data", args.data), ("style", args.style)):
+        if val is not None:
+            sources[key] = str(Path(val).resolve())
+    if args.style is not None and not Path(args.style).exists():  # fail before any work
+        raise InputError("style image does not exist", args.style)
+
+    if args.out is not None:
+        out = Path(args.out)
+    elif args.resume is not None:
+        out = Path(args.resume)
+    else:
+        out = Path("runs") / time.strftime("stylize_%Y%m%d_%H%M%S")
+    from ..losses import load_vgg
+    from ..stylize.pipeline import check_out_dir, resolve_device
+
+    device = resolve_device(cfg.device)
+    vgg = load_vgg(cfg.vgg_weights, device)  # InputError (how to get the weights) before anything is written
+    check_out_dir(out, args.overwrite, ck is not None)
+    inp, in_bytes = build_inputs(args, cfg, sources, out, args.quiet)
+    if not args.quiet:
+        c = inp.cameras[0]
+        print(f"stylize: {inp.gaussians.num} Gaussians, {len(inp.cameras)} views at {c.width}x{c.height}, "
+              f"{cfg.iterations} iterations {cfg.phase_steps()} on {device}; VGG: "
+              + (RANDOM_VGG_NOTE if vgg.is_random else vgg.source) + f"; out: {out}")
+    try:
+        res = run_stylize(inp, cfg, out, resume=args.resume, overwrite=True, progress=not args.quiet,
+                          vgg=vgg, quiet=args.quiet)
+    except StylizeDiverged as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    m = write_outputs(out, res, input_bytes=in_bytes, wall_start=wall0)
+    tp = m["time_per_phase_s"]
+    print(f"{out}: flow alignment {m['flow_alignment']:.3f} (original {m['flow_alignment_original']:.3f}), "
+          f"Gaussians {m['gaussians_input']} -> {m['gaussians_final']}, {m['bytes_out'] / 1e6:.2f} MB, "
+          f"phases pre {tp['pre']:.1f}s / stylize {tp['stylize']:.1f}s / post {tp['post']:.1f}s, "
+          f"wall {m['wall_time_s']:.1f}s" + (f"\nNOTE: {RANDOM_VGG_NOTE}" if m["vgg_random"] else ""))
+    if not math.isfinite(m["flow_alignment"]):
+        return 1
+    return 0

@@ -1,0 +1,256 @@
+"""Everything a stylization run writes to its folder (besides config.yaml, log.jsonl and checkpoint.pt,
+which the loop keeps current): stylized.ply, cameras.json, renders/ originals/ photos/, style.png,
+comparison.png, orbit.mp4, stroke_field.png, loss_curves.png and metrics.json. All writes are atomic."""
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from ..fileio import atomic_path, write_image, write_json
+from ..types import Camera, Gaussians
+
+RANDOM_VGG_NOTE = "VGG-16 RANDOM (not pretrained): style/content losses are not meaningful"
+MIN_TILE_WIDTH = 240  # comparison tiles are upscaled (nearest) to at least this width so the labels are legible
+
+
+def _u8(img) -> np.ndarray:
+    a = img.detach().cpu().numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
+    return np.clip(np.nan_to_num(a) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def _fit_painting(style: np.ndarray, h: int, w: int) -> np.ndarray:
+    """The painting center-cropped to the view's aspect and resized to h x w."""
+    import cv2
+
+    sh, sw = style.shape[:2]
+    if sw / sh > w / h:
+        cw = max(1, round(sh * w / h))
+        x0 = (sw - cw) // 2
+        style = style[:, x0:x0 + cw]
+    else:
+        ch = max(1, round(sw * h / w))
+        y0 = (sh - ch) // 2
+        style = style[y0:y0 + ch]
+    return cv2.resize(np.ascontiguousarray(style, np.float32), (w, h), interpolation=cv2.INTER_AREA)
+
+
+def comparison_grid(rows: list, painting: np.ndarray, caption: str) -> np.ndarray:
+    """rows: [(photo, original, stylized)] float [H,W,3]; returns a uint8 RGB grid with a header and caption:
+    photo | original render | stylized | painting."""
+    import cv2
+
+    h, w = rows[0][0].shape[:2]
+    up = max(1, math.ceil(MIN_TILE_WIDTH / w))
+    th, tw = h * up, w * up
+    paint = _fit_painting(painting, h, w)
+    tiles = []
+    for r in rows:
+        ims = [_u8(x) for x in r] + [_u8(paint)]
+        tiles.append(np.concatenate([cv2.resize(x, (tw, th), interpolation=cv2.INTER_NEAREST) for x in ims], 1))
+    body = np.concatenate(tiles, 0)
+    W = body.shape[1]
+    head = np.full((28, W, 3), 255, np.uint8)
+    for j, name in enumerate(("photo", "original render", "stylized", "painting")):
+        cv2.putText(head, name, (j * tw + 6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    lines = [caption[i:i + max(20, W // 9)] for i in range(0, len(caption), max(20, W // 9))] or [""]
+    foot = np.full((10 + 22 * len(lines), W, 3), 255, np.uint8)
+    color = (200, 0, 0) if "RANDOM" in caption else (0, 0, 0)
+    for i, line in enumerate(lines):
+        cv2.putText(foot, line, (6, 22 + 22 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, color, 1, cv2.LINE_AA)
+    return np.concatenate([head, body, foot], 0)
+
+
+# --- the orbit path ------------------------------------------------------------------------------------------
+def _rot_to_quat(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_quat()
+
+
+def orbit_path(cams: list, n_frames: int) -> list:
+    """Cameras interpolated through the dataset cameras in order (positions linear, rotations slerp); a closed
+    loop when the last camera is about one step from the first (an orbit), an open path otherwise.
+    Intrinsics are the first camera's."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    c2w = [torch.linalg.inv(c.world_to_camera.double()).numpy() for c in cams]
+    pos = np.stack([m[:3, 3] for m in c2w])
+    rots = [m[:3, :3] for m in c2w]
+    if len(cams) == 1 or n_frames <= 1:
+        return [cams[0]] * max(1, n_frames)
+    steps = np.linalg.norm(np.diff(pos, axis=0), axis=1)
+    closed = len(cams) > 2 and np.linalg.norm(pos[-1] - pos[0]) < 2.0 * max(np.median(steps), 1e-12)
+    if closed:
+        pos = np.concatenate([pos, pos[:1]])
+        rots = rots + rots[:1]
+    key_t = np.arange(len(pos), dtype=np.float64)
+    slerp = Slerp(key_t, Rotation.from_matrix(np.stack(rots)))
+    ts = np.linspace(0, key_t[-1], n_frames, endpoint=not closed)
+    R_t = slerp(ts).as_matrix()
+    out = []
+    for t, R in zip(ts, R_t):
+        i = min(int(t), len(pos) - 2)
+        f = t - i
+        p = (1 - f) * pos[i] + f * pos[i + 1]
+        w2c = np.eye(4)
+        w2c[:3, :3] = R.T
+        w2c[:3, 3] = -R.T @ p
+        c0 = cams[0]
+        out.append(Camera(torch.from_numpy(w2c), c0.fx, c0.fy, c0.cx, c0.cy, c0.width, c0.height, c0.near, c0.far,
+                          name=f"orbit_{len(out):04d}"))
+    return out
+
+
+def write_video(path: Path, frames: list, fps: int) -> str | None:
+    """mp4 (cv2 mp4v). Returns None on success, else a note (the frames are then written as PNGs)."""
+    import cv2
+
+    h, w = frames[0].shape[:2]
+    with atomic_path(path) as tmp:
+        vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+        if not vw.isOpened():
+            vw.release()
+            raise OSError("mp4v codec unavailable")
+        for f in frames:
+            vw.write(cv2.cvtColor(_u8(f), cv2.COLOR_RGB2BGR))
+        vw.release()
+        if not tmp.exists() or tmp.stat().st_size == 0:
+            raise OSError("mp4v writer produced no file")
+    return None
+
+
+def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .pipeline import LOG_TERMS
+
+    steps = np.array([r["step"] for r in log])
+    shown = [t for t in LOG_TERMS if any(r.get(t, 0) != 0 for r in log)]
+    extra = ["flow_score"] if any("flow_score" in r for r in log) else []
+    n = max(1, len(shown) + len(extra))
+    cols = 3
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
+    bounds = [r["step"] for a, r in zip(log, log[1:]) if a["phase"] != r["phase"]]
+    for ax, t in zip(axes.flat, shown + extra):
+        pts = [(r["step"], r[t]) for r in log if t in r and (t == "flow_score" or r.get(t, 0) != 0)]
+        if pts:
+            x, y = np.array(pts).T
+            ax.plot(x, y, lw=0.8, marker="." if t == "flow_score" else None)
+            if t != "flow_score" and np.all(y > 0):
+                ax.set_yscale("log")
+        for b in bounds:
+            ax.axvline(b, color="gray", ls="--", lw=0.6)
+        ax.set_title(t, fontsize=9)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    title = "stylize losses per iteration (phases: pre | stylize | post)"
+    if vgg_random:
+        title += f"\n{RANDOM_VGG_NOTE}"
+    fig.suptitle(title, fontsize=10, color="red" if vgg_random else "black")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    del steps
+
+
+def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start: float | None = None,
+                  progress: bool = False) -> dict:
+    """Write every output file of a finished run; returns the metrics (also in metrics.json)."""
+    from ..io import save_ply
+    from ..losses import field_picture, flow_alignment_score
+    from ..renderer import render
+    from ..train.reconstruct import cameras_json
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    cfg, inp = res.config, res.inputs
+    g = res.gaussians
+    bad = sum(int((~torch.isfinite(getattr(g, f))).sum()) for f in Gaussians.FIELDS)
+    if bad:
+        raise RuntimeError(f"refusing to write a PLY with {bad} non-finite values")
+    save_ply(g.to(device="cpu", dtype=torch.float32), out / "stylized.ply")
+    write_json(out / "cameras.json", cameras_json(SimpleNamespace(cameras=inp.cameras, names=inp.names)))
+    device = res.gaussians.device
+    bg = tuple(float(v) for v in (cfg.background if cfg.background is not None else inp.background))
+    g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
+
+    scores, scores_orig, rows = [], [], []
+    pick = set(np.linspace(0, len(inp.cameras) - 1, min(cfg.comparison_views, len(inp.cameras))).round().astype(int))
+    with torch.no_grad():
+        for i, cam in enumerate(inp.cameras):
+            sty = render(g, cam, bg).color.clamp(0, 1).cpu()
+            org = render(g_in, cam, bg).color.clamp(0, 1).cpu()
+            photo = inp.photos[i].detach().cpu()
+            write_image(out / "renders" / f"view_{i:03d}.png", sty)
+            write_image(out / "originals" / f"view_{i:03d}.png", org)
+            write_image(out / "photos" / f"view_{i:03d}.png", photo)
+            if res.fields:
+                fld = res.fields[i][..., :2].numpy()
+                scores.append(flow_alignment_score(sty.numpy(), fld))
+                scores_orig.append(flow_alignment_score(org.numpy(), fld))
+            if i in pick:
+                rows.append((photo.numpy(), org.numpy(), sty.numpy()))
+    style_np = inp.style.detach().cpu().numpy()
+    write_image(out / "style.png", style_np)
+    s_theta, s_coh, _ = res.style_field
+    write_image(out / "stroke_field.png", field_picture(res.style_work.numpy(), s_theta, s_coh))
+    fa = float(np.mean(scores)) if scores else 0.0
+    caption = (f"config: style={cfg.style_loss}, luminance_only={cfg.luminance_only}, lock_xyz={cfg.lock_xyz}, "
+               f"w_align={cfg.w_align}, field={cfg.field_mapping}; {res.metrics['iterations']} iterations; "
+               f"flow alignment {fa:.3f}; "
+               + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {res.vgg_source}"))
+    write_image(out / "comparison.png", comparison_grid(rows, style_np, caption).astype(np.float32) / 255.0)
+    loss_curves(out / "loss_curves.png", res.log, res.vgg_random)
+
+    # orbit video
+    video_note = None
+    frames = []
+    with torch.no_grad():
+        for cam in orbit_path(inp.cameras, cfg.orbit_frames):
+            frames.append(render(g, cam, bg).color.clamp(0, 1).cpu().numpy())
+    if frames:
+        try:
+            write_video(out / "orbit.mp4", frames, cfg.orbit_fps)
+        except OSError as e:
+            video_note = f"orbit.mp4 not written ({e}); frames are in orbit_frames/"
+            for k, f in enumerate(frames):
+                write_image(out / "orbit_frames" / f"frame_{k:04d}.png", f)
+            print(video_note)
+
+    m = dict(res.metrics)
+    out_bytes = os.path.getsize(out / "stylized.ply")
+    m.update({
+        "flow_alignment": fa,
+        "flow_alignment_per_view": [round(s, 5) for s in scores],
+        "flow_alignment_original": float(np.mean(scores_orig)) if scores_orig else 0.0,
+        "field_mapping": cfg.field_mapping,
+        "bytes_in": int(input_bytes) if input_bytes is not None else int(g_in.nbytes()),
+        "bytes_out": int(out_bytes),
+        "sh_degree_out": g.sh_degree,
+        "views": list(inp.names),
+        "orbit": video_note or "orbit.mp4",
+        "vgg_note": RANDOM_VGG_NOTE if res.vgg_random else "pretrained",
+        "outputs_time_s": round(time.perf_counter() - t0, 3),
+    })
+    if wall_start is not None:
+        m["wall_time_s"] = round(time.perf_counter() - wall_start, 3)
+    final_log = [r for r in res.log if "flow_score" in r]
+    m["final_losses"] = {k: v for k, v in (res.log[-1] if res.log else {}).items() if isinstance(v, float)}
+    m["flow_score_log"] = [[r["step"], r["flow_score"]] for r in final_log]
+    write_json(out / "metrics.json", m)
+    return m
+
+
+__all__ = ["write_outputs", "comparison_grid", "orbit_path", "write_video", "loss_curves", "RANDOM_VGG_NOTE"]

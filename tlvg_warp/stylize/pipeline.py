@@ -1,0 +1,674 @@
+"""The stylization loop (SPEC §3): pre-process, stylize, post-process with one Adam across the phases.
+
+    inp = StylizeInputs(gaussians, cameras, names, photos, style, background)
+    result = run_stylize(inp, StylizeConfig(), out_dir)
+
+Every iteration renders ONE training view, drawn at random without replacement per epoch.
+1. pre-process: the photos recolored to the painting's palette (ARF color transfer, once), fit with
+   0.8·L1 + 0.2·(1−SSIM), density control on (``density_in_pre``).
+2. stylize: style (FAST on luminance by default) + content + inverse depth + TV + opacity/scale anchors
+   + Lab chroma (0.2 → 0.05) + flow alignment + anisotropy; xyz unlocked with its exponential decay, the
+   tangential hook after every Adam step, density control under the Gaussian budget.
+3. post-process: every view rendered and recolored once more; colors and rotations fit to them
+   (xyz, scales, opacities keep their values: their gradients are dropped, Adam skips them).
+
+Per-view targets are computed once: recolored photos, VGG features of the photos, the un-stylized scene's
+inverse depth (at the start), the target stroke fields (at the start of stylize, from the "matched" or
+"canvas" mapping), the post-process targets (at the start of post). The host reads values only every
+``log_every`` iterations (log flush, progress bar, NaN check, last-good snapshot) and at densify steps.
+
+Decisions (beyond the spec, documented):
+- keep_sh False (default): the whole run works at SH degree 0 (the input's view-dependent bands are
+  dropped at the start), so stylized.ply is exactly what was optimized.
+- The content loss compares the features the style loss already computed (luminance features when
+  luminance_only) with the same features of the original photo: one VGG pass per iteration. Chroma is
+  governed by the Lab statistics term, which is the paper's split.
+- The "matched" target field of a view is built from the FAST/NNFM cell match of that view's render at the
+  start of stylize and then held fixed (a target that moved with the render would chase itself).
+- The opacity / scale anchors follow density control: a clone or split child is anchored at its own
+  value when it is born.
+- lock_xyz locks positions during stylize only (the pre-process is a photometric fit).
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import signal
+import threading
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..fileio import atomic_path, write_text
+from ..types import Camera, Gaussians
+from .config import StylizeConfig, config_yaml
+
+try:  # the flow energies (paper eq. 1 + anisotropy) as a Warp kernel
+    from ..flow import flow_terms as _flow_terms
+except ImportError as _e:  # pragma: no cover - only while tlvg_warp/flow.py is being written
+    _flow_terms = None
+    _FLOW_IMPORT_ERROR = str(_e)
+
+CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
+PHASES = ("pre", "stylize", "post")
+LOG_TERMS = ("loss", "fit", "style", "content", "depth", "tv", "opacity_reg", "scale_reg", "lab", "align", "aniso")
+STAGES = ("render", "vgg", "style", "losses", "flow", "backward", "optimizer", "density")
+NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
+POST_FROZEN = ("means", "log_scales", "opacity_logits")  # the post-process fits colors and rotations only
+RUN_FILES = ("checkpoint.pt", "stylized.ply", "metrics.json", "log.jsonl", "config.yaml")
+
+
+class StylizeDiverged(RuntimeError):
+    """The loss or the parameters became non-finite; the last good state was saved."""
+
+
+@dataclass
+class StylizeInputs:
+    gaussians: Gaussians  # the un-stylized scene
+    cameras: list  # Camera per view, at the working resolution
+    names: list  # view names
+    photos: list  # [H,W,3] float32 in [0,1] per view
+    style: torch.Tensor  # the painting [h,w,3] float32 in [0,1]
+    background: tuple = (0.0, 0.0, 0.0)  # render background
+    sources: dict = field(default_factory=dict)  # where the inputs came from (recorded for --resume)
+
+    def check(self) -> None:
+        if len(self.cameras) < 1:
+            raise InputError("the dataset has no views")
+        if len(self.cameras) != len(self.photos) or len(self.names) != len(self.cameras):
+            raise InputError(f"{len(self.cameras)} cameras but {len(self.photos)} photos")
+        for cam, ph, nm in zip(self.cameras, self.photos, self.names):
+            if tuple(ph.shape) != (cam.height, cam.width, 3):
+                raise InputError(f"photo {nm} is {tuple(ph.shape)}, its camera says {cam.height}x{cam.width}")
+        if self.gaussians.num == 0:
+            raise InputError("the scene has no Gaussians")
+
+
+# --- small utilities -------------------------------------------------------------------------------------------
+class _Interrupt:
+    """SIGINT sets a flag that the loop checks after each iteration; a second Ctrl-C interrupts at once."""
+
+    def __init__(self):
+        self.flag, self.old = False, None
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            def handler(signum, frame):
+                if self.flag:
+                    raise KeyboardInterrupt
+                self.flag = True
+            self.old = signal.signal(signal.SIGINT, handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            signal.signal(signal.SIGINT, self.old)
+
+
+class StageTimer:
+    """Per-stage time split sampled every ``every`` iterations: CUDA events on the GPU (read once, at the
+    end), perf_counter on the CPU. Stages not run in an iteration count as zero."""
+
+    def __init__(self, device: torch.device, every: int = 20):
+        self.cuda, self.every, self.samples, self.marks = device.type == "cuda", max(1, every), [], None
+
+    def _now(self):
+        if self.cuda:
+            e = torch.cuda.Event(enable_timing=True)
+            e.record()
+            return e
+        return time.perf_counter()
+
+    def begin(self, step):
+        self.marks = {"_start": self._now()} if step % self.every == 0 else None
+        self._last = "_start"
+
+    def mark(self, stage):
+        if self.marks is not None:
+            self.marks[stage] = (self._last, self._now())
+            self._last = stage
+
+    def end(self):
+        if self.marks is not None:
+            self.samples.append(self.marks)
+            self.marks = None
+
+    def summary(self) -> dict:
+        if not self.samples:
+            return {}
+        if self.cuda:
+            torch.cuda.synchronize()
+        tot = dict.fromkeys(STAGES, 0.0)
+        for m in self.samples:
+            for s in STAGES:
+                if s in m:
+                    prev, e = m[s]
+                    p = m[prev] if prev == "_start" else m[prev][1]
+                    tot[s] += p.elapsed_time(e) if self.cuda else (e - p) * 1e3
+        n = len(self.samples)
+        return {"ms_per_iteration": {s: round(t / n, 3) for s, t in tot.items()}, "samples": n}
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    d = torch.device(name)
+    if d.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("device cuda requested but CUDA is not available (use --device cpu)")
+    return d
+
+
+def tv_loss(img: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference of horizontal plus vertical neighbours of an [H,W,3] image."""
+    return ((img[1:] - img[:-1]) ** 2).mean() + ((img[:, 1:] - img[:, :-1]) ** 2).mean()
+
+
+def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
+    """1/z where something was rendered (depth > 0), 0 elsewhere."""
+    return torch.where(depth > 0, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
+
+
+def anchor_norm(x: torch.Tensor, anchor: torch.Tensor) -> torch.Tensor:
+    """‖x − anchor‖₂ with a zero (not NaN) gradient at x = anchor."""
+    return torch.sqrt(((x - anchor) ** 2).sum() + NORM_EPS)
+
+
+def phase_of(step: int, steps: tuple) -> tuple[str, int, int]:
+    """(phase, 0-based index within it, its length) of the 1-based global ``step``."""
+    start = 0
+    for name, n in zip(PHASES, steps):
+        if step <= start + n:
+            return name, step - start - 1, n
+        start += n
+    raise ValueError(step)
+
+
+def flow_field_tensor(doubled: torch.Tensor) -> torch.Tensor:
+    """[H,W,2] doubled-angle field -> [H,W,3] (c·cos2θ, c·sin2θ, c), the layout flow_terms takes."""
+    return torch.cat([doubled, doubled.norm(dim=-1, keepdim=True)], -1).contiguous()
+
+
+def flow_terms(g, cam, fld, weights):
+    """The flow energies from tlvg_warp.flow (zero terms with a warning while it is missing)."""
+    if _flow_terms is None:  # pragma: no cover
+        if not getattr(flow_terms, "_warned", False):
+            warnings.warn(f"tlvg_warp.flow is not available ({_FLOW_IMPORT_ERROR}); flow terms are zero")
+            flow_terms._warned = True
+        z = g.means.sum() * 0.0
+        return z, z
+    return _flow_terms(g, cam, fld, weights)
+
+
+# --- the optimizer that keeps the regularizer anchors aligned with density control ---------------------------
+def _optimizer_class():
+    from ..train.optim import GaussianOptimizer
+
+    class StylizeOptimizer(GaussianOptimizer):
+        """GaussianOptimizer whose ``anchors`` (per-Gaussian snapshots) follow clone / split / prune."""
+
+        anchors: dict | None = None
+
+        def rebuild(self, keep, appended):
+            super().rebuild(keep, appended)
+            if self.anchors:
+                for f, a in list(self.anchors.items()):
+                    parts = [a if keep is None else a[keep]]
+                    if appended:
+                        parts.append(appended[f].to(a))
+                    self.anchors[f] = torch.cat(parts).contiguous()
+
+    return StylizeOptimizer
+
+
+# --- the run ---------------------------------------------------------------------------------------------------
+@dataclass
+class StylizeResult:
+    gaussians: Gaussians  # the stylized scene (SH degree 0 unless keep_sh)
+    inputs: StylizeInputs
+    config: StylizeConfig
+    style_work: torch.Tensor  # the painting at its working size [hs,ws,3] (CPU)
+    style_field: tuple  # (θ, coherence, doubled) numpy at the working size
+    fields: list  # per-view target field [H,W,3] (CPU)
+    log: list  # one dict per iteration
+    metrics: dict  # timings, counts, VGG flag, ...
+    vgg_random: bool = False
+    vgg_source: str = ""
+
+
+class _State:
+    def __init__(self):
+        self.step = 0
+        self.order: list = []
+        self.fields = None  # list of [H,W,3] on device (stylize targets)
+        self.post_targets = None  # list of [H,W,3] on device
+        self.phase_time = dict.fromkeys(PHASES, 0.0)
+        self.counts = {}
+        self.log: list = []
+        self.densify_events: list = []
+
+
+def load_checkpoint(path) -> dict:
+    p = Path(path)
+    if p.is_dir():
+        p = p / "checkpoint.pt"
+    if not p.is_file():
+        raise InputError("no checkpoint.pt to resume from", p.parent if p.name == "checkpoint.pt" else p)
+    try:
+        ck = torch.load(p, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - any unpickling problem is a bad file
+        raise InputError(f"unreadable checkpoint ({type(e).__name__})", p) from None
+    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
+        raise InputError("not a tlvg_warp stylize checkpoint", p)
+    return ck
+
+
+def check_out_dir(out: Path, overwrite: bool, resume: bool) -> None:
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", out)
+    if out.is_dir() and any(out.iterdir()) and not (overwrite or resume):
+        held = [f for f in RUN_FILES if (out / f).exists()]
+        what = f"a previous run ({', '.join(held)})" if held else "other files"
+        raise InputError(f"output folder already holds {what}; pass --overwrite to replace it or "
+                         f"--resume {out} to continue it", out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with atomic_path(out / ".write_test") as tmp:
+            tmp.write_bytes(b"")
+        (out / ".write_test").unlink()
+    except OSError as e:
+        raise InputError(f"output folder is not writable ({e.strerror or e})", out) from None
+
+
+def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=None, overwrite=False,
+                progress=True, vgg=None, interrupt_at: int | None = None, quiet=False) -> StylizeResult:
+    """Run the three phases. ``resume``: a run folder / checkpoint to continue. ``vgg``: a loaded feature
+    network (default: load_vgg(cfg.vgg_weights)). ``interrupt_at``: behave as if Ctrl-C came after that
+    step (tests). Raises KeyboardInterrupt after saving a checkpoint, StylizeDiverged on NaN."""
+    from tqdm import tqdm
+
+    from ..losses import (color_transfer, content_loss, fast_loss, field_at_cells, fit_loss,
+                          flatten_feats, flow_alignment_score_torch, gram_loss, lab_chroma_loss, load_vgg, luminance,
+                          map_field_canvas, map_field_matched, match_style_cells, nnfm_loss, resize_style,
+                          stroke_field)
+    from ..renderer import render
+    from ..train.density import DensityConfig, DensityControl
+    from ..train.init import scene_extent
+    from ..train.optim import GaussianParams, LearningRates, tangential_hook
+
+    t_start = time.perf_counter()
+    cfg = cfg.validate()
+    inp.check()
+    device = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    out = Path(out_dir) if out_dir is not None else None
+    ck = load_checkpoint(resume) if resume is not None else None
+    if ck is not None and ck["names"] != list(inp.names):
+        raise InputError("the checkpoint was made on a different dataset (its view names differ)", resume)
+    if out is not None:
+        check_out_dir(out, overwrite, ck is not None)
+        if overwrite and ck is None:
+            for f in RUN_FILES:
+                with contextlib.suppress(FileNotFoundError):
+                    (out / f).unlink()
+        write_text(out / "config.yaml", config_yaml(cfg))
+
+    # --- the feature network and the painting (once) ----------------------------------------------------------
+    if vgg is None:
+        vgg = load_vgg(cfg.vgg_weights, device)
+    vgg = vgg.to(device)
+    lum = luminance if cfg.luminance_only else (lambda x: x)
+    style_np = inp.style.detach().cpu().numpy().astype(np.float32)
+    style_work = torch.from_numpy(resize_style(style_np, cfg.style_height)).contiguous()  # [hs,ws,3]
+    with torch.no_grad():
+        sf = vgg(lum(style_work.to(device)), scale=1.0)  # [1,768,fh,fw]
+    style_cells = tuple(sf.shape[-2:])
+    style_feats = flatten_feats(sf).contiguous()  # [768, Ns]
+    s_theta, s_coh, s_doubled = stroke_field(style_work.numpy())
+    style_doubled_cells = torch.from_numpy(field_at_cells(s_doubled, style_cells)).to(device)
+
+    # --- per-view targets (once) ---------------------------------------------------------------------------------
+    cams: list[Camera] = list(inp.cameras)
+    n_views = len(cams)
+    bg = tuple(float(v) for v in (cfg.background if cfg.background is not None else inp.background))
+    photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
+    recolored, _, _ = color_transfer(photos, style_work.to(device))  # the palette-matched photos (pre + Lab)
+    g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
+    inv_depth, photo_feats = [], []
+    with torch.no_grad():
+        for i, cam in enumerate(cams):
+            inv_depth.append(inverse_depth(render(g_in, cam, bg).depth))
+            photo_feats.append(flatten_feats(vgg(lum(photos[i]), scale=cfg.vgg_scale)))
+    extent = scene_extent(cams)
+
+    # --- parameters, one Adam across the phases ---------------------------------------------------------------------
+    n_pre, n_sty, n_post = steps = cfg.phase_steps()
+    g_work = g_in if cfg.keep_sh else g_in.with_sh_degree(0)
+    lrs = LearningRates(cfg.lr_means, cfg.lr_means_final, cfg.lr_means_steps, cfg.lr_sh_dc, cfg.lr_sh_rest,
+                        cfg.lr_opacity, cfg.lr_scales, cfg.lr_quats)
+    Opt = _optimizer_class()
+    budget = cfg.gaussian_budget or max(g_in.num, int(math.ceil(cfg.budget_factor * g_in.num)))
+    st = _State()
+    gen = torch.Generator().manual_seed(cfg.seed)
+    if ck is not None:
+        params = GaussianParams.from_state_dict(ck["params"], device)
+    else:
+        params = GaussianParams(g_work, g_work.sh_degree)
+    opt = Opt(params, lrs, extent, lrs.means_steps)
+    opt.anchors = None
+    if cfg.tangential_lambda > 0:
+        opt.register_post_step_hook(tangential_hook(cfg.tangential_lambda), fields=("means",))
+    dcfg = DensityConfig(grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
+                         min_opacity=cfg.min_opacity, max_screen_size=cfg.max_screen_size,
+                         max_world_size=cfg.max_world_size, interval=cfg.densify_interval, start=0, until=1 << 62,
+                         opacity_reset_interval=0, max_gaussians=budget, prune_unseen=True,
+                         contribution_window=n_views)
+    density = DensityControl(dcfg, params.num, device)
+    density.generator = torch.Generator(device=device).manual_seed(cfg.seed + 1)
+    start_counts = {"input": g_in.num}
+    if ck is not None:
+        opt.load_state_dict(ck["optimizer"])
+        if ck.get("anchors") is not None:
+            opt.anchors = {k: v.to(device) for k, v in ck["anchors"].items()}
+        if ck.get("density") is not None:
+            density.load_state_dict(ck["density"])
+        if ck.get("split_rng") is not None:
+            density.generator.set_state(ck["split_rng"])
+        st.step, st.order = int(ck["iteration"]), list(ck["order"])
+        gen.set_state(ck["rng"])
+        torch.set_rng_state(ck["torch_rng"])
+        if ck.get("fields") is not None:
+            st.fields = [f.to(device) for f in ck["fields"]]
+        if ck.get("post_targets") is not None:
+            st.post_targets = [t.to(device=device, dtype=torch.float32) / 255.0 for t in ck["post_targets"]]
+        st.phase_time = dict(ck["phase_time"])
+        st.counts = dict(ck["counts"])
+        st.log = list(ck["log"])
+        st.densify_events = list(ck.get("densify_events", []))
+    start_step = st.step
+
+    def save_checkpoint(note=""):
+        if out is None:
+            return
+        ckpt = {"format": CHECKPOINT_FORMAT, "iteration": st.step, "params": opt.params.state_dict(),
+                "optimizer": opt.state_dict(), "density": density.state_dict(),
+                "split_rng": density.generator.get_state(),
+                "anchors": ({k: v.detach().cpu() for k, v in opt.anchors.items()} if opt.anchors else None),
+                "order": list(st.order), "rng": gen.get_state(), "torch_rng": torch.get_rng_state(),
+                "fields": [f.cpu() for f in st.fields] if st.fields is not None else None,
+                "post_targets": ([(t.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu() for t in st.post_targets]
+                                 if st.post_targets is not None else None),
+                "phase_time": st.phase_time, "counts": st.counts, "log": st.log,
+                "densify_events": st.densify_events,
+                "config": dataclasses.asdict(cfg), "names": list(inp.names), "sources": inp.sources, "note": note}
+        with atomic_path(out / "checkpoint.pt") as tmp:
+            torch.save(ckpt, tmp)
+
+    def write_log():
+        if out is not None:
+            import json
+            write_text(out / "log.jsonl", "".join(json.dumps(r) + "\n" for r in st.log))
+
+    # --- phase set-up (idempotent: a resumed run restores these from the checkpoint) ----------------------------
+    def features(img):
+        return flatten_feats(vgg(lum(img), scale=cfg.vgg_scale))
+
+    def ensure_stylize_targets():
+        if opt.anchors is None:
+            opt.anchors = {"opacity_logits": opt.params.opacity_logits.detach().clone(),
+                           "log_scales": opt.params.log_scales.detach().clone()}
+        if st.fields is not None:
+            return
+        fl = []
+        with torch.no_grad():
+            g = opt.params.gaussians()
+            for cam in cams:
+                if cfg.field_mapping == "canvas":
+                    _, _, d = map_field_canvas(torch.from_numpy(s_doubled).to(device), cam.height, cam.width)
+                else:
+                    f = vgg(lum(render(g, cam, bg).color), scale=cfg.vgg_scale)  # [1,768,hc,wc]
+                    idx, w = match_style_cells(flatten_feats(f), style_feats)
+                    _, _, d = map_field_matched(style_doubled_cells, idx, w, cam.height, cam.width,
+                                                tuple(f.shape[-2:]))
+                fl.append(flow_field_tensor(d.to(device=device, dtype=torch.float32)))
+        st.fields = fl
+
+    def ensure_post_targets():
+        if st.post_targets is not None:
+            return
+        with torch.no_grad():
+            g = opt.params.gaussians()
+            rs = [render(g, cam, bg).color.clamp(0, 1) for cam in cams]
+        st.post_targets, _, _ = color_transfer(rs, style_work.to(device))
+
+    # --- the loop --------------------------------------------------------------------------------------------------
+    timer = StageTimer(device)
+    bad = torch.zeros((), dtype=torch.bool, device=device)
+    zero = torch.zeros((), device=device)
+    last_good = None
+    buf: list = []  # (host info dict, device tensor of LOG_TERMS)
+    pbar, pbar_phase, pbar_last = None, None, 0
+    phase_t0, cur_phase = None, None
+    interrupted = False
+    flow_available = _flow_terms is not None
+
+    def sync():
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
+    def close_phase():
+        nonlocal phase_t0, pbar
+        if cur_phase is not None and phase_t0 is not None:
+            sync()
+            st.phase_time[cur_phase] += time.perf_counter() - phase_t0
+            st.counts[f"after_{cur_phase}"] = opt.params.num
+        phase_t0 = None
+        if pbar is not None:
+            pbar.close()
+            pbar = None
+
+    def flush(step, phase, k, rout_color, fld):
+        """The one host sync of an interval: log rows, NaN check, progress bar, last-good snapshot."""
+        nonlocal buf, last_good, pbar_last
+        extra = {}
+        if phase == "stylize" and fld is not None:
+            with torch.no_grad():
+                extra["flow_score"] = flow_alignment_score_torch(rout_color.detach(), fld[..., :2])
+        vals = torch.stack([v for _, v in buf]).cpu().tolist() if buf else []
+        ok = bool(~bad & opt.params.all_finite())
+        for (info, _), row in zip(buf, vals):
+            r = dict(info)
+            r.update({n: round(float(x), 7) for n, x in zip(LOG_TERMS, row)})
+            st.log.append(r)
+        if extra and st.log:
+            st.log[-1]["flow_score"] = round(float(extra["flow_score"]), 5)
+        buf = []
+        if not ok:
+            raise StylizeDiverged(f"non-finite loss or parameters at or before iteration {step} ({phase} phase)")
+        last_good = _snapshot()
+        if pbar is not None and st.log:
+            pbar.update(k + 1 - pbar_last)
+            pbar_last = k + 1
+            post = {"loss": f"{st.log[-1]['loss']:.4f}", "n": opt.params.num}
+            if "flow_score" in st.log[-1]:
+                post["flow"] = f"{st.log[-1]['flow_score']:.3f}"
+            pbar.set_postfix(post, refresh=True)
+
+    def _snapshot():
+        return {"step": st.step, "params": opt.params.state_dict(), "opt": opt.state_dict(),
+                "anchors": {k: v.clone() for k, v in opt.anchors.items()} if opt.anchors else None,
+                "order": list(st.order), "rng": gen.get_state(), "density": density.state_dict(),
+                "log_len": len(st.log)}
+
+    def _restore(snap):
+        nonlocal opt
+        p = GaussianParams.from_state_dict(snap["params"], device)
+        o = Opt(p, lrs, extent, lrs.means_steps)
+        o.hooks = opt.hooks
+        o.load_state_dict(snap["opt"])
+        o.anchors = snap["anchors"]
+        opt = o
+        st.step, st.order = snap["step"], list(snap["order"])
+        gen.set_state(snap["rng"])
+        density.load_state_dict(snap["density"])
+        del st.log[snap["log_len"]:]
+
+    last_good = _snapshot()
+    if not quiet and (vgg.is_random or not flow_available):
+        if vgg.is_random:
+            print("WARNING: VGG-16 is RANDOMLY initialized (not pretrained): the style/content losses are not "
+                  "meaningful; a smoke run only")
+    total = sum(steps)
+    with _Interrupt() as intr:
+        try:
+            while st.step < total:
+                step = st.step + 1
+                phase, k, n_phase = phase_of(step, steps)
+                if phase != cur_phase:
+                    close_phase()
+                    cur_phase = phase
+                    if phase == "stylize":
+                        ensure_stylize_targets()
+                        if k == 0:
+                            st.counts["before_stylize"] = opt.params.num
+                    elif phase == "post":
+                        ensure_post_targets()
+                    density.reset_stats(opt.params.num)
+                    pbar = tqdm(total=n_phase, initial=k, disable=not progress, dynamic_ncols=True,
+                                desc=f"{phase:>7}", unit="it", leave=True)
+                    pbar_last = k
+                    sync()
+                    phase_t0 = time.perf_counter()
+                timer.begin(step)
+                opt.set_step(step)
+                if not st.order:
+                    st.order = torch.randperm(n_views, generator=gen).tolist()
+                vi = st.order.pop()
+                cam = cams[vi]
+                use_density = (phase == "pre" and cfg.density_in_pre) or (phase == "stylize" and cfg.density_in_stylize)
+                flow_on = phase == "stylize" and (cfg.w_align > 0 or cfg.w_aniso > 0)
+                g = opt.params.gaussians()
+                rout = render(g, cam, bg, return_weights=use_density or flow_on)
+                img = rout.color
+                timer.mark("render")
+                terms = {}
+                fld = None
+                if phase == "stylize":
+                    fld = st.fields[vi]
+                    a = features(img)
+                    timer.mark("vgg")
+                    if cfg.style_loss == "fast":
+                        terms["style"] = fast_loss(a, style_feats)
+                    elif cfg.style_loss == "nnfm":
+                        terms["style"] = nnfm_loss(a, style_feats)
+                    else:
+                        terms["style"] = gram_loss(a, style_feats)
+                    timer.mark("style")
+                    terms["content"] = content_loss(a, photo_feats[vi])
+                    terms["depth"] = ((inverse_depth(rout.depth) - inv_depth[vi]) ** 2).mean()
+                    terms["tv"] = tv_loss(img)
+                    terms["opacity_reg"] = anchor_norm(opt.params.opacity_logits, opt.anchors["opacity_logits"])
+                    terms["scale_reg"] = anchor_norm(opt.params.log_scales, opt.anchors["log_scales"])
+                    terms["lab"] = lab_chroma_loss(img, recolored[vi])
+                    w_lab = cfg.lab_weight(k, n_phase)
+                    loss = (cfg.w_style * terms["style"] + cfg.w_content * terms["content"]
+                            + cfg.w_depth * terms["depth"] + cfg.w_tv * terms["tv"]
+                            + cfg.w_opacity_reg * terms["opacity_reg"] + cfg.w_scale_reg * terms["scale_reg"]
+                            + w_lab * terms["lab"])
+                    timer.mark("losses")
+                    if flow_on:
+                        terms["align"], terms["aniso"] = flow_terms(g, cam, fld, rout.weights)
+                        loss = loss + cfg.w_align * terms["align"] + cfg.w_aniso * terms["aniso"]
+                    timer.mark("flow")
+                else:
+                    w_lab = 0.0
+                    target = recolored[vi] if phase == "pre" else st.post_targets[vi]
+                    terms["fit"] = fit_loss(img, target)
+                    loss = terms["fit"]
+                    timer.mark("losses")
+                terms["loss"] = loss
+                bad |= ~torch.isfinite(loss.detach())
+                loss.backward()
+                timer.mark("backward")
+                frozen = POST_FROZEN if phase == "post" else (("means",) if (phase == "stylize" and cfg.lock_xyz) else ())
+                for f in frozen:
+                    getattr(opt.params, f).grad = None  # Adam skips a parameter without a gradient
+                if use_density:
+                    density.accumulate(rout, cam.width, cam.height)
+                opt.step()
+                opt.zero_grad()
+                timer.mark("optimizer")
+                if use_density and (k + 1) % cfg.densify_interval == 0 and k + 1 < n_phase:
+                    ev = density.densify_and_prune(opt, extent, step)
+                    ev.update(step=step, phase=phase)
+                    st.densify_events.append(ev)
+                    timer.mark("density")
+                timer.end()
+                st.step = step
+                buf.append(({"step": step, "phase": phase, "view": vi, "n": opt.params.num, "w_lab": round(w_lab, 6)},
+                            torch.stack([terms[t].detach().float().reshape(()) if t in terms else zero
+                                         for t in LOG_TERMS])))
+                if interrupt_at is not None and step == interrupt_at:
+                    intr.flag = True
+                if step % cfg.log_every == 0 or k + 1 == n_phase or intr.flag:
+                    flush(step, phase, k, img, fld)
+                    if k + 1 == n_phase or step % (cfg.log_every * 10) == 0:
+                        write_log()
+                if out is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
+                    save_checkpoint("periodic")
+                if intr.flag:
+                    raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            interrupted = True
+        except StylizeDiverged as e:
+            close_phase()
+            msg = str(e)
+            _restore(last_good)
+            if out is not None:
+                write_log()
+                save_checkpoint("last good state before divergence")
+                msg += (f"; stopped. The last good state (iteration {st.step}) is in {out / 'checkpoint.pt'} "
+                        f"(continue with --resume {out} after lowering the learning rates or loss weights)")
+            raise StylizeDiverged(msg) from None
+    close_phase()
+    if st.fields is None and not interrupted:  # no stylize phase ran: the targets are still needed for the score
+        ensure_stylize_targets()
+    if interrupted:
+        if not bool(opt.params.all_finite()):
+            _restore(last_good)
+        write_log()
+        save_checkpoint("interrupted")
+        if out is not None and not quiet:
+            print(f"interrupted at iteration {st.step}: saved {out / 'checkpoint.pt'}; continue with --resume {out}")
+        raise KeyboardInterrupt
+    write_log()
+    save_checkpoint("finished")
+
+    final = opt.params.detached()
+    final = final if cfg.keep_sh else final.with_sh_degree(0)
+    st.counts.setdefault("before_stylize", st.counts.get("after_pre", g_in.num))
+    metrics = {
+        "iterations": st.step, "phase_steps": dict(zip(PHASES, steps)), "resumed_from": start_step or None,
+        "time_per_phase_s": {p: round(t, 3) for p, t in st.phase_time.items()},
+        "train_time_s": round(sum(st.phase_time.values()), 3),
+        "setup_time_s": None, "stage_split": timer.summary(), "device": str(device),
+        "gaussians_input": start_counts["input"], "gaussians_before_stylize": st.counts["before_stylize"],
+        "gaussians_after_stylize": st.counts.get("after_stylize", st.counts["before_stylize"]),
+        "gaussians_final": final.num, "gaussian_budget": budget, "densify_events": st.densify_events,
+        "extent": extent, "flow_terms": "warp kernel" if flow_available else "missing (zero)",
+        "vgg_random": bool(vgg.is_random), "vgg_source": vgg.source,
+    }
+    metrics["setup_time_s"] = round(time.perf_counter() - t_start - metrics["train_time_s"], 3)
+    return StylizeResult(final, inp, cfg, style_work, (s_theta, s_coh, s_doubled),
+                         [f.cpu() for f in st.fields] if st.fields is not None else [], st.log, metrics,
+                         bool(vgg.is_random), vgg.source)
+
+
+__all__ = ["StylizeInputs", "StylizeResult", "StylizeDiverged", "run_stylize", "load_checkpoint", "phase_of",
+           "tv_loss", "inverse_depth", "anchor_norm", "flow_field_tensor", "LOG_TERMS", "PHASES"]
