@@ -99,8 +99,11 @@ def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = Fal
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     m2 = wp.from_torch(proj.means2d.float().contiguous(), dtype=wp.vec2)
     radii = wp.from_torch(proj.radii, dtype=wp.int32)
+    shape = [wp.from_torch(proj.cov2d.float().contiguous(), dtype=wp.vec3),
+             wp.from_torch(proj.conic.float().contiguous(), dtype=wp.vec3),
+             wp.from_torch(proj.opacity.float().contiguous())]
     counts = torch.empty(n, dtype=torch.int32, device=device)
-    wp.launch(K.count_tiles, dim=n, inputs=[m2, radii, tiles_x, tiles_y, int(all_tiles)],
+    wp.launch(K.count_tiles, dim=n, inputs=[m2, radii, *shape, tiles_x, tiles_y, width, height, int(all_tiles)],
               outputs=[wp.from_torch(counts)], device=wdev)
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     total = int(ends[-1]) if n else 0  # the one host sync per render: the key buffer size
@@ -114,8 +117,8 @@ def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = Fal
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
     depth_bits = proj.depth.float().contiguous().view(torch.int32)  # z > 0: bit order == float order
     wkeys, wids = wp.from_torch(keys), wp.from_torch(ids)
-    wp.launch(K.emit_keys, dim=n, inputs=[m2, radii, wp.from_torch(depth_bits), wp.from_torch(starts), tiles_x,
-                                          tiles_y, int(all_tiles)], outputs=[wkeys, wids], device=wdev)
+    wp.launch(K.emit_keys, dim=n, inputs=[m2, radii, *shape, wp.from_torch(depth_bits), wp.from_torch(starts), tiles_x,
+                                          tiles_y, width, height, int(all_tiles)], outputs=[wkeys, wids], device=wdev)
     tile_bits = max(1, (tiles_x * tiles_y - 1).bit_length())
     wp.utils.radix_sort_pairs(wkeys, wids, total, 0, 32 + tile_bits)  # only the bits keys use
     wp.launch(K.tile_ranges, dim=total, inputs=[wkeys, total], outputs=[wp.from_torch(ranges)], device=wdev)
