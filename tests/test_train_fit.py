@@ -18,7 +18,7 @@ from tlvg_warp.train.reconstruct import FitDiverged, ReconstructConfig, fit_scen
 
 FERN = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes" / "fern_llff"
 PSNR_GAIN_SYNTH = 6.0  # dB over the init, held-out views of random blobs (observed 7.5 dB in 300 iterations)
-PSNR_GAIN_FERN = 5.0  # dB over the init on held-out fern views (observed ~9 dB at 63x47, 250 iterations)
+PSNR_GAIN_FERN = 8.0  # dB over the init on held-out fern views (observed ~14 dB at 63x47, 200 iterations)
 RESUME_TOL = 1e-5  # interrupted+resumed vs uninterrupted run on CPU (deterministic; float32 rounding only)
 CENTER_TOL = 1e-9  # cameras.json positions vs Camera.center (float64 both)
 
@@ -211,8 +211,8 @@ def test_fern_small_cpu_integration(tmp_path):
         pytest.skip(f"tlvg_warp.io unavailable: {e}")
     ds = load_dataset(FERN, images="images_8", downscale=8)
     assert ds.cameras[0].width <= 126
-    cfg = ReconstructConfig(iterations=250, sh_degree=1, sh_increase_every=150, densify_from=100,
-                            densify_interval=50, max_init_points=2500, max_gaussians=5000, device="cpu",
+    cfg = ReconstructConfig(iterations=200, sh_degree=1, sh_increase_every=150, densify_from=100,
+                            densify_interval=50, max_init_points=2000, max_gaussians=4000, device="cpu",
                             progress_every=25, timing_every=25)
     t0 = time.perf_counter()
     g, m = fit_scene(ds, cfg, tmp_path / "fern", progress=False)
@@ -221,5 +221,5 @@ def test_fern_small_cpu_integration(tmp_path):
           f"held-out, {m['num_gaussians']} Gaussians, {wall:.1f} s")
     assert m["num_test_views"] == 3 and m["eval_split"] == "test"
     assert m["psnr"] > m["psnr_init"] + PSNR_GAIN_FERN
-    assert g.num <= 5000
+    assert g.num <= 4000
     assert wall < 120

@@ -28,7 +28,9 @@ Decisions beyond 3DGS (documented here, tested in tests/test_train_density.py):
   (e.g. a lowered budget), the least opaque are pruned.
 - No-contribution pruning: Σ αT per Gaussian (``RenderOutput.weights``) summed since the Gaussian was
   born or last checked; once it has been rendered over ``contribution_window`` views (a training epoch)
-  and the sum is below ``min_contribution`` (pixel·alpha units) it is pruned.
+  and the sum is below ``min_contribution`` (pixel·alpha units) it is pruned. Weights are only asked for
+  in the ``contribution_window`` steps before each densify step (``wants_weights_at``), so a full epoch
+  (one random view per step, without replacement) is seen right before each check.
 """
 from __future__ import annotations
 
@@ -82,8 +84,20 @@ class DensityControl:
 
     @property
     def wants_weights(self) -> bool:
-        """Whether renders should be asked for ``return_weights`` (for no-contribution pruning)."""
+        """Whether no-contribution pruning is on (renders then need ``return_weights`` at some steps)."""
         return bool(self.config.prune_unseen)
+
+    def wants_weights_at(self, step: int) -> bool:
+        """Whether the render of ``step`` (1-based) should return Σ αT: only during the last
+        ``contribution_window`` steps before each densify step (the weights cost an atomic add per
+        contribution, so they are not gathered when no check will use them)."""
+        c = self.config
+        if not c.prune_unseen or not self.accumulating(step):
+            return False
+        if c.contribution_window <= 0 or c.interval <= 0 or c.contribution_window >= c.interval:
+            return True
+        nxt = -(-step // c.interval) * c.interval  # the next densify step at or after this one
+        return nxt >= c.start and nxt - step < c.contribution_window
 
     def accumulate(self, out, width: int, height: int) -> None:
         """Add one view's statistics (call after backward). Vectorized, no host sync."""
@@ -98,7 +112,7 @@ class DensityControl:
             self.max_radii = torch.maximum(self.max_radii, out.radii.to(self.dtype) * visf)
             if out.weights is not None and out.weights.numel() == self.num:
                 self.contrib += out.weights.detach().to(self.dtype)
-            self.contrib_views += 1
+                self.contrib_views += 1  # views whose weights were seen
 
     def mean_grads(self) -> torch.Tensor:
         return torch.where(self.denom > 0, self.grad_accum / self.denom.clamp_min(1), torch.zeros_like(self.denom))

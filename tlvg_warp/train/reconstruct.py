@@ -72,7 +72,7 @@ class ReconstructConfig:
     opacity_reset_interval: int = 3000  # opacity reset period (3DGS); 0: never
     max_gaussians: int = 1_000_000  # hard Gaussian budget
     prune_unseen: bool = True  # prune Gaussians that contribute to no training view over an epoch
-    min_contribution: float = 0.5  # Σ αT (pixels) over an epoch below which a Gaussian is unseen
+    min_contribution: float = 0.5  # Σ αT (pixels) over the check window (2 epochs - 1 view) under which a Gaussian is unseen
     random_background: bool = False  # render over a random background color each iteration
     background: list | None = None  # fixed background RGB; None: the dataset's (black for photos)
     seed: int = 0  # seeds view order, init subsampling, split sampling, random background
@@ -95,7 +95,7 @@ class ReconstructConfig:
             interval=self.densify_interval, start=self.densify_from, until=self.densify_until,
             opacity_reset_interval=self.opacity_reset_interval, max_gaussians=self.max_gaussians,
             prune_unseen=self.prune_unseen, min_contribution=self.min_contribution,
-            contribution_window=n_train_views)
+            contribution_window=2 * n_train_views - 1)  # any 2n-1 consecutive steps hold a whole epoch
 
     def validate(self) -> "ReconstructConfig":
         pos = {"iterations": 1, "sh_increase_every": 1, "progress_every": 1, "timing_every": 1,
@@ -554,7 +554,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
                 vi = st.order.pop()
                 cam, gt = cams[vi], targets[vi]
                 bg = tuple(torch.rand(3, generator=gen).tolist()) if cfg.random_background else bg_fixed
-                want_w = density is not None and density.wants_weights and density.accumulating(step)
+                want_w = density is not None and density.wants_weights_at(step)
                 rout = render(st.params.gaussians(), cam, bg, sh_degree=st.sh_active, return_weights=want_w)
                 timer.mark()
                 loss = _loss(rout.color, gt, cfg.lambda_ssim)
