@@ -167,7 +167,7 @@ def blender_dataset(root: Path, n_views: int) -> Path:
         img = np.full((24, 32, 3), 40 + 20 * k, np.uint8)
         cv2.imwrite(str(root / f"r_{k}.png"), img)
         frames.append({"file_path": f"./r_{k}", "transform_matrix": c2w.tolist()})
-    fov = 2 * math.atan(16 / cam.fx)
+    fov = 2 * math.atan(16 / Camera.look_at((3, 0, 1), (0, 0, 0), width=32, height=24).fx)
     (root / "transforms.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
     return root
 
@@ -186,6 +186,9 @@ def test_cli_refusals_exit_2(tmp_path, capsys):
     assert cli(two, "--out", tmp_path / "afile" / "sub", "--iterations", 3) == 2  # not writable (under a file)
     assert "error:" in capsys.readouterr().err
     assert cli(tmp_path / "missing", "--out", tmp_path / "o2") == 2
+    none = blender_dataset(tmp_path / "none", 0)
+    assert cli(none, "--out", tmp_path / "o0", "--iterations", 3) == 2  # no images
+    assert "no views" in capsys.readouterr().err
     assert cli(two, "--out", tmp_path / "o3", "--set", "no_such_key=1") == 2
     assert "unknown config key" in capsys.readouterr().err
     assert cli(two, "--out", tmp_path / "o3", "--iterations", 3) == 0

@@ -458,6 +458,9 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
             for f in RUN_FILES:
                 with contextlib.suppress(FileNotFoundError):
                     (out / f).unlink()
+            for sub in ("test", "train"):  # renders of the replaced run
+                for f in (out / sub).glob("*.png") if (out / sub).is_dir() else ():
+                    f.unlink()
         write_text(out / "config.yaml", config_yaml(cfg))
 
     train_idx, test_idx = split_views(len(cams), cfg.holdout_every)
