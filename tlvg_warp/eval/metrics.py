@@ -191,16 +191,17 @@ def render_views(g, cameras, background=None) -> list[dict]:
 
 
 def scene_metrics(views, painting, net=None, originals=None, targets=None, ks=(SHORT_K, LONG_K),
-                  rel_tol: float = DEPTH_REL_TOL, colors=None) -> dict:
+                  rel_tol: float = DEPTH_REL_TOL, colors=None, style_feats=None) -> dict:
     """All SPEC §4 image metrics of one stylized scene.
 
     views: render_views() output of the stylized scene; painting [h,w,3] in [0,1]; net: VGG (None skips
     the VGG distances); originals: un-stylized colors per view (content distance); targets: stored target
     doubled-angle fields per view (None entries fall back to the canvas mapping); colors: the images the
-    per-view metrics are measured on (default the renders' colors; consistency always uses the renders).
+    per-view metrics are measured on (default the renders' colors; consistency always uses the renders);
+    style_feats: the painting's features when already computed (style_target_feats).
     Returns {"summary": {...}, "per_view": [...], "consistency": {...}}."""
     pd = painting_field(painting)
-    sf = style_target_feats(net, painting) if net is not None else None
+    sf = style_feats if style_feats is not None or net is None else style_target_feats(net, painting)
     per_view = []
     for n, v in enumerate(views):
         img = v["color"] if colors is None or colors[n] is None else colors[n]
