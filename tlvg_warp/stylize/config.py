@@ -26,6 +26,7 @@ class StylizeConfig:
     device: str = "auto"  # cuda, cpu or auto (cuda when available)
     downscale: float = 1.0  # render resolution divisor (dataset images are loaded at 1/downscale)
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
+    style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
     # --- style / content losses ---------------------------------------------------------------------
     style_loss: str = "fast"  # fast (FAST, reference code) | nnfm (ARF) | gram
     luminance_only: bool = True  # style loss on Y = 0.299R+0.587G+0.114B for render and painting (paper §3.3)

@@ -191,13 +191,15 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
     with torch.no_grad():
         for i, cam in enumerate(inp.cameras):
             sty = render(g, cam, bg).color.clamp(0, 1).cpu()
-            org = render(g_in, cam, bg).color.clamp(0, 1).cpu()
+            org = res.originals[i] if res.originals else render(g_in, cam, bg).color.clamp(0, 1).cpu()
             photo = inp.photos[i].detach().cpu()
             write_image(out / "renders" / f"view_{i:03d}.png", sty)
             write_image(out / "originals" / f"view_{i:03d}.png", org)
             write_image(out / "photos" / f"view_{i:03d}.png", photo)
             if res.fields:
                 fld = res.fields[i][..., :2].numpy()
+                with atomic_path(out / "fields" / f"view_{i:03d}.npy") as tmp:
+                    np.save(tmp, fld.astype(np.float32))
                 scores.append(flow_alignment_score(sty.numpy(), fld))
                 scores_orig.append(flow_alignment_score(org.numpy(), fld))
             if i in pick:

@@ -239,6 +239,7 @@ class StylizeResult:
     metrics: dict  # timings, counts, VGG flag, ...
     vgg_random: bool = False
     vgg_source: str = ""
+    originals: list = field(default_factory=list)  # renders of the un-stylized scene per view [H,W,3] (CPU)
 
 
 class _State:
@@ -311,6 +312,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     ck = load_checkpoint(resume) if resume is not None else None
     if ck is not None and ck["names"] != list(inp.names):
         raise InputError("the checkpoint was made on a different dataset (its view names differ)", resume)
+    if cfg.background is None:  # record the resolved background (evaluation re-renders with it)
+        cfg = dataclasses.replace(cfg, background=[float(v) for v in inp.background])
     if out is not None:
         check_out_dir(out, overwrite, ck is not None)
         if overwrite and ck is None:
@@ -340,10 +343,12 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
     recolored, _, _ = color_transfer(photos, style_work.to(device))  # the palette-matched photos (pre + Lab)
     g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
-    inv_depth, photo_feats = [], []
+    inv_depth, photo_feats, originals = [], [], []
     with torch.no_grad():
         for i, cam in enumerate(cams):
-            inv_depth.append(inverse_depth(render(g_in, cam, bg).depth))
+            ro = render(g_in, cam, bg)
+            inv_depth.append(inverse_depth(ro.depth))
+            originals.append(ro.color.clamp(0, 1).cpu())
             photo_feats.append(flatten_feats(vgg(lum(photos[i]), scale=cfg.vgg_scale)))
     extent = scene_extent(cams)
 
@@ -453,7 +458,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     zero = torch.zeros((), device=device)
     last_good = None
     buf: list = []  # (host info dict, device tensor of LOG_TERMS)
-    pbar, pbar_phase, pbar_last = None, None, 0
+    pbar = None
     phase_t0, cur_phase = None, None
     interrupted = False
     flow_available = _flow_terms is not None
@@ -475,7 +480,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
 
     def flush(step, phase, k, rout_color, fld):
         """The one host sync of an interval: log rows, NaN check, progress bar, last-good snapshot."""
-        nonlocal buf, last_good, pbar_last
+        nonlocal buf, last_good
         extra = {}
         if phase == "stylize" and fld is not None:
             with torch.no_grad():
@@ -493,8 +498,6 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
             raise StylizeDiverged(f"non-finite loss or parameters at or before iteration {step} ({phase} phase)")
         last_good = _snapshot()
         if pbar is not None and st.log:
-            pbar.update(k + 1 - pbar_last)
-            pbar_last = k + 1
             post = {"loss": f"{st.log[-1]['loss']:.4f}", "n": opt.params.num}
             if "flow_score" in st.log[-1]:
                 post["flow"] = f"{st.log[-1]['flow_score']:.3f}"
@@ -539,10 +542,10 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                             st.counts["before_stylize"] = opt.params.num
                     elif phase == "post":
                         ensure_post_targets()
-                    density.reset_stats(opt.params.num)
+                    if k == 0:  # a resumed run keeps the statistics it accumulated (from the checkpoint)
+                        density.reset_stats(opt.params.num)
                     pbar = tqdm(total=n_phase, initial=k, disable=not progress, dynamic_ncols=True,
                                 desc=f"{phase:>7}", unit="it", leave=True)
-                    pbar_last = k
                     sync()
                     phase_t0 = time.perf_counter()
                 timer.begin(step)
@@ -611,6 +614,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                     timer.mark("density")
                 timer.end()
                 st.step = step
+                if pbar is not None:
+                    pbar.update(1)  # host-side count only; loss and Gaussian count at the flush
                 buf.append(({"step": step, "phase": phase, "view": vi, "n": opt.params.num, "w_lab": round(w_lab, 6)},
                             torch.stack([terms[t].detach().float().reshape(()) if t in terms else zero
                                          for t in LOG_TERMS])))
@@ -667,7 +672,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     metrics["setup_time_s"] = round(time.perf_counter() - t_start - metrics["train_time_s"], 3)
     return StylizeResult(final, inp, cfg, style_work, (s_theta, s_coh, s_doubled),
                          [f.cpu() for f in st.fields] if st.fields is not None else [], st.log, metrics,
-                         bool(vgg.is_random), vgg.source)
+                         bool(vgg.is_random), vgg.source, originals)
 
 
 __all__ = ["StylizeInputs", "StylizeResult", "StylizeDiverged", "run_stylize", "load_checkpoint", "phase_of",
