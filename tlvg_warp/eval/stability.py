@@ -239,7 +239,7 @@ def _style_feats(vgg, style):
     return _FEATS[key]
 
 
-def run_scenario(sc: Scenario, base: Base, vgg, device: str) -> dict:
+def run_scenario(sc: Scenario, base: Base, vgg, device: str, vgg_metrics: bool = True) -> dict:
     from . import metrics as M
 
     row = {"scenario": sc.name, "what": sc.what, "finished": False, "error": None, "nan": None,
@@ -259,9 +259,11 @@ def run_scenario(sc: Scenario, base: Base, vgg, device: str) -> dict:
         row["nan"] = M.nan_count(*(getattr(g, f) for f in Gaussians.FIELDS)) + sum(
             M.nan_count(v["color"], v["depth"], v["alpha"]) for v in views)
         row["hole_fraction"] = hole_fraction(before, [v["alpha"] for v in views])
-        q = M.scene_metrics(views, b.style, vgg, None, fields, ks=(1,), style_feats=_style_feats(vgg, b.style))
+        net = vgg if vgg_metrics else None
+        q = M.scene_metrics(views, b.style, net, None, fields, ks=(1,),
+                            style_feats=_style_feats(vgg, b.style) if vgg_metrics else None)
         q = q["summary"]
-        row |= {k: q[k] for k in ("flow_alignment", "consistency_k1", "style_fast", "style_gram")}
+        row |= {k: q.get(k) for k in ("flow_alignment", "consistency_k1", "style_fast", "style_gram")}
         row["pipeline_train_s"] = pm.get("train_time_s")
     except Exception as e:  # noqa: BLE001 - the suite records failures, it never stops on one
         row["time_s"] = time.perf_counter() - t0
@@ -271,7 +273,7 @@ def run_scenario(sc: Scenario, base: Base, vgg, device: str) -> dict:
 
 
 def run_suite(quick: bool, device: str | None = None, only=None, vgg_weights="random", log=print,
-              long_iters: int = 10000, base: Base | None = None, extra=()) -> dict:
+              long_iters: int = 10000, base: Base | None = None, extra=(), vgg_metrics: bool = True) -> dict:
     """Run every scenario (the quick subset with ``quick``); ``base`` replaces the demo scene, ``extra`` adds
     scenarios. Never raises for a failing scenario: its row says finished False and the error."""
     from ..losses.vgg import load_vgg
@@ -289,7 +291,7 @@ def run_suite(quick: bool, device: str | None = None, only=None, vgg_weights="ra
         if sc.gpu_only and dev == "cpu":
             rows.append({"scenario": sc.name, "what": sc.what, "finished": None, "error": "skipped: needs a GPU"})
             continue
-        r = run_scenario(sc, base, vgg, dev)
+        r = run_scenario(sc, base, vgg, dev, vgg_metrics)
         rows.append(r)
         if log:
             log(format_row(r))
