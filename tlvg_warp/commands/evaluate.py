@@ -167,7 +167,7 @@ def evaluate_run(run: dict, net, device) -> dict:
     res["per_view"] = [dict(name=n, **r) for n, r in zip(run["names"], res["per_view"])]
     m = run["metrics"]
     res["summary"] |= {"gaussians": run["gaussians"].num, "bytes": run["ply_bytes"], "wall_time_s": _wall_time(m)}
-    for k in ("gaussians_in", "gaussians_out", "bytes_in", "bytes_out"):
+    for k in ("gaussians_in", "gaussians_out", "gaussians_input", "gaussians_final", "bytes_in", "bytes_out"):
         if k in m:
             res["summary"][k] = m[k]
     res["flow_target"] = "stored" if any(f is not None for f in run["fields"]) else "canvas"
@@ -239,8 +239,10 @@ def report_html(result: dict, run: dict, other: dict | None = None, other_run: d
         if other:
             extra = f"<td>{_fmt(other['summary'].get(k))}</td><td>{_fmt(cmp_.get(k, {}).get('better'))}</td>"
         rows.append(f"<tr><td>{html.escape(k)}</td><td>{_fmt(s[k])}</td>{extra}</tr>")
-    img = lambda a, cap: (f"<figure><img src='{_png_b64(a)}'><figcaption>{html.escape(cap)}</figcaption></figure>"  # noqa
-                          if a is not None else "")
+    def img(a, cap):
+        if a is None:
+            return ""
+        return f"<figure><img src='{_png_b64(a)}'><figcaption>{html.escape(cap)}</figcaption></figure>"
     views = []
     for i, name in enumerate(run["names"]):
         pv = result["per_view"][i]
