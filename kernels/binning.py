@@ -101,6 +101,7 @@ def emit_keys_kernel(
     opacity: wp.array(dtype=float),  # [N]
     depth_bits: wp.array(dtype=wp.int32),  # [N] float32 depth reinterpreted as int (monotone for z > 0)
     offsets: wp.array(dtype=wp.int32),  # [N] exclusive prefix sum of counts
+    counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian
     tiles_x: int,
     tiles_y: int,
     width: int,
@@ -122,14 +123,20 @@ def emit_keys_kernel(
             return
         rect = tight_rect(m[0], m[1], float(r), cov2d[i], k2, tiles_x, tiles_y)
     k = offsets[i]
+    stop = k + counts[i]
     d = wp.int64(depth_bits[i])
     for ty in range(rect[2], rect[3]):
         for tx in range(rect[0], rect[1]):
-            # the same test as count_tiles_kernel, so exactly counts[i] keys are written
-            if all_tiles != 0 or tile_reachable(m[0], m[1], conic[i], k2, tx, ty, width, height):
+            # the same test as count_tiles_kernel; the bound keeps memory safe even if the GPU compiler
+            # contracted the two kernels' arithmetic differently at a borderline tile
+            if k < stop and (all_tiles != 0 or tile_reachable(m[0], m[1], conic[i], k2, tx, ty, width, height)):
                 keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | d
                 values[k] = i
                 k += 1
+    while k < stop:  # ...and never leaves a slot unwritten: a sentinel tile past the grid, sorted last
+        keys[k] = wp.int64(tiles_x * tiles_y) << wp.int64(32)
+        values[k] = i
+        k += 1
 
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
@@ -141,6 +148,8 @@ def tile_ranges_kernel(
     # start and end are separate elements: the threads that write them never race
     i = wp.tid()
     tile = int(keys[i] >> wp.int64(32))
+    if tile >= ranges.shape[0]:  # sentinel keys (see emit_keys_kernel) sort after every real tile
+        return
     if i == 0 or int(keys[i - 1] >> wp.int64(32)) != tile:
         ranges[tile, 0] = i
     if i == count - 1 or int(keys[i + 1] >> wp.int64(32)) != tile:

@@ -117,9 +117,10 @@ def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = Fal
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
     depth_bits = proj.depth.float().contiguous().view(torch.int32)  # z > 0: bit order == float order
     wkeys, wids = wp.from_torch(keys), wp.from_torch(ids)
-    wp.launch(K.emit_keys, dim=n, inputs=[m2, radii, *shape, wp.from_torch(depth_bits), wp.from_torch(starts), tiles_x,
+    wp.launch(K.emit_keys, dim=n, inputs=[m2, radii, *shape, wp.from_torch(depth_bits), wp.from_torch(starts),
+                                          wp.from_torch(counts), tiles_x,
                                           tiles_y, width, height, int(all_tiles)], outputs=[wkeys, wids], device=wdev)
-    tile_bits = max(1, (tiles_x * tiles_y - 1).bit_length())
+    tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
     wp.utils.radix_sort_pairs(wkeys, wids, total, 0, 32 + tile_bits)  # only the bits keys use
     wp.launch(K.tile_ranges, dim=total, inputs=[wkeys, total], outputs=[wp.from_torch(ranges)], device=wdev)
     return ranges, ids[:total], tiles_x, tiles_y

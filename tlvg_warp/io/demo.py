@@ -153,10 +153,12 @@ def demo_dataset(seed: int = 0, n_views: int = 24, width: int = 160, height: int
     if split is not None:
         keep = [i for i in keep if (i % holdout_every == 0) == (split == "test")]
     render = _render_fn()
+    # render the photos where the work will run (a GPU-only Warp install cannot compile CPU kernels)
+    g_dev = g.to("cuda") if torch.cuda.is_available() else g
 
     def load(i):
         with torch.no_grad():
-            return render(g, cams[keep[i]], background=background).color.detach().cpu().numpy()
+            return render(g_dev, cams[keep[i]], background=background).color.detach().cpu().numpy()
 
     sub = torch.arange(0, g.num, 8)
     rgb = (g.sh[sub, 0] * SH_C0 + 0.5).clamp(0, 1)
