@@ -37,7 +37,6 @@ import math
 import signal
 import threading
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,12 +47,6 @@ from ..errors import InputError
 from ..fileio import atomic_path, write_text
 from ..types import Camera, Gaussians
 from .config import StylizeConfig, config_yaml
-
-try:  # the flow energies (paper eq. 1 + anisotropy) as a Warp kernel
-    from ..flow import flow_terms as _flow_terms
-except ImportError as _e:  # pragma: no cover - only while tlvg_warp/flow.py is being written
-    _flow_terms = None
-    _FLOW_IMPORT_ERROR = str(_e)
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
 PHASES = ("pre", "stylize", "post")
@@ -195,13 +188,9 @@ def flow_field_tensor(doubled: torch.Tensor) -> torch.Tensor:
 
 
 def flow_terms(g, cam, fld, weights):
-    """The flow energies from tlvg_warp.flow (zero terms with a warning while it is missing)."""
-    if _flow_terms is None:  # pragma: no cover
-        if not getattr(flow_terms, "_warned", False):
-            warnings.warn(f"tlvg_warp.flow is not available ({_FLOW_IMPORT_ERROR}); flow terms are zero")
-            flow_terms._warned = True
-        z = g.means.sum() * 0.0
-        return z, z
+    """The flow energies (paper eq. 1 + anisotropy), the Warp kernel of tlvg_warp.flow."""
+    from ..flow import flow_terms as _flow_terms
+
     return _flow_terms(g, cam, fld, weights)
 
 
@@ -461,7 +450,6 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     pbar = None
     phase_t0, cur_phase = None, None
     interrupted = False
-    flow_available = _flow_terms is not None
 
     def sync():
         if device.type == "cuda":
@@ -523,7 +511,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         del st.log[snap["log_len"]:]
 
     last_good = _snapshot()
-    if not quiet and (vgg.is_random or not flow_available):
+    if not quiet and vgg.is_random:
         if vgg.is_random:
             print("WARNING: VGG-16 is RANDOMLY initialized (not pretrained): the style/content losses are not "
                   "meaningful; a smoke run only")
@@ -666,7 +654,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         "gaussians_input": start_counts["input"], "gaussians_before_stylize": st.counts["before_stylize"],
         "gaussians_after_stylize": st.counts.get("after_stylize", st.counts["before_stylize"]),
         "gaussians_final": final.num, "gaussian_budget": budget, "densify_events": st.densify_events,
-        "extent": extent, "flow_terms": "warp kernel" if flow_available else "missing (zero)",
+        "extent": extent, "flow_terms": "warp kernel",
         "vgg_random": bool(vgg.is_random), "vgg_source": vgg.source,
     }
     metrics["setup_time_s"] = round(time.perf_counter() - t_start - metrics["train_time_s"], 3)
