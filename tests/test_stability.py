@@ -22,11 +22,9 @@ def suite():
 
 
 QUICK = [s.name for s in S.scenarios(6) if s.quick]
-# Pipeline bugs found by this suite (owned by tlvg_warp/stylize/, reported): NaN Gaussians in the input
-# make run_stylize diverge at iteration 1 instead of being dropped, and 8x6 images crash VGG (its two 2x2
-# pools get a 4x3 input at vgg_scale 0.5). strict: the mark must go once the pipeline is fixed.
-KNOWN = {"gauss_nan": "input NaN Gaussians are not dropped by the pipeline",
-         "image_tiny": "VGG pools on a 4x3 input in the pipeline"}
+# Pipeline bugs this suite has found and that are not fixed yet (strict: a mark must go once fixed).
+# Fixed so far: NaN Gaussians in the input (now dropped with a warning), 8x6 images (VGG upsamples tiny input).
+KNOWN: dict = {}
 
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=KNOWN[n], strict=True))

@@ -65,6 +65,10 @@ class VGG16Relu3(nn.Module):
         x = x.to(self.mean.dtype)
         if scale != 1.0:
             x = F.interpolate(x, scale_factor=scale, mode="bilinear", align_corners=False, antialias=scale < 1)
+        if min(x.shape[-2:]) < MIN_SIDE:  # two 2x poolings need room: upsample tiny inputs instead of failing
+            f = MIN_SIDE / min(x.shape[-2:])
+            size = (max(MIN_SIDE, round(x.shape[-2] * f)), max(MIN_SIDE, round(x.shape[-1] * f)))
+            x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
         x = (x - self.mean) / self.std
         out = []
         for i, layer in enumerate(self.features):
@@ -72,6 +76,9 @@ class VGG16Relu3(nn.Module):
             if i in FEATURE_IDX:
                 out.append(x)
         return torch.cat(out, dim=1)  # [B,768,H/4,W/4]
+
+
+MIN_SIDE = 16  # smallest side fed to VGG: relu3 features are then at least 4x4 cells
 
 
 def flatten_feats(f: torch.Tensor) -> torch.Tensor:

@@ -37,6 +37,7 @@ import math
 import signal
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,6 +82,16 @@ class StylizeInputs:
                 raise InputError(f"photo {nm} is {tuple(ph.shape)}, its camera says {cam.height}x{cam.width}")
         if self.gaussians.num == 0:
             raise InputError("the scene has no Gaussians")
+        g = self.gaussians
+        finite = torch.ones(g.num, dtype=torch.bool, device=g.device)
+        for f in g.FIELDS:
+            finite &= torch.isfinite(getattr(g, f)).reshape(g.num, -1).all(1)
+        bad = int((~finite).sum())
+        if bad == g.num:
+            raise InputError(f"all {bad} Gaussians of the scene have non-finite parameters")
+        if bad:  # a few broken splats (a bad export, an upstream NaN) are dropped rather than poisoning the run
+            warnings.warn(f"dropping {bad} of {g.num} Gaussians with non-finite parameters")
+            self.gaussians = g.subset(finite)
 
 
 # --- small utilities -------------------------------------------------------------------------------------------
