@@ -23,6 +23,7 @@ DEMO_ITERATIONS = 72  # the no-argument demo: measured 1m59s on 2 CPU cores (120
 DEMO_DOWNSCALE = 2.0  # 160x120 demo views rendered at 80x60
 DEMO_ORBIT_FRAMES = 48  # 2 s of orbit video
 DEMO_DENSIFY_INTERVAL = 20  # so that the 48 demo stylize steps see density control twice
+DEMO_GPU = {"iterations": 600, "downscale": 1.0, "densify_interval": 100}  # on a GPU the demo still takes seconds
 MIN_STYLE_PX = 64  # a painting smaller than this has no brushstrokes left at VGG's relu3 (1/4 resolution)
 MAX_STYLE_PX = 8192  # larger paintings are resized (with a warning): the style loss sees height 256 anyway
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
@@ -187,12 +188,17 @@ def run(args) -> int:
         demo = args.scene is None and args.data is None
         base_over = []
         if demo:  # the demo's size, unless the user chose one
+            import torch
+
+            gpu = torch.cuda.is_available() and args.device != "cpu"
+            size = DEMO_GPU if gpu else {"iterations": DEMO_ITERATIONS, "downscale": DEMO_DOWNSCALE,
+                                         "densify_interval": DEMO_DENSIFY_INTERVAL}
             if args.iterations is None and not _user_set(args, "iterations"):
-                base_over.append(f"iterations={DEMO_ITERATIONS}")
+                base_over.append(f"iterations={size['iterations']}")
             if args.downscale is None and not _user_set(args, "downscale"):
-                base_over.append(f"downscale={DEMO_DOWNSCALE}")
+                base_over.append(f"downscale={size['downscale']}")
             if not _user_set(args, "densify_interval"):
-                base_over.append(f"densify_interval={DEMO_DENSIFY_INTERVAL}")
+                base_over.append(f"densify_interval={size['densify_interval']}")
             if not _user_set(args, "orbit_frames"):
                 base_over.append(f"orbit_frames={DEMO_ORBIT_FRAMES}")
         cfg = load_config(cfg_path, base_over + overrides)
