@@ -42,8 +42,8 @@ class StylizeConfig:
     w_lab_start: float = 0.2  # Lab chroma statistics weight at the first stylize step (paper, linear schedule)
     w_lab_end: float = 0.05  # ... and at the last stylize step
     # --- flow guidance (ours, SPEC §3) -----------------------------------------------------------------
-    w_align: float = 0.05  # flow-alignment energy weight (paper eq. 1; tuned on the demo, see docs)
-    w_aniso: float = 0.005  # anisotropy energy weight (across-stroke footprint energy + λmin/λmax)
+    w_align: float = 2.0  # flow-alignment energy weight (paper eq. 1; tuned on the demo, see README)
+    w_aniso: float = 0.2  # anisotropy energy weight (across-stroke footprint energy + λmin/λmax)
     field_mapping: str = "matched"  # matched (FAST match carries the painting's field) | canvas (painting stretched)
     # --- geometry ------------------------------------------------------------------------------------------
     lock_xyz: bool = False  # freeze Gaussian positions during stylize (ABC-GS); False = advection (paper)
