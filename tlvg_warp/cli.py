@@ -11,7 +11,6 @@ from .errors import InputError
 COMMANDS = {
     "stylize": "flow-guided stylization of a 3DGS scene (the default demo when given nothing)",
     "reconstruct": "fit a 3DGS scene to posed photos",
-    "render": "render a PLY scene from a dataset's cameras or an orbit",
     "evaluate": "metrics for a stylization run (and optionally a second one to compare)",
     "judge": "VLM-as-a-judge pairwise comparison of two runs",
     "bench": "speed against accuracy (`bench raster` for the rasterizer alone)",
