@@ -46,6 +46,11 @@ def warp_on(device: torch.device):
 
 
 def to_warp(t: torch.Tensor, dtype, grad: torch.Tensor | None = None):
+    if t.numel() == 0:  # torch gives empty tensors arbitrary strides, which from_torch rejects
+        n = t.shape[0]
+        dev = wp.device_from_torch(t.device)
+        arr = wp.zeros(n, dtype=dtype, device=dev, requires_grad=grad is not None)
+        return arr
     return wp.from_torch(t.detach().contiguous(), dtype=dtype, grad=grad, requires_grad=grad is not None)
 
 

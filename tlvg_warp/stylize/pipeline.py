@@ -58,6 +58,9 @@ POST_FROZEN = ("means", "log_scales", "opacity_logits")  # the post-process fits
 RUN_FILES = ("checkpoint.pt", "stylized.ply", "metrics.json", "log.jsonl", "config.yaml")
 
 
+SCREEN_SIZE_REFERENCE = 1000  # pixels: the image size 3DGS's max_screen_size was chosen for
+
+
 class StylizeDiverged(RuntimeError):
     """The loss or the parameters became non-finite; the last good state was saved."""
 
@@ -369,11 +372,15 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     opt.anchors = None
     if cfg.tangential_lambda > 0:
         opt.register_post_step_hook(tangential_hook(cfg.tangential_lambda), fields=("means",))
+    # 3DGS's screen-size rule was set for ~1000-pixel images; larger renders scale it so that a sharper view
+    # of the same scene does not prune every splat as "too big on screen" (seen in the stability suite)
+    longest = max(max(c.width, c.height) for c in cams)
+    screen_limit = cfg.max_screen_size * max(1.0, longest / SCREEN_SIZE_REFERENCE)
     dcfg = DensityConfig(grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
-                         min_opacity=cfg.min_opacity, max_screen_size=cfg.max_screen_size,
+                         min_opacity=cfg.min_opacity, max_screen_size=screen_limit,
                          max_world_size=cfg.max_world_size, interval=cfg.densify_interval, start=0, until=1 << 62,
                          opacity_reset_interval=0, max_gaussians=budget, prune_unseen=True,
-                         contribution_window=n_views)
+                         contribution_window=2 * n_views - 1)  # any 2n-1 consecutive views hold an epoch
     density = DensityControl(dcfg, params.num, device)
     density.generator = torch.Generator(device=device).manual_seed(cfg.seed + 1)
     start_counts = {"input": g_in.num}
