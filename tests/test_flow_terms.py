@@ -78,3 +78,13 @@ def test_gradient_descent_turns_a_gaussian_onto_the_stroke():
         e.backward()
         opt.step()
     assert first > 0.4 and e.item() < 0.01, (first, e.item())
+
+
+def test_empty_scene_gives_zero_energy_and_empty_gradients():
+    # torch hands empty tensors arbitrary strides; they must still cross to Warp (seen at 1920x1440 when
+    # density control had pruned everything)
+    g = leafs(random_scene(0, 0))
+    cam = camera(20, 10)
+    a, b = flow_terms(g, cam, constant_field(0.3, cam), torch.zeros(0, dtype=torch.float64))
+    (a + b).backward()
+    assert a.item() == 0.0 and b.item() == 0.0 and g.means.grad.shape == (0, 3)
