@@ -29,7 +29,7 @@ for job in "$@"; do
             > "$OUT/demo.log" 2>&1; tail -n 3 "$OUT/demo.log";;
     stylize|abcgs) cfg=configs/tlvg.yaml; [ "$job" = abcgs ] && cfg=configs/abcgs.yaml
           /usr/bin/time -f "$job wall %e s" python3 -m tlvg_warp stylize --scene "$R/fern/point_cloud.ply" --data $D/fern_llff \
-            --set images=images_4 --config $cfg --style $D/starry_night.jpg --vgg-weights random --out "$R/fern_$job" \
+            --config $cfg --style $D/starry_night.jpg --vgg-weights random --out "$R/fern_$job" \
             --overwrite --quiet > "$OUT/fern_$job.log" 2>&1; tail -n 3 "$OUT/fern_$job.log"
           show "$R/fern_$job/metrics.json" "iterations"
           mkdir -p "$OUT/fern_$job"; cp "$R/fern_$job/metrics.json" "$R/fern_$job/comparison.png" "$R/fern_$job/stroke_field.png" "$OUT/fern_$job/";;
