@@ -32,6 +32,7 @@ def load_scene(args, quick: bool, device: str):
     from ..io.demo import builtin_painting
     from . import stability as S
 
+    iters = getattr(args, "iterations", None) or (6 if quick else 3000)
     style = builtin_painting()
     if args.style:
         from ..io.images import read_image
@@ -42,7 +43,7 @@ def load_scene(args, quick: bool, device: str):
         if args.data:
             raise InputError("--data needs --scene (the PLY fitted to it); without both the demo is used")
         base = S.demo_base(quick, device, n_views=6 if quick else 24, size=(40, 30) if quick else (160, 120),
-                           stride=4 if quick else 1, iterations=6 if quick else 3000)
+                           stride=4 if quick else 1, iterations=iters)
         return S.dataclasses.replace(base, style=style), "demo"
     if not args.data:
         raise InputError("--scene needs --data: the dataset (cameras and photos) the scene was fitted to")
@@ -53,7 +54,7 @@ def load_scene(args, quick: bool, device: str):
     ds = load_dataset(args.data, downscale=4 if quick else None)
     n = min(len(ds), 6 if quick else len(ds))
     base = S.Base(g, ds.cameras[:n], ds.names[:n], [ds.image(i) for i in range(n)], style,
-                  (1.0, 1.0, 1.0), {"device": device, "iterations": 6 if quick else 3000, "log_every": 1000})
+                  (1.0, 1.0, 1.0), {"device": device, "iterations": iters, "log_every": 1000})
     return base, f"{args.scene} on {args.data}"
 
 
