@@ -50,7 +50,7 @@ def load_scene(args, quick: bool, device: str):
     from ..io import load_ply
     from ..io.datasets import load_dataset
 
-    g = load_ply(args.scene)
+    g = load_ply(args.scene).to(device)  # evaluation renders happen where the sweep runs
     ds = load_dataset(args.data, downscale=4 if quick else None)
     n = min(len(ds), 6 if quick else len(ds))
     base = S.Base(g, ds.cameras[:n], ds.names[:n], [ds.image(i) for i in range(n)], style,
