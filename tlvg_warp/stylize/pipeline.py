@@ -34,8 +34,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import signal
-import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -44,7 +42,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .. import runs
 from ..errors import InputError
+from ..runs import Interrupt as _Interrupt, resolve_device
 from ..fileio import atomic_path, write_text
 from ..types import Camera, Gaussians
 from .config import StylizeConfig, config_yaml
@@ -98,24 +98,6 @@ class StylizeInputs:
 
 
 # --- small utilities -------------------------------------------------------------------------------------------
-class _Interrupt:
-    """SIGINT sets a flag that the loop checks after each iteration; a second Ctrl-C interrupts at once."""
-
-    def __init__(self):
-        self.flag, self.old = False, None
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            def handler(signum, frame):
-                if self.flag:
-                    raise KeyboardInterrupt
-                self.flag = True
-            self.old = signal.signal(signal.SIGINT, handler)
-        return self
-
-    def __exit__(self, *exc):
-        if self.old is not None:
-            signal.signal(signal.SIGINT, self.old)
 
 
 class StageTimer:
@@ -162,13 +144,6 @@ class StageTimer:
         return {"ms_per_iteration": {s: round(t / n, 3) for s, t in tot.items()}, "samples": n}
 
 
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    d = torch.device(name)
-    if d.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("device cuda requested but CUDA is not available (use --device cpu)")
-    return d
 
 
 def tv_loss(img: torch.Tensor) -> torch.Tensor:
@@ -273,21 +248,7 @@ def load_checkpoint(path) -> dict:
 
 
 def check_out_dir(out: Path, overwrite: bool, resume: bool) -> None:
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", out)
-    if out.is_dir() and any(out.iterdir()) and not (overwrite or resume):
-        held = [f for f in RUN_FILES if (out / f).exists()]
-        what = f"a previous run ({', '.join(held)})" if held else "other files"
-        raise InputError(f"output folder already holds {what}; pass --overwrite to replace it or "
-                         f"--resume {out} to continue it", out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        with atomic_path(out / ".write_test") as tmp:
-            tmp.write_bytes(b"")
-        (out / ".write_test").unlink()
-    except OSError as e:
-        raise InputError(f"output folder is not writable ({e.strerror or e})", out) from None
+    runs.check_out_dir(out, overwrite, resume, RUN_FILES)
 
 
 def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=None, overwrite=False,

@@ -19,15 +19,15 @@ import inspect
 import math
 import os
 import re
-import signal
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
+from .. import runs
 from ..errors import InputError
+from ..runs import Interrupt as _Interrupt, resolve_device
 from ..fileio import atomic_path, write_image, write_json, write_text
 from ..types import Gaussians
 from .density import DensityConfig, DensityControl
@@ -221,13 +221,6 @@ def config_yaml(cfg: ReconstructConfig) -> str:
 
 
 # --- helpers ---------------------------------------------------------------------------------------------
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    d = torch.device(name)
-    if d.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("device cuda requested but CUDA is not available (use --device cpu)")
-    return d
 
 
 def split_views(n: int, holdout_every: int) -> tuple[list[int], list[int]]:
@@ -243,22 +236,7 @@ def split_views(n: int, holdout_every: int) -> tuple[list[int], list[int]]:
 
 
 def check_out_dir(out: Path, overwrite: bool, resume: bool) -> None:
-    """Refuse an unwritable folder, or one that already holds something, unless overwrite/resume."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", out)
-    if out.is_dir() and any(out.iterdir()) and not (overwrite or resume):
-        held = [f for f in RUN_FILES if (out / f).exists()]
-        what = f"a previous run ({', '.join(held)})" if held else "other files"
-        raise InputError(f"output folder already holds {what}; pass --overwrite to replace it or "
-                         f"--resume {out} to continue it", out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        with atomic_path(out / ".write_test") as tmp:
-            tmp.write_bytes(b"")
-        (out / ".write_test").unlink()
-    except OSError as e:
-        raise InputError(f"output folder is not writable ({e.strerror or e})", out) from None
+    runs.check_out_dir(out, overwrite, resume, RUN_FILES)
 
 
 def cameras_json(dataset) -> list[dict]:
@@ -316,25 +294,6 @@ class _Timer:
         return {"ms_per_iteration": {p: round(t / n, 4) for p, t in zip(self.PHASES, tot)}, "samples": n}
 
 
-class _Interrupt:
-    """SIGINT sets a flag checked at the end of each iteration (a second Ctrl-C interrupts at once)."""
-
-    def __init__(self):
-        self.flag = False
-        self.old = None
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            def handler(signum, frame):
-                if self.flag:
-                    raise KeyboardInterrupt
-                self.flag = True
-            self.old = signal.signal(signal.SIGINT, handler)
-        return self
-
-    def __exit__(self, *exc):
-        if self.old is not None:
-            signal.signal(signal.SIGINT, self.old)
 
 
 # --- the fitter -----------------------------------------------------------------------------------------

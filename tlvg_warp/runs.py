@@ -1,0 +1,60 @@
+"""What every run folder shares (reconstruct and stylize): device choice, the refusal to overwrite another run,
+and Ctrl-C that finishes the current iteration before saving a checkpoint."""
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+
+import torch
+
+from .errors import InputError
+from .fileio import atomic_path
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    d = torch.device(name)
+    if d.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("device cuda requested but CUDA is not available (use --device cpu)")
+    return d
+
+
+def check_out_dir(out: Path, overwrite: bool, resume: bool, run_files=()) -> None:
+    """Refuse an unwritable folder, or one that already holds something, unless overwrite/resume."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", out)
+    if out.is_dir() and any(out.iterdir()) and not (overwrite or resume):
+        held = [f for f in run_files if (out / f).exists()]
+        what = f"a previous run ({', '.join(held)})" if held else "other files"
+        raise InputError(f"output folder already holds {what}; pass --overwrite to replace it or "
+                         f"--resume {out} to continue it", out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with atomic_path(out / ".write_test") as tmp:
+            tmp.write_bytes(b"")
+        (out / ".write_test").unlink()
+    except OSError as e:
+        raise InputError(f"output folder is not writable ({e.strerror or e})", out) from None
+
+
+class Interrupt:
+    """SIGINT sets a flag that the loop checks after each iteration; a second Ctrl-C interrupts at once."""
+
+    def __init__(self):
+        self.flag, self.old = False, None
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            def handler(signum, frame):
+                if self.flag:
+                    raise KeyboardInterrupt
+                self.flag = True
+            self.old = signal.signal(signal.SIGINT, handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            signal.signal(signal.SIGINT, self.old)
