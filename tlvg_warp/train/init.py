@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..types import SH_C0, Camera, Gaussians, sh_coeffs
+from ..types import SH_C0, Gaussians, sh_coeffs
 
 KNN_CHUNK_ELEMS = 1 << 24  # distance entries per chunk (64 MB in float32)
 MIN_DIST2 = 1e-7  # graphdeco's clamp of the squared neighbour distance
