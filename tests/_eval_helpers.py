@@ -3,7 +3,6 @@ tests do not depend on the stylization pipeline."""
 import json
 from pathlib import Path
 
-import numpy as np
 import torch
 import yaml
 

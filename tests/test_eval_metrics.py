@@ -5,7 +5,7 @@ import math
 import numpy as np
 import torch
 
-from tlvg_warp import Camera, Gaussians, render
+from tlvg_warp import Camera, Gaussians
 from tlvg_warp.eval import metrics as M
 from tlvg_warp.types import SH_C0
 

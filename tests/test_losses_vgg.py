@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 import torch
-import torch.nn as nn
 
 from tlvg_warp.errors import InputError
 from tlvg_warp.losses import load_vgg, resize_style

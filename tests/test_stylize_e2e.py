@@ -3,7 +3,6 @@ that loads back at SH degree 0, no NaN in the log, Ctrl-C + resume continuing fr
 iteration, and the CLI's one-line errors (exit 2)."""
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
