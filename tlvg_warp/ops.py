@@ -45,6 +45,11 @@ def warp_on(device: torch.device):
         yield wp.device_from_torch(device)
 
 
+def ct(t: torch.Tensor, dtype=None):
+    """A bare array descriptor for launches outside the tape (skips building a wp.array: less Python per call)."""
+    return wp.from_torch(t.detach(), dtype=dtype, return_ctype=True)
+
+
 def to_warp(t: torch.Tensor, dtype, grad: torch.Tensor | None = None):
     if t.numel() == 0:  # torch gives empty tensors arbitrary strides, which from_torch rejects
         n = t.shape[0]
@@ -102,16 +107,18 @@ def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = Fal
     wdev = wp.device_from_torch(device)
     n = proj.depth.shape[0]
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    m2 = wp.from_torch(proj.means2d.float().contiguous(), dtype=wp.vec2)
-    radii = wp.from_torch(proj.radii, dtype=wp.int32)
-    shape = [wp.from_torch(proj.cov2d.float().contiguous(), dtype=wp.vec3),
-             wp.from_torch(proj.conic.float().contiguous(), dtype=wp.vec3),
-             wp.from_torch(proj.opacity.float().contiguous())]
+    if n == 0:
+        return (torch.zeros(tiles_x * tiles_y, 2, dtype=torch.int32, device=device),
+                torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y)
+    m2 = ct(proj.means2d.float().contiguous(), wp.vec2)
+    radii = ct(proj.radii, wp.int32)
+    shape = [ct(proj.cov2d.float().contiguous(), wp.vec3), ct(proj.conic.float().contiguous(), wp.vec3),
+             ct(proj.opacity.float().contiguous())]
     counts = torch.empty(n, dtype=torch.int32, device=device)
     wp.launch(K.count_tiles, dim=n, inputs=[m2, radii, *shape, tiles_x, tiles_y, width, height, int(all_tiles)],
-              outputs=[wp.from_torch(counts)], device=wdev)
+              outputs=[ct(counts)], device=wdev)
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
-    total = int(ends[-1]) if n else 0  # the one host sync per render: the key buffer size
+    total = int(ends[-1])  # the one host sync per render: the key buffer size
     ranges = torch.zeros(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)
     if total == 0:
         return ranges, torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
@@ -122,12 +129,11 @@ def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = Fal
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
     depth_bits = proj.depth.float().contiguous().view(torch.int32)  # z > 0: bit order == float order
     wkeys, wids = wp.from_torch(keys), wp.from_torch(ids)
-    wp.launch(K.emit_keys, dim=n, inputs=[m2, radii, *shape, wp.from_torch(depth_bits), wp.from_torch(starts),
-                                          wp.from_torch(counts), tiles_x,
+    wp.launch(K.emit_keys, dim=n, inputs=[m2, radii, *shape, ct(depth_bits), ct(starts), ct(counts), tiles_x,
                                           tiles_y, width, height, int(all_tiles)], outputs=[wkeys, wids], device=wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
     wp.utils.radix_sort_pairs(wkeys, wids, total, 0, 32 + tile_bits)  # only the bits keys use
-    wp.launch(K.tile_ranges, dim=total, inputs=[wkeys, total], outputs=[wp.from_torch(ranges)], device=wdev)
+    wp.launch(K.tile_ranges, dim=total, inputs=[wkeys, total], outputs=[ct(ranges)], device=wdev)
     return ranges, ids[:total], tiles_x, tiles_y
 
 
@@ -157,20 +163,18 @@ class RasterizeFn(torch.autograd.Function):
             weights = torch.zeros(n if settings["weights"] else 1, dtype=dtype, device=device)
             bg = K.vec3(*map(K.scalar, settings["background"]))
             w_means2d, _w_cov2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pouts
-            blend_args = [wp.from_torch(ranges), wp.from_torch(ids), w_means2d, w_conic, w_opacity, w_color, w_depth,
+            blend_args = [ct(ranges), ct(ids), w_means2d, w_conic, w_opacity, w_color, w_depth,
                           bg, W, H, tiles_x]
             wp.launch(K.blend_forward, dim=tiles_x * tiles_y * TILE * TILE, block_dim=TILE * TILE,
                       inputs=blend_args + [int(settings["weights"])],
-                      outputs=[wp.from_torch(color, dtype=K.vec3), wp.from_torch(alpha), wp.from_torch(depth),
-                               wp.from_torch(T), wp.from_torch(last), wp.from_torch(weights)],
+                      outputs=[ct(color, K.vec3), ct(alpha), ct(depth), ct(T), ct(last), ct(weights)],
                       device=wdev, record_tape=False)
             n_threads = tiles_x * tiles_y * TILE * TILE
             io = {}  # filled by backward(): upstream gradients in, dL/d(screen mean) out
 
             def blend_backward():
                 wp.launch(K.blend_backward, dim=n_threads, block_dim=TILE * TILE,
-                          inputs=blend_args + [to_warp(depth, K.scalar), to_warp(T, K.scalar), wp.from_torch(last),
-                                               *io["upstream"]],
+                          inputs=blend_args + [ct(depth), ct(T), ct(last), *io["upstream"]],
                           outputs=[a.grad for a in blend_args[2:7]], device=wdev)
                 # the projection adjoint consumes (zeroes) its output grads: keep dL/d(screen mean) first
                 io["screen"] = wp.to_torch(w_means2d.grad).clone()
@@ -196,7 +200,7 @@ class RasterizeFn(torch.autograd.Function):
         dtype = grads[0].dtype
         ups = [g.contiguous() if g is not None else torch.zeros(shape, dtype=dtype, device=device)
                for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
-        io["upstream"] = [to_warp(ups[0], K.vec3), to_warp(ups[1], K.scalar), to_warp(ups[2], K.scalar)]
+        io["upstream"] = [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
         with warp_on(device):
             tape.backward()
         return (*grads, io["screen"], None, None)
