@@ -58,3 +58,19 @@ class Interrupt:
     def __exit__(self, *exc):
         if self.old is not None:
             signal.signal(signal.SIGINT, self.old)
+
+
+def read_checkpoint(path, fmt: str, what: str) -> dict:
+    """A run's checkpoint.pt (``path`` is the file or its run folder), refused unless its format is ``fmt``."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "checkpoint.pt"
+    if not p.is_file():
+        raise InputError("no checkpoint.pt to resume from", p.parent if p.name == "checkpoint.pt" else p)
+    try:
+        ck = torch.load(p, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - any unpickling problem is a bad file
+        raise InputError(f"unreadable checkpoint ({type(e).__name__})", p) from None
+    if not isinstance(ck, dict) or ck.get("format") != fmt:
+        raise InputError(f"not a tlvg_warp {what} checkpoint", p)
+    return ck

@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import inspect
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..config_io import coerce as _coerce, field_comments as _field_comments
 from ..errors import InputError
 
 
@@ -130,45 +129,8 @@ class StylizeConfig:
 
 # --- loading -------------------------------------------------------------------------------------------------
 def field_comments() -> dict:
-    src = inspect.getsource(StylizeConfig)
-    return {m.group(1): m.group(2).strip() for m in re.finditer(r"^    (\w+): [^#\n]*#(.*)$", src, re.M)}
+    return _field_comments(StylizeConfig)
 
-
-def _coerce(name: str, value, typ):
-    typ = str(typ)
-    try:
-        if value is None:
-            if "None" in typ:
-                return None
-            raise TypeError
-        if typ.startswith("bool"):
-            if isinstance(value, str):
-                low = value.lower()
-                if low in ("true", "yes", "1", "on"):
-                    return True
-                if low in ("false", "no", "0", "off"):
-                    return False
-                raise ValueError
-            if not isinstance(value, (bool, int)):
-                raise TypeError
-            return bool(value)
-        if typ.startswith("int"):
-            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
-                raise ValueError
-            return int(value)
-        if typ.startswith("float"):
-            if isinstance(value, bool):
-                raise TypeError
-            return float(value)
-        if typ.startswith("str"):
-            return str(value)
-        if typ.startswith("list"):
-            if not isinstance(value, (list, tuple)):
-                raise TypeError
-            return [float(v) for v in value]
-    except (TypeError, ValueError):
-        raise InputError(f"config {name}: cannot use {value!r} as {typ}") from None
-    return value
 
 
 def _unknown(key: str, known) -> InputError:

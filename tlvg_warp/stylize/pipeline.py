@@ -233,18 +233,7 @@ class _State:
 
 
 def load_checkpoint(path) -> dict:
-    p = Path(path)
-    if p.is_dir():
-        p = p / "checkpoint.pt"
-    if not p.is_file():
-        raise InputError("no checkpoint.pt to resume from", p.parent if p.name == "checkpoint.pt" else p)
-    try:
-        ck = torch.load(p, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001 - any unpickling problem is a bad file
-        raise InputError(f"unreadable checkpoint ({type(e).__name__})", p) from None
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        raise InputError("not a tlvg_warp stylize checkpoint", p)
-    return ck
+    return runs.read_checkpoint(path, CHECKPOINT_FORMAT, "stylize")
 
 
 def check_out_dir(out: Path, overwrite: bool, resume: bool) -> None:

@@ -15,10 +15,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import inspect
 import math
 import os
-import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +24,7 @@ from pathlib import Path
 import torch
 
 from .. import runs
+from ..config_io import coerce as _coerce, field_comments
 from ..errors import InputError
 from ..runs import Interrupt as _Interrupt, resolve_device
 from ..fileio import atomic_path, write_image, write_json, write_text
@@ -132,40 +131,8 @@ class ReconstructConfig:
 
 # --- config I/O --------------------------------------------------------------------------------------
 def _field_comments() -> dict:
-    src = inspect.getsource(ReconstructConfig)
-    return {m.group(1): m.group(2).strip() for m in re.finditer(r"^    (\w+): [^#\n]*#(.*)$", src, re.M)}
+    return field_comments(ReconstructConfig)
 
-
-def _coerce(name: str, value, typ):
-    typ = str(typ)
-    try:
-        if value is None:
-            if "None" in typ:
-                return None
-            raise TypeError
-        if typ.startswith("bool"):
-            if isinstance(value, str):
-                if value.lower() in ("true", "yes", "1", "on"):
-                    return True
-                if value.lower() in ("false", "no", "0", "off"):
-                    return False
-                raise ValueError
-            return bool(value)
-        if typ.startswith("int"):
-            if isinstance(value, float) and not value.is_integer():
-                raise ValueError
-            return int(value)
-        if typ.startswith("float"):
-            return float(value)
-        if typ.startswith("str"):
-            return str(value)
-        if typ.startswith("list"):
-            if not isinstance(value, (list, tuple)):
-                raise TypeError
-            return [float(v) for v in value]
-    except (TypeError, ValueError):
-        raise InputError(f"config {name}: cannot use {value!r} as {typ}") from None
-    return value
 
 
 def config_from_dict(d: dict, base: ReconstructConfig | None = None) -> ReconstructConfig:
@@ -347,18 +314,7 @@ def _save_checkpoint(path: Path, st: FitState, config: ReconstructConfig, names,
 
 
 def load_checkpoint(path) -> dict:
-    p = Path(path)
-    if p.is_dir():
-        p = p / "checkpoint.pt"
-    if not p.is_file():
-        raise InputError("no checkpoint.pt to resume from", p.parent if p.name == "checkpoint.pt" else p)
-    try:
-        ck = torch.load(p, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001 - any unpickling problem is a bad file
-        raise InputError(f"unreadable checkpoint ({type(e).__name__})", p) from None
-    if not isinstance(ck, dict) or ck.get("format") != "tlvg_warp.reconstruct.v1":
-        raise InputError("not a tlvg_warp reconstruct checkpoint", p)
-    return ck
+    return runs.read_checkpoint(path, "tlvg_warp.reconstruct.v1", "reconstruct")
 
 
 def _snapshot(st: FitState) -> dict:

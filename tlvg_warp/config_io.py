@@ -1,0 +1,53 @@
+"""Config plumbing shared by every dataclass config: one-line field comments read from the class source
+(they are dumped next to every run) and strict coercion of YAML / --set values to the field types."""
+from __future__ import annotations
+
+import inspect
+import re
+
+from .errors import InputError
+
+
+def field_comments(cls) -> dict:
+    """{field: its trailing # comment} of a dataclass, from its source."""
+    src = inspect.getsource(cls)
+    return {m.group(1): m.group(2).strip() for m in re.finditer(r"^    (\w+): [^#\n]*#(.*)$", src, re.M)}
+
+
+def coerce(name: str, value, typ):
+    typ = str(typ)
+    try:
+        if value is None:
+            if "None" in typ:
+                return None
+            raise TypeError
+        if typ.startswith("bool"):
+            if isinstance(value, str):
+                low = value.lower()
+                if low in ("true", "yes", "1", "on"):
+                    return True
+                if low in ("false", "no", "0", "off"):
+                    return False
+                raise ValueError
+            if not isinstance(value, (bool, int)):
+                raise TypeError
+            return bool(value)
+        if typ.startswith("int"):
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise ValueError
+            return int(value)
+        if typ.startswith("float"):
+            if isinstance(value, bool):
+                raise TypeError
+            return float(value)
+        if typ.startswith("str"):
+            return str(value)
+        if typ.startswith("list"):
+            if not isinstance(value, (list, tuple)):
+                raise TypeError
+            return [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise InputError(f"config {name}: cannot use {value!r} as {typ}") from None
+    return value
+
+
