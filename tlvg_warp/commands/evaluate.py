@@ -51,22 +51,11 @@ def cameras_from_json(path: Path):
     data = _read_json(path)
     if not isinstance(data, list) or not data:
         raise InputError("expected a non-empty list of cameras", path)
+    from ..io.datasets import inria_camera_entries
+
     names, cams = [], []
-    for k, c in enumerate(data):
-        try:
-            name, w, h = str(c["img_name"]), int(c["width"]), int(c["height"])
-            rot, pos = np.asarray(c["rotation"], np.float64), np.asarray(c["position"], np.float64)
-            fx, fy = float(c["fx"]), float(c["fy"])
-        except (KeyError, TypeError, ValueError):
-            raise InputError(f"camera {k} lacks img_name/width/height/rotation/position/fx/fy", path) from None
-        if rot.shape != (3, 3) or pos.shape != (3,) or not (np.isfinite(rot).all() and np.isfinite(pos).all()):
-            raise InputError(f"camera {k}: rotation must be a finite 3x3 and position 3 numbers", path)
-        c2w = np.eye(4)
-        c2w[:3, :3], c2w[:3, 3] = rot, pos
-        try:
-            cams.append(Camera(torch.from_numpy(np.linalg.inv(c2w)), fx, fy, w / 2, h / 2, w, h, name=name))
-        except np.linalg.LinAlgError:
-            raise InputError(f"camera {k}: singular rotation", path) from None
+    for name, w2c, fx, fy, w, h in inria_camera_entries(data, path):
+        cams.append(Camera(torch.from_numpy(w2c), fx, fy, w / 2, h / 2, int(w), int(h), name=name))
         names.append(name)
     return names, cams
 

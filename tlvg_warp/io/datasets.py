@@ -302,6 +302,28 @@ def _blender_views(root, files):
 
 
 # --- INRIA cameras.json -----------------------------------------------------------------------------------
+def inria_camera_entries(data, path) -> list:
+    """The INRIA trainer's cameras.json entries -> [(img_name, world_to_camera [4,4], fx, fy, W, H)].
+    ``rotation`` and ``position`` are camera-to-world in COLMAP (OpenCV) axes; the principal point is the center."""
+    out = []
+    for k, c in enumerate(data):
+        try:
+            name, W, H = str(c["img_name"]), float(c["width"]), float(c["height"])
+            rot, pos = np.asarray(c["rotation"], np.float64), np.asarray(c["position"], np.float64)
+            fx, fy = float(c["fx"]), float(c["fy"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"camera {k} lacks img_name/width/height/rotation/position/fx/fy", path) from None
+        if rot.shape != (3, 3) or pos.shape != (3,) or not (np.isfinite(rot).all() and np.isfinite(pos).all()):
+            raise InputError(f"camera {k}: rotation must be a finite 3x3 and position 3 numbers", path)
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = rot, pos
+        try:
+            out.append((name, np.linalg.inv(c2w), fx, fy, W, H))
+        except np.linalg.LinAlgError:
+            raise InputError(f"camera {k}: singular rotation", path) from None
+    return out
+
+
 def _inria_views(root, images):
     cj = root / "cameras.json"
     data = _read_json(cj)
@@ -316,21 +338,11 @@ def _inria_views(root, images):
             folders.append(Path(m.group(1)) / (sub.group(1) if sub else "images"))
     folder = next((f for f in folders if f.is_dir()), folders[0])
     views = []
-    for k, c in enumerate(data):
-        try:
-            name, W, H = str(c["img_name"]), float(c["width"]), float(c["height"])
-            rot, pos = np.asarray(c["rotation"], np.float64), np.asarray(c["position"], np.float64)
-            fx, fy = float(c["fx"]), float(c["fy"])
-        except (KeyError, TypeError, ValueError):
-            raise InputError(f"camera {k} lacks img_name/width/height/rotation/position/fx/fy", cj) from None
-        if rot.shape != (3, 3) or pos.shape != (3,):
-            raise InputError(f"camera {k}: rotation must be 3x3 and position 3", cj)
+    for name, w2c, fx, fy, W, H in inria_camera_entries(data, cj):
         path = next((folder / (name + e) for e in IMAGE_EXTS + tuple(x.upper() for x in IMAGE_EXTS)
                      if (folder / (name + e)).is_file()), folder / name)
-        c2w = np.eye(4)
-        c2w[:3, :3], c2w[:3, 3] = rot, pos  # the trainer stores camera-to-world, COLMAP (OpenCV) axes
         K = np.array([[fx, 0, W / 2], [0, fy, H / 2], [0, 0, 1]])
-        views.append(_View(name, path, np.linalg.inv(c2w), K, (W, H), source=cj))
+        views.append(_View(name, path, w2c, K, (W, H), source=cj))
     points = None
     if (root / "input.ply").is_file():  # the trainer's copy of the SfM points
         from plyfile import PlyData
