@@ -51,3 +51,19 @@ def coerce(name: str, value, typ):
     return value
 
 
+
+
+def apply_overrides(cfg, overrides, from_dict):
+    """Apply ``key=value`` strings (values parsed as YAML scalars) to ``cfg`` through ``from_dict(d, cfg)``."""
+    import yaml
+
+    for ov in overrides:
+        if "=" not in ov:
+            raise InputError(f"--set expects key=value, got {ov!r}")
+        k, v = ov.split("=", 1)
+        try:
+            val = yaml.safe_load(v)
+        except yaml.YAMLError:
+            val = v
+        cfg = from_dict({k.strip(): val}, cfg)
+    return cfg

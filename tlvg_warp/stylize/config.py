@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..config_io import coerce as _coerce, field_comments as _field_comments
+from ..config_io import apply_overrides, coerce as _coerce, field_comments as _field_comments
 from ..errors import InputError
 
 
@@ -177,21 +177,10 @@ def read_yaml_chain(path, _seen=None) -> dict:
 
 def load_config(path=None, overrides=(), base: StylizeConfig | None = None) -> StylizeConfig:
     """Defaults (or ``base``), then the YAML file with its ``base:`` chain, then ``key=value`` overrides."""
-    import yaml
-
     cfg = base if base is not None else StylizeConfig()
     if path is not None:
         cfg = config_from_dict(read_yaml_chain(path), cfg)
-    for ov in overrides:
-        if "=" not in ov:
-            raise InputError(f"--set expects key=value, got {ov!r}")
-        k, v = ov.split("=", 1)
-        try:
-            val = yaml.safe_load(v)
-        except yaml.YAMLError:
-            val = v
-        cfg = config_from_dict({k.strip(): val}, cfg)
-    return cfg.validate()
+    return apply_overrides(cfg, overrides, config_from_dict).validate()
 
 
 def config_yaml(cfg: StylizeConfig, header: str = "tlvg_warp stylize: resolved configuration") -> str:

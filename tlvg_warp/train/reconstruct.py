@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from .. import runs
-from ..config_io import coerce as _coerce, field_comments
+from ..config_io import apply_overrides, coerce as _coerce, field_comments
 from ..errors import InputError
 from ..runs import Interrupt as _Interrupt, resolve_device
 from ..fileio import atomic_path, write_image, write_json, write_text
@@ -161,16 +161,7 @@ def load_config(path=None, overrides=(), base: ReconstructConfig | None = None) 
         if not isinstance(d, dict):
             raise InputError("config must be a YAML mapping of key: value", p)
         cfg = config_from_dict(d, cfg)
-    for ov in overrides:
-        if "=" not in ov:
-            raise InputError(f"--set expects key=value, got {ov!r}")
-        k, v = ov.split("=", 1)
-        try:
-            val = yaml.safe_load(v)
-        except yaml.YAMLError:
-            val = v
-        cfg = config_from_dict({k.strip(): val}, cfg)
-    return cfg.validate()
+    return apply_overrides(cfg, overrides, config_from_dict).validate()
 
 
 def config_yaml(cfg: ReconstructConfig) -> str:
