@@ -117,7 +117,9 @@ class GaussianOptimizer:
         self.decay_steps = self.lrs.means_steps if decay_steps is None else int(decay_steps)
         groups = [{"params": [getattr(params, f)], "lr": self.lrs.for_field(f, self.extent), "name": f}
                   for f in params.trainable()]
-        self.adam = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        # fused: one kernel for every group on CUDA instead of a dozen launches per group each step
+        fused = all(g["params"][0].is_cuda for g in groups) and len(groups) > 0
+        self.adam = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=fused or None)
         self.hooks: list = []  # (fn, fields)
 
     # learning rates ------------------------------------------------------------------------------
