@@ -106,10 +106,8 @@ def make_projection(scalar):
         quats: wp.array(dtype=vec4),  # [N]
         log_scales: wp.array(dtype=vec3),  # [N]
         opacity_logits: wp.array(dtype=scalar),  # [N]
-        sh: wp.array2d(dtype=vec3),  # [N, K]
         R: mat33,
         t: vec3,
-        cam_center: vec3,
         fx: scalar,
         fy: scalar,
         cx: scalar,
@@ -118,13 +116,11 @@ def make_projection(scalar):
         height: int,
         near: scalar,
         far: scalar,
-        sh_degree: int,
         means2d: wp.array(dtype=vec2),  # [N] out
         cov2d: wp.array(dtype=vec3),  # [N] out (a, b, c) of Σ2D = [[a, b], [b, c]]
         conic: wp.array(dtype=vec3),  # [N] out (a, b, c) of Σ2D⁻¹
         depth: wp.array(dtype=scalar),  # [N] out camera-space z
         opacity: wp.array(dtype=scalar),  # [N] out sigmoid(logit)
-        color: wp.array(dtype=vec3),  # [N] out max(SH + 0.5, 0)
         radii: wp.array(dtype=wp.int32),  # [N] out, 0 = culled
     ):
         i = wp.tid()
@@ -168,11 +164,119 @@ def make_projection(scalar):
         conic[i] = vec3(c * inv_det, -b * inv_det, a * inv_det)
         depth[i] = z
         opacity[i] = scalar(1.0) / (scalar(1.0) + wp.exp(-ol))
-        dvec = mu - cam_center
-        dn = wp.length(dvec)
-        if dn > scalar(0.0):
-            dvec = dvec / dn
-        rgb = eval_sh(sh, i, sh_degree, dvec) + vec3(scalar(0.5), scalar(0.5), scalar(0.5))
+
+    @wp.func
+    def view_dir(mu: vec3, cam_center: vec3) -> vec3:
+        d = mu - cam_center
+        n = wp.length(d)
+        if n > scalar(0.0):
+            d = d / n
+        return d
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def sh_color_kernel(
+        means: wp.array(dtype=vec3),  # [N]
+        sh: wp.array2d(dtype=vec3),  # [N, K]
+        radii: wp.array(dtype=wp.int32),  # [N] from project_kernel; 0 = culled (color stays 0)
+        cam_center: vec3,
+        sh_degree: int,
+        color: wp.array(dtype=vec3),  # [N] out max(SH(d) + 0.5, 0)
+    ):
+        i = wp.tid()
+        if radii[i] <= 0:
+            return
+        rgb = eval_sh(sh, i, sh_degree, view_dir(means[i], cam_center)) + vec3(scalar(0.5), scalar(0.5), scalar(0.5))
         color[i] = vec3(wp.max(rgb[0], scalar(0.0)), wp.max(rgb[1], scalar(0.0)), wp.max(rgb[2], scalar(0.0)))
 
-    return project_kernel, ewa_cov2d
+    @wp.func
+    def dot3(a: vec3, b: vec3) -> scalar:
+        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def sh_backward_kernel(
+        means: wp.array(dtype=vec3),  # [N]
+        sh: wp.array2d(dtype=vec3),  # [N, K]
+        radii: wp.array(dtype=wp.int32),  # [N]
+        cam_center: vec3,
+        sh_degree: int,
+        g_color: wp.array(dtype=vec3),  # [N] dL/dcolor
+        g_sh: wp.array2d(dtype=vec3),  # [N, K] out, plain stores (one thread owns each row)
+        g_means: wp.array(dtype=vec3),  # [N] out, plain store: runs before the projection adjoint adds to it
+    ):
+        # Hand-written so that each Gaussian's 3K SH gradients are plain stores: Warp's generated adjoint turns
+        # every array read into an atomic add, which made SH the bulk of the projection backward.
+        i = wp.tid()
+        if radii[i] <= 0:
+            return
+        mu = means[i]
+        d = view_dir(mu, cam_center)
+        rgb = eval_sh(sh, i, sh_degree, d) + vec3(scalar(0.5), scalar(0.5), scalar(0.5))
+        gc0 = g_color[i]
+        zero = scalar(0.0)
+        # color = max(rgb, 0): the gradient passes where rgb > 0 (torch's clamp passes it at 0 too: measure zero)
+        gc = vec3(wp.where(rgb[0] >= zero, gc0[0], zero), wp.where(rgb[1] >= zero, gc0[1], zero),
+                  wp.where(rgb[2] >= zero, gc0[2], zero))
+        g_sh[i, 0] = scalar(SH_C0) * gc
+        if sh_degree > 0:
+            x = d[0]
+            y = d[1]
+            z = d[2]
+            c1 = scalar(SH_C1)
+            g_sh[i, 1] = (-c1 * y) * gc
+            g_sh[i, 2] = (c1 * z) * gc
+            g_sh[i, 3] = (-c1 * x) * gc
+            # dL/d(basis k) = gc·sh_k; the direction gradient is Σ_k (gc·sh_k) ∇b_k(d)
+            w1 = dot3(gc, sh[i, 1])
+            w2 = dot3(gc, sh[i, 2])
+            w3 = dot3(gc, sh[i, 3])
+            gx = -c1 * w3
+            gy = -c1 * w1
+            gz = c1 * w2
+            if sh_degree > 1:
+                xx = x * x
+                yy = y * y
+                zz = z * z
+                g_sh[i, 4] = (scalar(C20) * x * y) * gc
+                g_sh[i, 5] = (scalar(C21) * y * z) * gc
+                g_sh[i, 6] = (scalar(C22) * (scalar(2.0) * zz - xx - yy)) * gc
+                g_sh[i, 7] = (scalar(C23) * x * z) * gc
+                g_sh[i, 8] = (scalar(C24) * (xx - yy)) * gc
+                w4 = scalar(C20) * dot3(gc, sh[i, 4])
+                w5 = scalar(C21) * dot3(gc, sh[i, 5])
+                w6 = scalar(C22) * dot3(gc, sh[i, 6])
+                w7 = scalar(C23) * dot3(gc, sh[i, 7])
+                w8 = scalar(C24) * dot3(gc, sh[i, 8])
+                gx += w4 * y - scalar(2.0) * w6 * x + w7 * z + scalar(2.0) * w8 * x
+                gy += w4 * x + w5 * z - scalar(2.0) * w6 * y - scalar(2.0) * w8 * y
+                gz += w5 * y + scalar(4.0) * w6 * z + w7 * x
+                if sh_degree > 2:
+                    g_sh[i, 9] = (scalar(C30) * y * (scalar(3.0) * xx - yy)) * gc
+                    g_sh[i, 10] = (scalar(C31) * x * y * z) * gc
+                    g_sh[i, 11] = (scalar(C32) * y * (scalar(4.0) * zz - xx - yy)) * gc
+                    g_sh[i, 12] = (scalar(C33) * z * (scalar(2.0) * zz - scalar(3.0) * xx - scalar(3.0) * yy)) * gc
+                    g_sh[i, 13] = (scalar(C34) * x * (scalar(4.0) * zz - xx - yy)) * gc
+                    g_sh[i, 14] = (scalar(C35) * z * (xx - yy)) * gc
+                    g_sh[i, 15] = (scalar(C36) * x * (xx - scalar(3.0) * yy)) * gc
+                    w9 = scalar(C30) * dot3(gc, sh[i, 9])
+                    w10 = scalar(C31) * dot3(gc, sh[i, 10])
+                    w11 = scalar(C32) * dot3(gc, sh[i, 11])
+                    w12 = scalar(C33) * dot3(gc, sh[i, 12])
+                    w13 = scalar(C34) * dot3(gc, sh[i, 13])
+                    w14 = scalar(C35) * dot3(gc, sh[i, 14])
+                    w15 = scalar(C36) * dot3(gc, sh[i, 15])
+                    gx += (w9 * scalar(6.0) * x * y + w10 * y * z - w11 * scalar(2.0) * x * y
+                           - w12 * scalar(6.0) * x * z + w13 * (scalar(4.0) * zz - scalar(3.0) * xx - yy)
+                           + w14 * scalar(2.0) * x * z + w15 * scalar(3.0) * (xx - yy))
+                    gy += (w9 * scalar(3.0) * (xx - yy) + w10 * x * z + w11 * (scalar(4.0) * zz - xx - scalar(3.0) * yy)
+                           - w12 * scalar(6.0) * y * z - w13 * scalar(2.0) * x * y - w14 * scalar(2.0) * y * z
+                           - w15 * scalar(6.0) * x * y)
+                    gz += (w10 * x * y + w11 * scalar(8.0) * y * z
+                           + w12 * (scalar(6.0) * zz - scalar(3.0) * xx - scalar(3.0) * yy)
+                           + w13 * scalar(8.0) * x * z + w14 * (xx - yy))
+            # through d = v/|v|: dd/dv = (I - d dᵀ)/|v|
+            n = wp.length(mu - cam_center)
+            if n > zero:
+                gd = vec3(gx, gy, gz)
+                g_means[i] = (gd - dot3(gd, d) * d) / n
+
+    return project_kernel, sh_color_kernel, sh_backward_kernel, ewa_cov2d

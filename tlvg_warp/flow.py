@@ -54,7 +54,7 @@ class FlowTermsFn(torch.autograd.Function):
             outs = [to_warp(align, K.scalar, torch.zeros_like(align)), to_warp(aniso, K.scalar, torch.zeros_like(aniso))]
             tape = wp.Tape()
             with tape:
-                wp.launch(K.flow_terms, dim=n, inputs=ins + [cargs[0], cargs[1], cargs[3], cargs[4], cam.width, cam.height],
+                wp.launch(K.flow_terms, dim=n, inputs=ins + [cargs[0], cargs[1], cargs[2], cargs[3], cam.width, cam.height],
                           outputs=outs, device=wdev)
         ctx.state = (tape, outs, grads, means.device)
         return align, aniso

@@ -73,31 +73,53 @@ class Projected:
 
 
 def camera_args(cam: Camera, K, device: torch.device):
+    """(R, t, fx, fy, cx, cy, width, height, near, far) as kernel values (array reads would become atomics in
+    the adjoint); ``camera_center`` gives the center."""
     s = K.scalar
     R = cam.R.tolist()
     t = cam.t.tolist()
-    c = cam.center.tolist()
-    return [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)), K.vec3(*map(s, c)),
+    return [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)),
             s(cam.fx), s(cam.fy), s(cam.cx), s(cam.cy), cam.width, cam.height, s(cam.near), s(cam.far)]
 
 
+def camera_center(cam: Camera, K):
+    return K.vec3(*map(K.scalar, cam.center.tolist()))
+
+
 def project(K, wargs, cam: Camera, sh_degree: int, n: int, dtype, device, tape: wp.Tape | None):
-    """Launch the projection kernel; returns (Projected, warp output arrays)."""
+    """Launch projection (Warp-generated adjoint) and SH color (hand-written backward, see sh_backward_kernel);
+    returns (Projected, warp output arrays)."""
     z = lambda *shape: torch.zeros(*shape, dtype=dtype, device=device)  # noqa: E731
     proj = Projected(z(n, 2), z(n, 3), z(n, 3), z(n), z(n), z(n, 3), torch.zeros(n, dtype=torch.int32, device=device))
     need_grad = tape is not None
     outs = [
         to_warp(proj.means2d, K.vec2, z(n, 2) if need_grad else None),
-        to_warp(proj.cov2d, K.vec3, z(n, 3) if need_grad else None),
+        to_warp(proj.cov2d, K.vec3),  # binning only: no gradient flows through it
         to_warp(proj.conic, K.vec3, z(n, 3) if need_grad else None),
         to_warp(proj.depth, K.scalar, z(n) if need_grad else None),
         to_warp(proj.opacity, K.scalar, z(n) if need_grad else None),
         to_warp(proj.color, K.vec3, z(n, 3) if need_grad else None),
         wp.from_torch(proj.radii, dtype=wp.int32),
     ]
+    wdev = wp.device_from_torch(device)
+    w_means, _q, _s, _o, w_sh = wargs
+    geometry_outs = outs[:5] + outs[6:]
     with (tape if tape is not None else contextlib.nullcontext()):
-        wp.launch(K.project, dim=n, inputs=wargs + camera_args(cam, K, device) + [sh_degree], outputs=outs,
-                  device=wp.device_from_torch(device))
+        wp.launch(K.project, dim=n, inputs=wargs[:4] + camera_args(cam, K, device), outputs=geometry_outs,
+                  device=wdev)
+    center = camera_center(cam, K)
+    sh_args = [w_means, w_sh, outs[6], center, sh_degree]
+    if n:
+        wp.launch(K.sh_color, dim=n, inputs=sh_args, outputs=[outs[5]], device=wdev, record_tape=False)
+    if tape is not None:
+        w_color = outs[5]
+
+        def sh_backward():
+            if n:  # before the projection adjoint (tape order): its means gradient is a plain store
+                wp.launch(K.sh_backward, dim=n, inputs=sh_args + [w_color.grad], outputs=[w_sh.grad, w_means.grad],
+                          device=wdev)
+
+        tape.record_func(backward=sh_backward, arrays=[])
     return proj, outs
 
 
@@ -195,7 +217,8 @@ class RasterizeFn(torch.autograd.Function):
                 grads[i] = torch.zeros_like(grads[i])
                 a.grad = wp.from_torch(grads[i], dtype=a.dtype)
             for a in pouts[:6]:
-                a.grad.zero_()
+                if a.grad is not None:
+                    a.grad.zero_()
         H, W = ctx.image_size
         dtype = grads[0].dtype
         ups = [g.contiguous() if g is not None else torch.zeros(shape, dtype=dtype, device=device)
