@@ -33,6 +33,12 @@ for job in "$@"; do
             --overwrite --quiet > "$OUT/fern_$job.log" 2>&1; tail -n 3 "$OUT/fern_$job.log"
           show "$R/fern_$job/metrics.json" "iterations"
           mkdir -p "$OUT/fern_$job"; cp "$R/fern_$job/metrics.json" "$R/fern_$job/comparison.png" "$R/fern_$job/stroke_field.png" "$OUT/fern_$job/";;
+    fitstylize) /usr/bin/time -f "fitstylize wall %e s" python3 -m tlvg_warp stylize --data $D/fern_llff --style $D/starry_night.jpg \
+            --vgg-weights random --out "$R/fern_fitstylize" --overwrite --quiet > "$OUT/fern_fitstylize.log" 2>&1
+          tail -n 3 "$OUT/fern_fitstylize.log"; show "$R/fern_fitstylize/metrics.json" "iterations"
+          mkdir -p "$OUT/fern_fitstylize"; cp "$R/fern_fitstylize/metrics.json" "$OUT/fern_fitstylize/";;
+    stability) /usr/bin/time -f "stability wall %e s" python3 -m tlvg_warp stability --vgg-weights random --out "$R/stability" \
+            > "$OUT/stability.log" 2>&1; tail -n 30 "$OUT/stability.log"; cp -r "$R/stability" "$OUT/";;
     evaluate) python3 -m tlvg_warp evaluate "$R/fern_stylize" --against "$R/fern_abcgs" --vgg-weights random \
             --out "$R/eval" > "$OUT/evaluate.log" 2>&1; tail -n 25 "$OUT/evaluate.log"; cp "$R/eval/evaluation.json" "$OUT/";;
   esac
