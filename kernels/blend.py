@@ -225,25 +225,25 @@ def make_blend(scalar, module: str):
             if base + lane < end:
                 stage_gaussian(base + lane, lane, ids, means2d, conic, opacity, color, depth)
             sync_block(0)
-            if done == 0:
-                for j in range(wp.min(B, end - base)):
+            # no break/continue: Warp writes loop-carried variables back at the end of the body, which a
+            # break skips (a `done = 1; break` was lost, and every block walked its whole list)
+            for j in range(wp.min(B, end - base)):
+                if done == 0:
                     power = splat_power(staged_mean(j), staged_conic(j), px, py)
-                    if power > scalar(0.0):
-                        continue
-                    alpha = wp.min(scalar(ALPHA_MAX), slab(5, j, scalar(0.0), 0) * wp.exp(power))
-                    if alpha < scalar(ALPHA_MIN):
-                        continue
-                    T_next = T * (scalar(1.0) - alpha)
-                    if T_next < scalar(T_MIN):
-                        done = 1
-                        break
-                    w = alpha * T
-                    C += w * staged_color(j)
-                    S += w * slab(9, j, scalar(0.0), 0)
-                    if want_weights != 0:
-                        wp.atomic_add(weights, slab_id(0, j, 0, 0), w)
-                    T = T_next
-                    last = base + j + 1
+                    if power <= scalar(0.0):
+                        alpha = wp.min(scalar(ALPHA_MAX), slab(5, j, scalar(0.0), 0) * wp.exp(power))
+                        if alpha >= scalar(ALPHA_MIN):
+                            T_next = T * (scalar(1.0) - alpha)
+                            if T_next < scalar(T_MIN):
+                                done = 1
+                            else:
+                                w = alpha * T
+                                C += w * staged_color(j)
+                                S += w * slab(9, j, scalar(0.0), 0)
+                                if want_weights != 0:
+                                    wp.atomic_add(weights, slab_id(0, j, 0, 0), w)
+                                T = T_next
+                                last = base + j + 1
             sync_block(0)  # the next batch overwrites the slab
         if inside:
             A = scalar(1.0) - T

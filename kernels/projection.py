@@ -200,11 +200,12 @@ def make_projection(scalar):
         cam_center: vec3,
         sh_degree: int,
         g_color: wp.array(dtype=vec3),  # [N] dL/dcolor
-        g_sh: wp.array2d(dtype=vec3),  # [N, K] out, plain stores (one thread owns each row)
+        g_rgb: wp.array(dtype=vec3),  # [N] out dL/d(SH sum), for sh_coeff_grad_kernel
         g_means: wp.array(dtype=vec3),  # [N] out, plain store: runs before the projection adjoint adds to it
     ):
-        # Hand-written so that each Gaussian's 3K SH gradients are plain stores: Warp's generated adjoint turns
-        # every array read into an atomic add, which made SH the bulk of the projection backward.
+        # Hand-written: Warp's generated adjoint turns every array read into an atomic add, which made SH the
+        # bulk of the projection backward. This pass gives the direction (mean) gradient; the 3K coefficient
+        # gradients are written by sh_coeff_grad_kernel, one thread per coefficient so the stores coalesce.
         i = wp.tid()
         if radii[i] <= 0:
             return
@@ -216,15 +217,12 @@ def make_projection(scalar):
         # color = max(rgb, 0): the gradient passes where rgb > 0 (torch's clamp passes it at 0 too: measure zero)
         gc = vec3(wp.where(rgb[0] >= zero, gc0[0], zero), wp.where(rgb[1] >= zero, gc0[1], zero),
                   wp.where(rgb[2] >= zero, gc0[2], zero))
-        g_sh[i, 0] = scalar(SH_C0) * gc
+        g_rgb[i] = gc
         if sh_degree > 0:
             x = d[0]
             y = d[1]
             z = d[2]
             c1 = scalar(SH_C1)
-            g_sh[i, 1] = (-c1 * y) * gc
-            g_sh[i, 2] = (c1 * z) * gc
-            g_sh[i, 3] = (-c1 * x) * gc
             # dL/d(basis k) = gc·sh_k; the direction gradient is Σ_k (gc·sh_k) ∇b_k(d)
             w1 = dot3(gc, sh[i, 1])
             w2 = dot3(gc, sh[i, 2])
@@ -236,11 +234,6 @@ def make_projection(scalar):
                 xx = x * x
                 yy = y * y
                 zz = z * z
-                g_sh[i, 4] = (scalar(C20) * x * y) * gc
-                g_sh[i, 5] = (scalar(C21) * y * z) * gc
-                g_sh[i, 6] = (scalar(C22) * (scalar(2.0) * zz - xx - yy)) * gc
-                g_sh[i, 7] = (scalar(C23) * x * z) * gc
-                g_sh[i, 8] = (scalar(C24) * (xx - yy)) * gc
                 w4 = scalar(C20) * dot3(gc, sh[i, 4])
                 w5 = scalar(C21) * dot3(gc, sh[i, 5])
                 w6 = scalar(C22) * dot3(gc, sh[i, 6])
@@ -250,13 +243,6 @@ def make_projection(scalar):
                 gy += w4 * x + w5 * z - scalar(2.0) * w6 * y - scalar(2.0) * w8 * y
                 gz += w5 * y + scalar(4.0) * w6 * z + w7 * x
                 if sh_degree > 2:
-                    g_sh[i, 9] = (scalar(C30) * y * (scalar(3.0) * xx - yy)) * gc
-                    g_sh[i, 10] = (scalar(C31) * x * y * z) * gc
-                    g_sh[i, 11] = (scalar(C32) * y * (scalar(4.0) * zz - xx - yy)) * gc
-                    g_sh[i, 12] = (scalar(C33) * z * (scalar(2.0) * zz - scalar(3.0) * xx - scalar(3.0) * yy)) * gc
-                    g_sh[i, 13] = (scalar(C34) * x * (scalar(4.0) * zz - xx - yy)) * gc
-                    g_sh[i, 14] = (scalar(C35) * z * (xx - yy)) * gc
-                    g_sh[i, 15] = (scalar(C36) * x * (xx - scalar(3.0) * yy)) * gc
                     w9 = scalar(C30) * dot3(gc, sh[i, 9])
                     w10 = scalar(C31) * dot3(gc, sh[i, 10])
                     w11 = scalar(C32) * dot3(gc, sh[i, 11])
@@ -279,4 +265,62 @@ def make_projection(scalar):
                 gd = vec3(gx, gy, gz)
                 g_means[i] = (gd - dot3(gd, d) * d) / n
 
-    return project_kernel, sh_color_kernel, sh_backward_kernel, ewa_cov2d
+    @wp.func
+    def sh_basis(k: int, d: vec3) -> scalar:
+        x = d[0]
+        y = d[1]
+        z = d[2]
+        xx = x * x
+        yy = y * y
+        zz = z * z
+        b = scalar(SH_C0)
+        if k == 1:
+            b = -scalar(SH_C1) * y
+        elif k == 2:
+            b = scalar(SH_C1) * z
+        elif k == 3:
+            b = -scalar(SH_C1) * x
+        elif k == 4:
+            b = scalar(C20) * x * y
+        elif k == 5:
+            b = scalar(C21) * y * z
+        elif k == 6:
+            b = scalar(C22) * (scalar(2.0) * zz - xx - yy)
+        elif k == 7:
+            b = scalar(C23) * x * z
+        elif k == 8:
+            b = scalar(C24) * (xx - yy)
+        elif k == 9:
+            b = scalar(C30) * y * (scalar(3.0) * xx - yy)
+        elif k == 10:
+            b = scalar(C31) * x * y * z
+        elif k == 11:
+            b = scalar(C32) * y * (scalar(4.0) * zz - xx - yy)
+        elif k == 12:
+            b = scalar(C33) * z * (scalar(2.0) * zz - scalar(3.0) * xx - scalar(3.0) * yy)
+        elif k == 13:
+            b = scalar(C34) * x * (scalar(4.0) * zz - xx - yy)
+        elif k == 14:
+            b = scalar(C35) * z * (xx - yy)
+        elif k == 15:
+            b = scalar(C36) * x * (xx - scalar(3.0) * yy)
+        return b
+
+    @wp.kernel(enable_backward=False, module=mod)
+    def sh_coeff_grad_kernel(
+        means: wp.array(dtype=vec3),  # [N]
+        radii: wp.array(dtype=wp.int32),  # [N]
+        cam_center: vec3,
+        n_coeffs: int,  # (degree + 1)²: coefficients above it keep a zero gradient
+        g_rgb: wp.array(dtype=vec3),  # [N] from sh_backward_kernel
+        g_sh: wp.array2d(dtype=vec3),  # [N, K] out
+    ):
+        # dL/dsh[i, k] = basis_k(d_i) · dL/drgb_i; thread t owns (i, k) = divmod(t, n_coeffs)
+        t = wp.tid()
+        i = t // n_coeffs
+        k = t - i * n_coeffs
+        if radii[i] <= 0:
+            return
+        g_sh[i, k] = sh_basis(k, view_dir(means[i], cam_center)) * g_rgb[i]
+
+    return project_kernel, sh_color_kernel, sh_backward_kernel, sh_coeff_grad_kernel, ewa_cov2d

@@ -114,10 +114,15 @@ def project(K, wargs, cam: Camera, sh_degree: int, n: int, dtype, device, tape: 
     if tape is not None:
         w_color = outs[5]
 
+        n_coeffs = (sh_degree + 1) ** 2
+
         def sh_backward():
             if n:  # before the projection adjoint (tape order): its means gradient is a plain store
-                wp.launch(K.sh_backward, dim=n, inputs=sh_args + [w_color.grad], outputs=[w_sh.grad, w_means.grad],
+                g_rgb = torch.empty(n, 3, dtype=dtype, device=device)
+                wp.launch(K.sh_backward, dim=n, inputs=sh_args + [w_color.grad], outputs=[ct(g_rgb, K.vec3), w_means.grad],
                           device=wdev)
+                wp.launch(K.sh_coeff_grad, dim=n * n_coeffs, inputs=[w_means, outs[6], center, n_coeffs, ct(g_rgb, K.vec3)],
+                          outputs=[w_sh.grad], device=wdev)
 
         tape.record_func(backward=sh_backward, arrays=[])
     return proj, outs
