@@ -118,11 +118,12 @@ def project(K, wargs, cam: Camera, sh_degree: int, n: int, dtype, device, tape: 
 
         def sh_backward():
             if n:  # before the projection adjoint (tape order): its means gradient is a plain store
-                g_rgb = torch.empty(n, 3, dtype=dtype, device=device)
-                wp.launch(K.sh_backward, dim=n, inputs=sh_args + [w_color.grad], outputs=[ct(g_rgb, K.vec3), w_means.grad],
-                          device=wdev)
-                wp.launch(K.sh_coeff_grad, dim=n * n_coeffs, inputs=[w_means, outs[6], center, n_coeffs, ct(g_rgb, K.vec3)],
-                          outputs=[w_sh.grad], device=wdev)
+                g_rgb = torch.empty(n, 3, dtype=dtype, device=device)  # [N, 3]
+                basis = torch.empty(n, n_coeffs, dtype=dtype, device=device)  # [N, K]
+                wp.launch(K.sh_backward, dim=n, inputs=sh_args + [w_color.grad],
+                          outputs=[ct(g_rgb, K.vec3), ct(basis), w_means.grad], device=wdev)
+                g_sh = wp.to_torch(w_sh.grad)  # [N, Kmax, 3] the torch buffer behind it; bands above stay 0
+                torch.mul(basis[:, :, None], g_rgb[:, None, :], out=g_sh[:, :n_coeffs])
 
         tape.record_func(backward=sh_backward, arrays=[])
     return proj, outs
