@@ -12,6 +12,11 @@ GROUND_TOL = 1e-6  # the floor is built at z = 0 exactly; float32 storage only
 OBJECT_INSIDE_MIN = 0.95  # the orbit frames the still life: nearly every object splat is in every view
 RENDER_TOL = 1e-3  # Warp float32 vs the float64 torch reference at 32x24; measured ~2e-5
 PAINTING_TOL = 0.03  # mean abs difference to a fresh INTER_AREA resize; JPEG q90 costs ~0.01
+COARSE = 3.0  # the spacing the stylize e2e test uses
+# mean abs difference of the coarse scene's photos to the default's at 32x24: the stripes and checkers are
+# sampled 3x coarser (measured 0.038-0.046 over 6 views); a hole or a misplaced object costs far more
+COARSE_RENDER_TOL = 0.06
+COVERAGE_TOL = 0.01  # the fraction of the view the scene covers (measured equal to 3 decimals)
 
 
 def test_scene_geometry():
@@ -72,6 +77,31 @@ def test_demo_photos_match_reference_renderer():
     assert (img < 0.9).any(dim=2).float().mean().item() > 0.5  # mostly scene, not background
     test = demo_dataset(width=32, height=24, split="test")
     assert test.names == ["view_000", "view_008", "view_016"]
+
+
+def test_coarse_scene_is_the_same_still_life_in_fewer_larger_discs():
+    g1, _ = demo_scene()
+    g3, _ = demo_scene(spacing=COARSE)
+    assert 8 < g1.num / g3.num < 10  # surfaces sampled 3x sparser: ~1/9 the Gaussians
+    disc = lambda g: g.log_scales[:, :2].exp().median().item()  # noqa: E731  in-plane scale
+    assert disc(g3) / disc(g1) == pytest.approx(COARSE, rel=0.02)
+    for f in (lambda m: m.min(0).values, lambda m: m.max(0).values):  # the same extent
+        assert torch.allclose(f(g3.means), f(g1.means), atol=0.01)
+    ls = g3.log_scales.numpy()
+    assert np.all(ls[:, 2] < ls[:, :2].min(1))  # still flat discs
+    with pytest.raises(ValueError):
+        demo_scene(spacing=0)
+
+
+@pytest.mark.skipif(not _renderer_available(), reason="renderer not written yet")
+def test_coarse_scene_photos_match_the_default_scene():
+    fine, coarse = demo_dataset(n_views=6, width=32, height=24), demo_dataset(n_views=6, width=32, height=24,
+                                                                               spacing=COARSE)
+    for i in range(6):
+        a, b = fine.image(i), coarse.image(i)
+        assert (a - b).abs().mean().item() < COARSE_RENDER_TOL, i
+        cover = lambda img: (img < 0.9).any(dim=2).float().mean().item()  # noqa: E731  not white background
+        assert cover(b) == pytest.approx(cover(a), abs=COVERAGE_TOL), i  # no holes in the larger discs
 
 
 def test_builtin_painting():

@@ -1,8 +1,10 @@
 """End to end on the demo scene at a tiny size (CPU, random VGG): every output file, finite metrics, a PLY
 that loads back at SH degree 0, no NaN in the log, Ctrl-C + resume continuing from the checkpoint's
-iteration, and the CLI's one-line errors (exit 2)."""
+iteration, and the CLI's one-line errors (exit 2). Then tlvg.yaml against abcgs.yaml on one budget on a
+coarser demo: the method's renders follow the painting's stroke field clearly better than the baseline's."""
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +13,9 @@ import torch
 from tlvg_warp import load_ply
 from tlvg_warp.cli import main
 from tlvg_warp.io.demo import builtin_painting, demo_dataset
-from tlvg_warp.stylize import StylizeConfig, StylizeInputs, load_checkpoint, run_stylize, write_outputs
+from tlvg_warp.io.images import read_image
+from tlvg_warp.losses import flow_alignment_score
+from tlvg_warp.stylize import StylizeConfig, StylizeInputs, load_checkpoint, load_config, run_stylize, write_outputs
 from tlvg_warp.stylize.pipeline import LOG_TERMS
 
 ITERS = 30  # 5 pre / 20 stylize / 5 post
@@ -48,33 +52,34 @@ def run_dir(inputs, tmp_path_factory):
     return out, res
 
 
-def test_every_output_written(run_dir):
-    out, _ = run_dir
+def assert_outputs_written(out, views, w, h):
+    """Every output file of a run folder is there and not empty; one image per view in each image folder."""
     for f in OUTPUTS:
         assert (out / f).is_file() and (out / f).stat().st_size > 0, f
     for sub in ("renders", "originals", "photos"):
-        assert sorted(p.name for p in (out / sub).glob("*.png")) == [f"view_{i:03d}.png" for i in range(VIEWS)]
+        assert sorted(p.name for p in (out / sub).glob("*.png")) == [f"view_{i:03d}.png" for i in range(views)]
     cams = json.loads((out / "cameras.json").read_text())
-    assert len(cams) == VIEWS and {"id", "img_name", "width", "height", "position", "rotation", "fx", "fy"} <= set(cams[0])
-    assert (cams[0]["width"], cams[0]["height"]) == (W, H)
+    assert len(cams) == views and {"id", "img_name", "width", "height", "position", "rotation", "fx", "fy"} <= set(cams[0])
+    assert (cams[0]["width"], cams[0]["height"]) == (w, h)
 
 
-def test_metrics_present_and_finite(run_dir):
-    out, _ = run_dir
+def assert_metrics_finite(out, views, iters) -> dict:
+    """metrics.json has the documented keys, every number in it is finite; returns it."""
     m = json.loads((out / "metrics.json").read_text())
     for k in METRIC_KEYS:
         assert k in m, k
     assert m["vgg_random"] is True and "RANDOM" in m["vgg_note"]
-    assert m["iterations"] == ITERS
-    assert -1.0 <= m["flow_alignment"] <= 1.0 and len(m["flow_alignment_per_view"]) == VIEWS
+    assert m["iterations"] == iters
+    assert -1.0 <= m["flow_alignment"] <= 1.0 and len(m["flow_alignment_per_view"]) == views
     flat = [m["flow_alignment"], m["gaussians_input"], m["gaussians_final"], m["bytes_in"], m["bytes_out"],
             *m["time_per_phase_s"].values(), *m["flow_alignment_per_view"]]
     assert all(isinstance(v, (int, float)) and math.isfinite(v) for v in flat)
     assert m["gaussians_final"] <= m["gaussian_budget"]
+    return m
 
 
-def test_ply_is_degree_zero_and_finite(run_dir):
-    out, res = run_dir
+def assert_ply_finite(out, res):
+    """stylized.ply loads back at SH degree 0, finite, and holds the run's final Gaussians."""
     g = load_ply(out / "stylized.ply")
     assert g.sh_degree == 0 and g.num == res.gaussians.num
     for f in g.FIELDS:
@@ -82,14 +87,32 @@ def test_ply_is_degree_zero_and_finite(run_dir):
     assert torch.allclose(g.means, res.gaussians.means.float().cpu())
 
 
-def test_log_has_every_term_and_no_nan(run_dir):
-    out, _ = run_dir
+def assert_log_finite(out, iters) -> list:
+    """log.jsonl has one row per iteration and every loss term in it is finite; returns the rows."""
     rows = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
-    assert [r["step"] for r in rows] == list(range(1, ITERS + 1))
-    assert [r["phase"] for r in rows] == ["pre"] * 5 + ["stylize"] * 20 + ["post"] * 5
+    assert [r["step"] for r in rows] == list(range(1, iters + 1))
     for r in rows:
         for t in LOG_TERMS:
             assert math.isfinite(r[t]), (r["step"], t)
+    return rows
+
+
+def test_every_output_written(run_dir):
+    assert_outputs_written(run_dir[0], VIEWS, W, H)
+
+
+def test_metrics_present_and_finite(run_dir):
+    assert_metrics_finite(run_dir[0], VIEWS, ITERS)
+
+
+def test_ply_is_degree_zero_and_finite(run_dir):
+    assert_ply_finite(*run_dir)
+
+
+def test_log_has_every_term_and_no_nan(run_dir):
+    out, _ = run_dir
+    rows = assert_log_finite(out, ITERS)
+    assert [r["phase"] for r in rows] == ["pre"] * 5 + ["stylize"] * 20 + ["post"] * 5
     sty = [r for r in rows if r["phase"] == "stylize"]
     assert all(r["style"] > 0 and r["lab"] > 0 and r["align"] > 0 for r in sty)  # the terms are really there
     assert sty[0]["w_lab"] == pytest.approx(0.2) and sty[-1]["w_lab"] == pytest.approx(0.05)
@@ -140,3 +163,101 @@ def test_cli_tiny_style_and_missing_weights(tmp_path, capsys):
     assert rc == 2 and len(err) == 1 and "64" in err[0]
     rc, err = _cli(["--vgg-weights", str(tmp_path / "none.pth"), "--out", str(tmp_path / "o2")], capsys)
     assert rc == 2 and len(err) == 1 and "--vgg-weights" in err[0]
+
+
+# --- the method against its baseline: tlvg.yaml vs abcgs.yaml on one budget ------------------------------------
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+PAIR_ITERS = 150  # 25 pre / 100 stylize / 25 post
+PAIR_W, PAIR_H, PAIR_VIEWS = 64, 48, 6
+PAIR_SPACING = 3.0  # demo discs 3x wider (2,074 Gaussians): ~1.3 px on screen instead of ~0.67 px
+PAIR_SEED = 0
+# tlvg − abcgs flow alignment against tlvg's target field, measured over seeds 0-4: 0.047 to 0.053 (mean
+# 0.049, sd 0.002). Half the gap, ten standard deviations below it; abcgs alone moves the score by ~0.015
+FLOW_MARGIN = 0.025
+PNG_SCORE_TOL = 2e-3  # metrics.json scores the float renders, this test the 8-bit PNGs: measured <= 2e-4
+
+
+def run_pair(root: Path, seed: int = PAIR_SEED) -> dict:
+    """Both configs on the coarse demo with the same overrides (only what a demo user sets: budget, size,
+    device, random VGG, output sizes); {name: (run folder, StylizeResult)}."""
+    ds = demo_dataset(n_views=PAIR_VIEWS, width=PAIR_W, height=PAIR_H, spacing=PAIR_SPACING)
+    photos = [ds.image(i) for i in range(PAIR_VIEWS)]
+    runs = {}
+    for name in ("tlvg", "abcgs"):
+        cfg = load_config(CONFIGS / f"{name}.yaml", [f"iterations={PAIR_ITERS}", "device=cpu", "vgg_weights=random",
+                                                      f"seed={seed}", "log_every=25", "orbit_frames=6",
+                                                      "comparison_views=2"])
+        inp = StylizeInputs(ds.gaussians, list(ds.cameras), list(ds.names), photos, builtin_painting(),
+                            tuple(ds.background), {"demo": True})
+        out = root / name
+        res = run_stylize(inp, cfg, out, progress=False, quiet=True)
+        write_outputs(out, res, input_bytes=None)
+        runs[name] = (out, res)
+    return runs
+
+
+def mean_flow_score(run_out: Path, field_out: Path) -> float:
+    """Mean over views of the flow score of one run's written renders against another run's written fields."""
+    scores = []
+    for i in range(PAIR_VIEWS):
+        img = read_image(run_out / "renders" / f"view_{i:03d}.png")[..., :3]
+        fld = np.load(field_out / "fields" / f"view_{i:03d}.npy")
+        assert np.isfinite(fld).all() and fld.shape == (PAIR_H, PAIR_W, 2)
+        scores.append(flow_alignment_score(img, fld))
+    return float(np.mean(scores))
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    return run_pair(tmp_path_factory.mktemp("pair"))
+
+
+def test_pair_outputs_complete_and_finite(pair):
+    for name, (out, res) in pair.items():
+        assert_outputs_written(out, PAIR_VIEWS, PAIR_W, PAIR_H)
+        assert_metrics_finite(out, PAIR_VIEWS, PAIR_ITERS)
+        assert_ply_finite(out, res)
+        assert_log_finite(out, PAIR_ITERS)
+        assert len(list((out / "fields").glob("*.npy"))) == PAIR_VIEWS, name
+
+
+def test_tlvg_flow_alignment_clearly_above_abcgs(pair):
+    """The issue's claim at a CPU size: tlvg.yaml ends with a clearly higher flow alignment than abcgs.yaml.
+
+    Why the earlier attempts (48x36 to 64x48, 40-60 iterations, the full-density demo subsampled) saw ±0.005:
+    - Orientation was invisible. Default demo discs project to σ ≈ 0.67 px (major axis, median) at 64x48, of
+      which the rasterizer's 0.3 px² EWA blur alone is 0.55 px: every footprint is round (median axis ratio
+      1.16) whatever the Gaussian's rotation or scales, so the flow terms could not change the render.
+      ``spacing=3`` builds the same still life from 9x fewer, 3x wider discs (σ ≈ 1.3 px, ratio 1.6), which a
+      user of the demo may do.
+    - Too few steps. Adam moves a parameter by about its learning rate per step (quats 1e-3, log scales 5e-3),
+      so 30-40 stylize steps turn a splat by a few degrees at most. 150 iterations give 100 stylize steps.
+    - Each run was scored against its own target field, and those differ: the "matched" field comes from the
+      FAST cell match, on luminance features for tlvg and on RGB features for abcgs. With random VGG the RGB
+      match follows the scene's own edges (the un-stylized photos score 0.51 against it, 0.20 against the
+      luminance match), so abcgs scores ~0.59 against its own field and ~0.30 against tlvg's: the per-run
+      number measures the field more than the render.
+    Here both final renders are scored against ONE field: the tlvg run's stored target, the stroke field the
+    method carries onto each view and steers toward. It is a fair common target because both runs share the
+    pre-process exactly (same seed, same pre settings), so it is also the field abcgs would have been given
+    had it used the method's luminance match; abcgs has no flow terms and is not steered by any field.
+    (Against the abcgs run's field the order is the same: tlvg 0.62-0.63, abcgs 0.59.) The score itself is
+    checked against closed-form stripes in test_losses_stroke.
+
+    Measured at these settings (64x48, 6 views, 150 iterations, seeds 0-4): tlvg 0.342-0.347, abcgs
+    0.292-0.299, the un-stylized renders 0.279-0.282. Density control does not fire at this budget (its
+    interval of 100 is not reached inside the 25-step pre-process, and the stylize phase skips its last step);
+    where it fires at this size (300 iterations, or the CLI demo's interval of 20) it splits half the splats
+    into 1/1.6-size children, back toward the sub-pixel regime, and the gap fell to -0.005 to 0.025 (README)."""
+    tlvg_out, abcgs_out = pair["tlvg"][0], pair["abcgs"][0]
+    # the common starting point: both runs go through the same pre-process, view for view, loss for loss
+    pre = [[(r["view"], r["fit"], r["n"]) for r in assert_log_finite(o, PAIR_ITERS) if r["phase"] == "pre"]
+           for o in (tlvg_out, abcgs_out)]
+    n_pre = load_config(CONFIGS / "tlvg.yaml", [f"iterations={PAIR_ITERS}"]).phase_steps()[0]
+    assert pre[0] == pre[1] and len(pre[0]) == n_pre
+    tlvg = mean_flow_score(tlvg_out, tlvg_out)
+    abcgs = mean_flow_score(abcgs_out, tlvg_out)
+    assert tlvg - abcgs > FLOW_MARGIN, (tlvg, abcgs)
+    # the written metric is the same score of the float renders against the run's own field
+    m = json.loads((tlvg_out / "metrics.json").read_text())
+    assert m["flow_alignment"] == pytest.approx(tlvg, abs=PNG_SCORE_TOL)

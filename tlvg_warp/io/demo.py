@@ -3,7 +3,10 @@ built-in painting, so ``stylize`` runs on a fresh machine with no data.
 
 The scene (world z up, ground at z = 0, units ~ metres): a striped sphere, a checkered cube, a torus with
 spiral bands and a fluted cylinder on a plank floor; ~17k flat Gaussians, each a small disc tangent to
-its surface (two scales ~0.6 x sample spacing, the third thin) so the surfaces read as solid."""
+its surface (two scales ~0.6 x sample spacing, the third thin) so the surfaces read as solid.
+``spacing`` > 1 builds the same still life from fewer, larger discs (sample spacing x ``spacing``, so about
+1/spacing² the Gaussians): at small render sizes the default discs project below a pixel, where the EWA
+blur makes every footprint round and a splat's orientation cannot show in the image."""
 from __future__ import annotations
 
 import math
@@ -21,8 +24,12 @@ OPACITY = 0.9
 DEMO_BACKGROUND = (1.0, 1.0, 1.0)  # white, like the Blender convention load_dataset composites onto
 
 
-def _ground(rng):
-    n = 90  # 90 x 90 samples over 3.6 m: spacing 0.04
+def _count(n: int, k: float) -> int:
+    return max(2, round(n / k))  # samples along one direction at sample spacing x k
+
+
+def _ground(rng, k=1.0):
+    n = _count(90, k)  # 90 x 90 samples over 3.6 m: spacing 0.04 (x k)
     s = np.linspace(-1.8, 1.8, n)
     x, y = (a.ravel() for a in np.meshgrid(s, s, indexing="ij"))
     plank = np.floor(y / 0.3)  # 30 cm planks running along x, each its own tone, with wavy grain
@@ -36,7 +43,8 @@ def _ground(rng):
     return pts, nrm, rgb, np.full(len(x), s[1] - s[0])
 
 
-def _sphere(rng, center=(-0.55, 0.35, 0.35), r=0.35, n=3000):
+def _sphere(rng, k=1.0, center=(-0.55, 0.35, 0.35), r=0.35, n=3000):
+    n = max(8, round(n / (k * k)))  # a surface: spacing x k is 1/k² the samples
     i = np.arange(n) + 0.5  # Fibonacci lattice: near-uniform samples on the sphere
     z = 1 - 2 * i / n
     phi = math.pi * (3 - math.sqrt(5)) * i
@@ -46,7 +54,8 @@ def _sphere(rng, center=(-0.55, 0.35, 0.35), r=0.35, n=3000):
     return np.asarray(center) + r * nrm, nrm, rgb, np.full(n, math.sqrt(4 * math.pi * r * r / n))
 
 
-def _cube(rng, center=(0.55, 0.3, 0.25), side=0.5, yaw_deg=30.0, m=24):
+def _cube(rng, k=1.0, center=(0.55, 0.3, 0.25), side=0.5, yaw_deg=30.0, m=24):
+    m = _count(m, k)
     u = (np.arange(m) + 0.5) / m - 0.5
     a, b = (v.ravel() for v in np.meshgrid(u, u, indexing="ij"))
     pts, nrm, rgb = [], [], []
@@ -68,7 +77,8 @@ def _cube(rng, center=(0.55, 0.3, 0.25), side=0.5, yaw_deg=30.0, m=24):
     return pts, nrm, np.concatenate(rgb), np.full(len(pts), side / m)
 
 
-def _torus(rng, center=(-0.05, -0.55, 0.12), R=0.30, r=0.12, nu=90, nv=36):
+def _torus(rng, k=1.0, center=(-0.05, -0.55, 0.12), R=0.30, r=0.12, nu=90, nv=36):
+    nu, nv = _count(nu, k), _count(nv, k)
     u, v = (a.ravel() for a in np.meshgrid(np.arange(nu) * 2 * math.pi / nu, np.arange(nv) * 2 * math.pi / nv,
                                              indexing="ij"))
     nrm = np.stack([np.cos(v) * np.cos(u), np.cos(v) * np.sin(u), np.sin(v)], 1)
@@ -78,20 +88,21 @@ def _torus(rng, center=(-0.05, -0.55, 0.12), R=0.30, r=0.12, nu=90, nv=36):
     return pts, nrm, rgb, np.full(len(u), 2 * math.pi * (R + r) / nu)
 
 
-def _cylinder(rng, center=(0.75, -0.45, 0.0), r=0.15, h=0.55, nu=48, nz=28):
+def _cylinder(rng, k=1.0, center=(0.75, -0.45, 0.0), r=0.15, h=0.55, nu=48, nz=28):
+    nu, nz, nr, nt = _count(nu, k), _count(nz, k), _count(8, k), _count(24, k)  # nr, nt: the cap's rings, spokes
     u, z = (a.ravel() for a in np.meshgrid(np.arange(nu) * 2 * math.pi / nu, (np.arange(nz) + 0.5) / nz * h,
                                              indexing="ij"))
     side_n = np.stack([np.cos(u), np.sin(u), np.zeros_like(u)], 1)
     side_p = np.asarray(center) + r * side_n + np.stack([0 * u, 0 * u, z], 1)
     flute = (np.floor(u / (2 * math.pi) * 12) % 2)[:, None]  # 12 vertical flutes, two purples
     side_c = np.where(flute == 0, [0.45, 0.20, 0.60], [0.70, 0.55, 0.85])
-    rr, tt = (a.ravel() for a in np.meshgrid(np.linspace(0, r, 8)[1:], np.arange(24) * 2 * math.pi / 24,
+    rr, tt = (a.ravel() for a in np.meshgrid(np.linspace(0, r, nr)[1:], np.arange(nt) * 2 * math.pi / nt,
                                              indexing="ij"))
     cap_p = np.asarray(center) + np.stack([rr * np.cos(tt), rr * np.sin(tt), np.full_like(rr, h)], 1)
     cap_p = np.concatenate([cap_p, np.asarray(center)[None] + [0, 0, h]])
     cap_n = np.tile([0.0, 0.0, 1.0], (len(cap_p), 1))
     cap_c = np.tile([0.85, 0.75, 0.95], (len(cap_p), 1))
-    spacing = np.concatenate([np.full(len(u), 2 * math.pi * r / nu), np.full(len(cap_p), r / 7)])
+    spacing = np.concatenate([np.full(len(u), 2 * math.pi * r / nu), np.full(len(cap_p), r / (nr - 1))])
     return (np.concatenate([side_p, cap_p]), np.concatenate([side_n, cap_n]),
             np.concatenate([side_c, cap_c]), spacing)
 
@@ -103,14 +114,17 @@ def _tangent_quats(nrm):  # [N, 3] unit normals -> [N, 4] w,x,y,z rotating local
 
 
 def demo_scene(seed: int = 0, n_views: int = 24, width: int = 160, height: int = 120,
-               sh_degree: int = 0) -> tuple[Gaussians, list[Camera]]:
-    """(Gaussians, orbit cameras). ``seed`` jitters colors by a few percent, deterministically."""
+               sh_degree: int = 0, spacing: float = 1.0) -> tuple[Gaussians, list[Camera]]:
+    """(Gaussians, orbit cameras). ``seed`` jitters colors by a few percent, deterministically; ``spacing``
+    multiplies the sample spacing (and so the disc size) of every surface."""
+    if not spacing > 0:
+        raise ValueError(f"spacing must be > 0, got {spacing}")
     rng = np.random.default_rng(seed)
-    parts = [f(rng) for f in (_ground, _sphere, _cube, _torus, _cylinder)]
-    pts, nrm, rgb, spacing = (np.concatenate([p[k] for p in parts]) for k in range(4))  # [N, ...]
+    parts = [f(rng, spacing) for f in (_ground, _sphere, _cube, _torus, _cylinder)]
+    pts, nrm, rgb, step = (np.concatenate([p[k] for p in parts]) for k in range(4))  # [N, ...] step: local spacing
     rgb = np.clip(rgb * (1 + 0.04 * rng.standard_normal(rgb.shape)), 0.02, 0.98)
     n = len(pts)
-    log_s = np.log(np.stack([DISC * spacing, DISC * spacing, THIN * spacing], 1))  # [N, 3]
+    log_s = np.log(np.stack([DISC * step, DISC * step, THIN * step], 1))  # [N, 3]
     sh = np.zeros((n, (sh_degree + 1) ** 2, 3))
     sh[:, 0] = (rgb - 0.5) / SH_C0
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
@@ -140,14 +154,14 @@ def _render_fn():
 
 
 def demo_dataset(seed: int = 0, n_views: int = 24, width: int = 160, height: int = 120, split=None,
-                 holdout_every: int = 8, background=DEMO_BACKGROUND):
+                 holdout_every: int = 8, background=DEMO_BACKGROUND, spacing: float = 1.0):
     """A Dataset (same interface as load_dataset's) whose photos are renders of :func:`demo_scene`.
 
     Extra attributes: ``gaussians`` (the scene itself) and ``background``. ``points`` are every 8th
     Gaussian's center and color, standing in for SfM points."""
     from .datasets import Dataset
 
-    g, cams = demo_scene(seed, n_views, width, height)
+    g, cams = demo_scene(seed, n_views, width, height, spacing=spacing)
     names = [c.name for c in cams]
     keep = list(range(n_views))
     if split is not None:
