@@ -2,6 +2,7 @@
 (they are dumped next to every run) and strict coercion of YAML / --set values to the field types."""
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import re
 
@@ -12,6 +13,20 @@ def field_comments(cls) -> dict:
     """{field: its trailing # comment} of a dataclass, from its source."""
     src = inspect.getsource(cls)
     return {m.group(1): m.group(2).strip() for m in re.finditer(r"^    (\w+): [^#\n]*#(.*)$", src, re.M)}
+
+
+def config_yaml(cfg, header: str) -> str:
+    """A resolved dataclass config as YAML, one ``key: value  # comment`` line per field (loads back unchanged)."""
+    import yaml
+
+    comments = field_comments(type(cfg))
+    lines = [f"# {header}"]
+    for f in dataclasses.fields(cfg):
+        v = yaml.safe_dump({f.name: getattr(cfg, f.name)}, default_flow_style=True, width=1000).strip()
+        v = v[1:-1] if v.startswith("{") else v
+        c = comments.get(f.name)
+        lines.append(f"{v}  # {c}" if c else v)
+    return "\n".join(lines) + "\n"
 
 
 def coerce(name: str, value, typ):

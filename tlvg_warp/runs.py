@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import signal
 import threading
+import time
 from pathlib import Path
 
 import torch
@@ -74,3 +75,51 @@ def read_checkpoint(path, fmt: str, what: str) -> dict:
     if not isinstance(ck, dict) or ck.get("format") != fmt:
         raise InputError(f"not a tlvg_warp {what} checkpoint", p)
     return ck
+
+
+class StageTimer:
+    """Per-stage time split of a training loop, sampled every ``every`` iterations: CUDA events on the GPU
+    (read once, at the end: no sync in the loop), perf_counter on the CPU. ``mark(stage)`` closes ``stage``;
+    stages not run in an iteration count as zero."""
+
+    def __init__(self, device: torch.device, stages: tuple, every: int = 20):
+        self.cuda, self.every, self.samples, self.marks = device.type == "cuda", max(1, every), [], None
+        self.stages = tuple(stages)
+
+    def _now(self):
+        if self.cuda:
+            e = torch.cuda.Event(enable_timing=True)
+            e.record()
+            return e
+        return time.perf_counter()
+
+    def begin(self, step):
+        self.marks = {"_start": self._now()} if step % self.every == 0 else None
+        self._last = "_start"
+
+    def mark(self, stage):
+        if self.marks is not None:
+            self.marks[stage] = (self._last, self._now())
+            self._last = stage
+
+    def end(self):
+        if self.marks is not None:
+            self.samples.append(self.marks)
+            self.marks = None
+
+    def summary(self) -> dict:
+        if not self.samples:
+            return {}
+        if self.cuda:
+            torch.cuda.synchronize()
+        tot = dict.fromkeys(self.stages, 0.0)
+        for m in self.samples:
+            for s in self.stages:
+                if s in m:
+                    prev, e = m[s]
+                    p = m[prev] if prev == "_start" else m[prev][1]
+                    tot[s] += p.elapsed_time(e) if self.cuda else (e - p) * 1e3
+        n = len(self.samples)
+        return {"ms_per_iteration": {s: round(t / n, 4) for s, t in tot.items()}, "samples": n}
+
+

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .. import config_io
 from ..config_io import apply_overrides, coerce as _coerce, field_comments as _field_comments
 from ..errors import InputError
 
@@ -184,17 +185,7 @@ def load_config(path=None, overrides=(), base: StylizeConfig | None = None) -> S
 
 
 def config_yaml(cfg: StylizeConfig, header: str = "tlvg_warp stylize: resolved configuration") -> str:
-    """The resolved config as YAML, one ``key: value  # comment`` line per field (loads back unchanged)."""
-    import yaml
-
-    comments = field_comments()
-    lines = [f"# {header}"]
-    for f in dataclasses.fields(cfg):
-        v = yaml.safe_dump({f.name: getattr(cfg, f.name)}, default_flow_style=True, width=1000).strip()
-        v = v[1:-1] if v.startswith("{") else v
-        c = comments.get(f.name)
-        lines.append(f"{v}  # {c}" if c else v)
-    return "\n".join(lines) + "\n"
+    return config_io.config_yaml(cfg, header)
 
 
 __all__ = ["StylizeConfig", "load_config", "config_from_dict", "config_yaml", "read_yaml_chain", "field_comments"]

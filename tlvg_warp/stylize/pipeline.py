@@ -44,7 +44,7 @@ import torch
 
 from .. import runs
 from ..errors import InputError
-from ..runs import Interrupt as _Interrupt, resolve_device
+from ..runs import Interrupt as _Interrupt, StageTimer, resolve_device
 from ..fileio import atomic_path, write_text
 from ..types import Camera, Gaussians
 from .config import StylizeConfig, config_yaml
@@ -98,52 +98,6 @@ class StylizeInputs:
 
 
 # --- small utilities -------------------------------------------------------------------------------------------
-
-
-class StageTimer:
-    """Per-stage time split sampled every ``every`` iterations: CUDA events on the GPU (read once, at the
-    end), perf_counter on the CPU. Stages not run in an iteration count as zero."""
-
-    def __init__(self, device: torch.device, every: int = 20):
-        self.cuda, self.every, self.samples, self.marks = device.type == "cuda", max(1, every), [], None
-
-    def _now(self):
-        if self.cuda:
-            e = torch.cuda.Event(enable_timing=True)
-            e.record()
-            return e
-        return time.perf_counter()
-
-    def begin(self, step):
-        self.marks = {"_start": self._now()} if step % self.every == 0 else None
-        self._last = "_start"
-
-    def mark(self, stage):
-        if self.marks is not None:
-            self.marks[stage] = (self._last, self._now())
-            self._last = stage
-
-    def end(self):
-        if self.marks is not None:
-            self.samples.append(self.marks)
-            self.marks = None
-
-    def summary(self) -> dict:
-        if not self.samples:
-            return {}
-        if self.cuda:
-            torch.cuda.synchronize()
-        tot = dict.fromkeys(STAGES, 0.0)
-        for m in self.samples:
-            for s in STAGES:
-                if s in m:
-                    prev, e = m[s]
-                    p = m[prev] if prev == "_start" else m[prev][1]
-                    tot[s] += p.elapsed_time(e) if self.cuda else (e - p) * 1e3
-        n = len(self.samples)
-        return {"ms_per_iteration": {s: round(t / n, 3) for s, t in tot.items()}, "samples": n}
-
-
 
 
 def tv_loss(img: torch.Tensor) -> torch.Tensor:
@@ -410,7 +364,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         st.post_targets, _, _ = color_transfer(rs, style_work.to(device))
 
     # --- the loop --------------------------------------------------------------------------------------------------
-    timer = StageTimer(device)
+    timer = StageTimer(device, STAGES)
     bad = torch.zeros((), dtype=torch.bool, device=device)
     zero = torch.zeros((), device=device)
     last_good = None

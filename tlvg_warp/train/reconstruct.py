@@ -24,14 +24,16 @@ from pathlib import Path
 import torch
 
 from .. import runs
-from ..config_io import apply_overrides, coerce as _coerce, field_comments
+from .. import config_io
+from ..config_io import apply_overrides, coerce as _coerce
 from ..errors import InputError
-from ..runs import Interrupt as _Interrupt, resolve_device
+from ..runs import Interrupt as _Interrupt, StageTimer, resolve_device
 from ..fileio import atomic_path, write_image, write_json, write_text
 from ..types import Gaussians
 from .density import DensityConfig, DensityControl
 from .optim import GEOMETRY, GaussianOptimizer, GaussianParams, LearningRates
 
+TIMED_STAGES = ("render", "loss", "backward", "optimizer", "density")  # the time split in metrics.json
 RUN_FILES = ("config.yaml", "checkpoint.pt", "point_cloud.ply", "metrics.json", "cameras.json")
 
 
@@ -130,10 +132,6 @@ class ReconstructConfig:
 
 
 # --- config I/O --------------------------------------------------------------------------------------
-def _field_comments() -> dict:
-    return field_comments(ReconstructConfig)
-
-
 
 def config_from_dict(d: dict, base: ReconstructConfig | None = None) -> ReconstructConfig:
     cfg = dataclasses.replace(base) if base is not None else ReconstructConfig()
@@ -165,17 +163,7 @@ def load_config(path=None, overrides=(), base: ReconstructConfig | None = None) 
 
 
 def config_yaml(cfg: ReconstructConfig) -> str:
-    """The resolved config as YAML, one ``key: value  # comment`` line per field."""
-    import yaml
-
-    comments = _field_comments()
-    lines = ["# tlvg_warp reconstruct: resolved configuration"]
-    for f in dataclasses.fields(cfg):
-        v = yaml.safe_dump({f.name: getattr(cfg, f.name)}, default_flow_style=True, width=1000).strip()
-        v = v[1:-1] if v.startswith("{") else v
-        c = comments.get(f.name)
-        lines.append(f"{v}  # {c}" if c else v)
-    return "\n".join(lines) + "\n"
+    return config_io.config_yaml(cfg, "tlvg_warp reconstruct: resolved configuration")
 
 
 # --- helpers ---------------------------------------------------------------------------------------------
@@ -205,53 +193,6 @@ def cameras_json(dataset) -> list[dict]:
         out.append({"id": i, "img_name": Path(name).stem, "width": cam.width, "height": cam.height,
                     "position": c2w[:3, 3].tolist(), "rotation": c2w[:3, :3].tolist(), "fy": cam.fy, "fx": cam.fx})
     return out
-
-
-class _Timer:
-    """Per-phase time split sampled every ``every`` iterations: CUDA events (no sync until ``summary``) on
-    the GPU, perf_counter on the CPU."""
-
-    PHASES = ("render", "loss", "backward", "optimizer", "density")
-
-    def __init__(self, device: torch.device, every: int):
-        self.cuda, self.every = device.type == "cuda", max(1, every)
-        self.samples: list = []
-        self.active = False
-
-    def begin(self, step: int):
-        self.active = step % self.every == 0
-        self.marks = [] if self.active else None
-        self.mark()
-
-    def mark(self):
-        if not self.active:
-            return
-        if self.cuda:
-            e = torch.cuda.Event(enable_timing=True)
-            e.record()
-            self.marks.append(e)
-        else:
-            self.marks.append(time.perf_counter())
-
-    def end(self):
-        if self.active:
-            self.mark()
-            self.samples.append(self.marks)
-            self.active = False
-
-    def summary(self) -> dict:
-        if not self.samples:
-            return {}
-        if self.cuda:
-            torch.cuda.synchronize()
-        tot = [0.0] * len(self.PHASES)
-        for m in self.samples:
-            for k in range(len(self.PHASES)):
-                tot[k] += (m[k].elapsed_time(m[k + 1]) if self.cuda else (m[k + 1] - m[k]) * 1e3)
-        n = len(self.samples)
-        return {"ms_per_iteration": {p: round(t / n, 4) for p, t in zip(self.PHASES, tot)}, "samples": n}
-
-
 
 
 # --- the fitter -----------------------------------------------------------------------------------------
@@ -449,7 +390,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     # --- the loop -------------------------------------------------------------------------------------------
     from ..renderer import render
 
-    timer = _Timer(device, cfg.timing_every)
+    timer = StageTimer(device, TIMED_STAGES, cfg.timing_every)
     bad = torch.zeros((), dtype=torch.bool, device=device)
     last_good = _snapshot(st)
     history = []
@@ -474,15 +415,15 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
                 bg = tuple(torch.rand(3, generator=gen).tolist()) if cfg.random_background else bg_fixed
                 want_w = density is not None and density.wants_weights_at(step)
                 rout = render(st.params.gaussians(), cam, bg, sh_degree=st.sh_active, return_weights=want_w)
-                timer.mark()
+                timer.mark("render")
                 loss = _loss(rout.color, gt, cfg.lambda_ssim)
                 bad |= ~torch.isfinite(loss)
-                timer.mark()
+                timer.mark("loss")
                 loss.backward()
-                timer.mark()
+                timer.mark("backward")
                 st.opt.step()
                 st.opt.zero_grad()
-                timer.mark()
+                timer.mark("optimizer")
                 if density is not None and density.accumulating(step):
                     density.accumulate(rout, cam.width, cam.height)
                     # no structural change at the last iteration: the exported model is the one trained
@@ -490,6 +431,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
                         density.densify_and_prune(st.opt, st.extent, step)
                     if density.is_reset_step(step) and step < cfg.iterations:
                         density.reset_opacity(st.opt)
+                timer.mark("density")
                 timer.end()
                 st.step = step
                 if callback is not None:
