@@ -8,8 +8,20 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
+
+from tlvg_warp import InputError
 
 MODEL_IDS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 1, "SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4, "FOV": 7}
+
+
+def raises_one_line(fn, *words):
+    """``fn()`` raises InputError with a one-line message holding every word."""
+    with pytest.raises(InputError) as e:
+        fn()
+    assert "\n" not in str(e.value)
+    for w in words:
+        assert w in str(e.value), (w, str(e.value))
 
 
 def data_root() -> Path | None:

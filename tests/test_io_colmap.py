@@ -3,9 +3,9 @@ against OpenCV's own projectPoints / undistortPoints, and the malformed-model ca
 import numpy as np
 import pytest
 
-from _io_helpers import (quat_from_axis_angle, rot_from_quat_rodrigues, write_colmap_bin, write_colmap_txt,
-                         write_png)
-from tlvg_warp import InputError, load_dataset
+from _io_helpers import (quat_from_axis_angle, raises_one_line as _raises, rot_from_quat_rodrigues, write_colmap_bin,
+                         write_colmap_txt, write_png)
+from tlvg_warp import load_dataset
 from tlvg_warp.io import colmap
 
 POSE_TOL = 1e-12  # poses go through float64 files and one 4x4 build: only rounding differs
@@ -126,14 +126,6 @@ def test_undistortion_matches_opencv(tmp_path):
 
 
 # --- bad input ----------------------------------------------------------------------------------------------
-def _raises(fn, *words):
-    with pytest.raises(InputError) as e:
-        fn()
-    assert "\n" not in str(e.value)
-    for w in words:
-        assert w in str(e.value), (w, str(e.value))
-
-
 @pytest.mark.parametrize("fmt", ["bin", "txt"])
 def test_unknown_camera_model(tmp_path, fmt):
     _write(tmp_path, fmt)

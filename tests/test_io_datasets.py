@@ -4,11 +4,10 @@ import json
 
 import cv2
 import numpy as np
-import pytest
 from plyfile import PlyData, PlyElement
 
-from _io_helpers import write_png
-from tlvg_warp import InputError, load_dataset
+from _io_helpers import raises_one_line as _raises, write_png
+from tlvg_warp import load_dataset
 
 POSE_TOL = 1e-9  # a 4x4 inverse of well-conditioned rigid transforms in float64
 PROJ_TOL_PX = 1e-6  # projecting a point with exact intrinsics: only rounding
@@ -151,14 +150,6 @@ def test_inria_cameras_json(tmp_path):
 
 
 # --- bad input ----------------------------------------------------------------------------------------------
-def _raises(fn, *words):
-    with pytest.raises(InputError) as e:
-        fn()
-    assert "\n" not in str(e.value)
-    for w in words:
-        assert w in str(e.value), (w, str(e.value))
-
-
 def test_nonexistent_path(tmp_path):
     _raises(lambda: load_dataset(tmp_path / "no_scene"), "no_scene", "does not exist")
     (tmp_path / "f.txt").write_text("x")
