@@ -21,6 +21,20 @@ _, step, _ = PEERS[which](g, cam)
 for _ in range(5):
     step()
 torch.cuda.synchronize()
+if which == "tlvg_warp":  # the sizes the radix sorts see (depth order over N, then the tile keys)
+    import warp as wp
+
+    sizes, sort = [], wp.utils.radix_sort_pairs
+    wp.utils.radix_sort_pairs = lambda k, v, count, *a: (sizes.append(count), sort(k, v, count, *a))[1]
+    step()
+    wp.utils.radix_sort_pairs = sort
+    print(f"radix sort sizes per render: {sizes}")
+torch.cuda.synchronize()
+torch.cuda.reset_peak_memory_stats()
+base = torch.cuda.memory_allocated()
+step()
+torch.cuda.synchronize()
+print(f"torch peak above the resident scene: {(torch.cuda.max_memory_allocated() - base) / 2**20:.0f} MiB")
 walls = []
 for _ in range(5):
     torch.cuda.synchronize()

@@ -13,9 +13,11 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
     from .blend import make_blend
     from .flow import make_flow_terms
     from .projection import make_projection, module_name
+    from .sh import make_sh
 
     scalar = {"float32": wp.float32, "float64": wp.float64}[scalar_name]
-    project, sh_color, sh_backward, ewa_cov2d = make_projection(scalar)
+    project, ewa_cov2d = make_projection(scalar)
+    sh_color, sh_backward, sh_coeff_grad = make_sh(scalar, module_name(scalar))
     flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d)
     forward, backward = make_blend(scalar, module_name(scalar))
     return SimpleNamespace(
@@ -27,6 +29,7 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
         project=project,
         sh_color=sh_color,
         sh_backward=sh_backward,
+        sh_coeff_grad=sh_coeff_grad,
         flow_terms=flow_terms,
         blend_forward=forward,
         blend_backward=backward,

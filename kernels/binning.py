@@ -1,6 +1,10 @@
-"""Tile binning: one key per (Gaussian, touched 16x16 tile) = tile_id << 32 | float32 depth bits, radix
-sorted, then the [start, end) range of each tile in the sorted list (SPEC §2). float32 only (the float64
-path passes float32 copies), so one module serves both scalar types; nothing here is differentiable.
+"""Tile binning (SPEC §2): the Gaussians are first put in depth order (one radix sort of N float32 depths);
+then one int32 key per (Gaussian, touched 16x16 tile) = the tile id is emitted in that order and stably
+radix sorted on the tile bits only, which leaves each tile's list in depth order, and the [start, end) range
+of each tile is found in the sorted list. Sorting N depths plus ~12-bit tile keys moves far fewer bytes than
+sorting (tile << 32 | depth) int64 keys, and the key buffers take 16 instead of 24 bytes per intersection.
+float32 only (the float64 path passes float32 copies), so one module serves both scalar types; nothing here
+is differentiable.
 
 A Gaussian is binned into the tiles of its 3σ box (SPEC §2) that also hold a pixel center where its α can
 reach 1/255. The tiles left out hold only pixels the blending would skip, so the image is exactly that of
@@ -45,10 +49,12 @@ def visible_level(opacity: float) -> float:
 
 
 @wp.func
-def tight_rect(u: float, v: float, r: float, cov: wp.vec3, k2: float, tiles_x: int, tiles_y: int) -> wp.vec4i:
-    # the 3σ box, shrunk to the bounding box of the visible ellipse dᵀΣ⁻¹d <= k2 (|dx| <= sqrt(k2 Σxx), ...)
-    rx = wp.min(r, wp.sqrt(wp.max(k2, 0.0) * cov[0]))
-    ry = wp.min(r, wp.sqrt(wp.max(k2, 0.0) * cov[2]))
+def tight_rect(u: float, v: float, r: float, q: wp.vec3, k2: float, tiles_x: int, tiles_y: int) -> wp.vec4i:
+    # the 3σ box, shrunk to the bounding box of the visible ellipse dᵀQd <= k2 (|dx| <= sqrt(k2 Σxx), ...);
+    # Σ = Q⁻¹, so Σxx = Qyy / det Q and Σyy = Qxx / det Q (no Σ2D buffer needed)
+    det = wp.max(q[0] * q[2] - q[1] * q[1], 1e-30)
+    rx = wp.min(r, wp.sqrt(wp.max(k2, 0.0) * q[2] / det))
+    ry = wp.min(r, wp.sqrt(wp.max(k2, 0.0) * q[0] / det))
     x0 = wp.clamp(int(wp.floor((u - rx) / float(TILE))), 0, tiles_x)
     x1 = wp.clamp(int(wp.floor((u + rx) / float(TILE))) + 1, 0, tiles_x)
     y0 = wp.clamp(int(wp.floor((v - ry) / float(TILE))), 0, tiles_y)
@@ -58,9 +64,9 @@ def tight_rect(u: float, v: float, r: float, cov: wp.vec3, k2: float, tiles_x: i
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
 def count_tiles_kernel(
+    order: wp.array(dtype=wp.int32),  # [N] Gaussian ids in depth order
     means2d: wp.array(dtype=wp.vec2),  # [N] float32 copy of the screen means
     radii: wp.array(dtype=wp.int32),  # [N]
-    cov2d: wp.array(dtype=wp.vec3),  # [N] Σ2D (a, b, c)
     conic: wp.array(dtype=wp.vec3),  # [N] Σ2D⁻¹ (a, b, c)
     opacity: wp.array(dtype=float),  # [N]
     tiles_x: int,
@@ -68,49 +74,50 @@ def count_tiles_kernel(
     width: int,
     height: int,
     all_tiles: int,  # 1: every visible Gaussian touches every tile (brute-force reference binning)
-    counts: wp.array(dtype=wp.int32),  # [N] out
+    counts: wp.array(dtype=wp.int32),  # [N] out, in depth order (counts[j] for Gaussian order[j])
 ):
-    i = wp.tid()
+    j = wp.tid()
+    i = order[j]
     r = radii[i]
-    counts[i] = 0
+    counts[j] = 0
     if r <= 0:
         return
     if all_tiles != 0:
-        counts[i] = tiles_x * tiles_y
+        counts[j] = tiles_x * tiles_y
         return
     o = opacity[i]
     if o * 255.0 < 1.0:  # never reaches α = 1/255 anywhere
         return
     m = means2d[i]
     k2 = visible_level(o)
-    rect = tight_rect(m[0], m[1], float(r), cov2d[i], k2, tiles_x, tiles_y)
+    rect = tight_rect(m[0], m[1], float(r), conic[i], k2, tiles_x, tiles_y)
     n = int(0)
     for ty in range(rect[2], rect[3]):
         for tx in range(rect[0], rect[1]):
             if tile_reachable(m[0], m[1], conic[i], k2, tx, ty, width, height):
                 n += 1
-    counts[i] = n
+    counts[j] = n
 
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
 def emit_keys_kernel(
+    order: wp.array(dtype=wp.int32),  # [N] Gaussian ids in depth order
     means2d: wp.array(dtype=wp.vec2),  # [N]
     radii: wp.array(dtype=wp.int32),  # [N]
-    cov2d: wp.array(dtype=wp.vec3),  # [N]
     conic: wp.array(dtype=wp.vec3),  # [N]
     opacity: wp.array(dtype=float),  # [N]
-    depth_bits: wp.array(dtype=wp.int32),  # [N] float32 depth reinterpreted as int (monotone for z > 0)
-    offsets: wp.array(dtype=wp.int32),  # [N] exclusive prefix sum of counts
-    counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian
+    offsets: wp.array(dtype=wp.int32),  # [N] exclusive prefix sum of counts (depth order)
+    counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian (depth order)
     tiles_x: int,
     tiles_y: int,
     width: int,
     height: int,
     all_tiles: int,
-    keys: wp.array(dtype=wp.int64),  # [2M] out (radix sort needs 2x room)
+    keys: wp.array(dtype=wp.int32),  # [2M] out tile id (radix sort needs 2x room)
     values: wp.array(dtype=wp.int32),  # [2M] out Gaussian index
 ):
-    i = wp.tid()
+    j = wp.tid()
+    i = order[j]
     r = radii[i]
     if r <= 0:
         return
@@ -121,36 +128,35 @@ def emit_keys_kernel(
     if all_tiles == 0:
         if o * 255.0 < 1.0:
             return
-        rect = tight_rect(m[0], m[1], float(r), cov2d[i], k2, tiles_x, tiles_y)
-    k = offsets[i]
-    stop = k + counts[i]
-    d = wp.int64(depth_bits[i])
+        rect = tight_rect(m[0], m[1], float(r), conic[i], k2, tiles_x, tiles_y)
+    k = offsets[j]
+    stop = k + counts[j]
     for ty in range(rect[2], rect[3]):
         for tx in range(rect[0], rect[1]):
             # the same test as count_tiles_kernel; the bound keeps memory safe even if the GPU compiler
             # contracted the two kernels' arithmetic differently at a borderline tile
             if k < stop and (all_tiles != 0 or tile_reachable(m[0], m[1], conic[i], k2, tx, ty, width, height)):
-                keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | d
+                keys[k] = ty * tiles_x + tx
                 values[k] = i
                 k += 1
     while k < stop:  # ...and never leaves a slot unwritten: a sentinel tile past the grid, sorted last
-        keys[k] = wp.int64(tiles_x * tiles_y) << wp.int64(32)
+        keys[k] = tiles_x * tiles_y
         values[k] = i
         k += 1
 
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
 def tile_ranges_kernel(
-    keys: wp.array(dtype=wp.int64),  # [M] sorted
+    keys: wp.array(dtype=wp.int32),  # [M] sorted tile ids
     count: int,
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2] out [start, end), zero-initialized
 ):
     # start and end are separate elements: the threads that write them never race
     i = wp.tid()
-    tile = int(keys[i] >> wp.int64(32))
+    tile = keys[i]
     if tile >= ranges.shape[0]:  # sentinel keys (see emit_keys_kernel) sort after every real tile
         return
-    if i == 0 or int(keys[i - 1] >> wp.int64(32)) != tile:
+    if i == 0 or keys[i - 1] != tile:
         ranges[tile, 0] = i
-    if i == count - 1 or int(keys[i + 1] >> wp.int64(32)) != tile:
+    if i == count - 1 or keys[i + 1] != tile:
         ranges[tile, 1] = i + 1
