@@ -15,7 +15,7 @@ class RenderOutput:
     alpha: torch.Tensor  # [H, W]
     depth: torch.Tensor  # [H, W] expected depth Σ zαT / alpha, 0 where alpha is 0
     radii: torch.Tensor  # [N] int32 screen radius in pixels, 0 = culled
-    means2d: torch.Tensor  # [N, 2] zero probe; after backward its .grad is dL/d(screen mean)
+    means2d: torch.Tensor  # [N, 2] zero probe (read-only broadcast); after backward its .grad is dL/d(screen mean)
     weights: torch.Tensor | None = None  # [N] Σ_pixels αT per Gaussian (when asked for)
 
     @property
@@ -54,7 +54,8 @@ def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None 
     degree = g.sh_degree if sh_degree is None else int(sh_degree)
     if not 0 <= degree <= g.sh_degree:
         raise InputError(f"sh_degree {degree} is outside 0..{g.sh_degree} (the stored degree)")
-    probe = torch.zeros(g.num, 2, dtype=g.dtype, device=g.device, requires_grad=True)
+    # a stride-0 broadcast zero: an [N, 2] leaf that owns 2 scalars; its .grad is the [N, 2] gradient
+    probe = torch.zeros(1, 2, dtype=g.dtype, device=g.device).expand(g.num, 2).detach().requires_grad_(True)
     settings = {"sh_degree": degree, "background": bg, "weights": bool(return_weights), "all_tiles": bool(all_tiles)}
     color, alpha, depth, radii, weights = RasterizeFn.apply(
         g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, probe, cam, settings)
