@@ -216,18 +216,17 @@ class RasterizeFn(torch.autograd.Function):
         sh = inputs[4]  # sh_backward_kernel stores every coefficient it uses: no memset when it uses them all
         full_sh = (ctx.sh_degree + 1) ** 2 == sh.shape[1]
         grads = [attach_grad(a, t, zero=not (t is sh and full_sh)) for a, t in zip(wargs, inputs)]
-        projected = (proj.means2d, proj.conic, proj.depth, proj.opacity, proj.color)
-        screen = [attach_grad(a, t) for a, t in zip(pouts[:5], projected)][0]
+        screen = attach_grad(pouts[0], proj.means2d)  # [N, 2]
+        for a, t in zip(pouts[1:5], (proj.conic, proj.depth, proj.opacity, proj.color)):
+            attach_grad(a, t)
         # the projection adjoint would zero the output grads it consumes (Warp's default for arrays written once);
         # retaining the screen-mean one makes it dL/d(screen mean) after the backward, with no copy
         pouts[0].retain_grad = True
         H, W = ctx.image_size
         dtype = inputs[0].dtype
-        # an absent upstream gradient is a broadcast zero (stride 0): no [H, W] buffer, no memset
-        ups = [g.contiguous() if g is not None else torch.zeros((1,) * (len(shape) - 1) + shape[-1:], dtype=dtype,
-                                                                device=device).expand(shape)
-               for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W, 1)), (g_depth, (H, W, 1)))]
-        ups[1:] = [u.squeeze(-1) for u in ups[1:]]
+        # an absent upstream gradient is a broadcast zero (stride 0 over rows): no [H, W] buffer, no memset
+        ups = [g.contiguous() if g is not None else torch.zeros(shape[-1], dtype=dtype, device=device).expand(shape)
+               for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
         io["upstream"] = [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
         with warp_on(device):
             tape.backward()
