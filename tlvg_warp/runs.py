@@ -2,6 +2,8 @@
 and Ctrl-C that finishes the current iteration before saving a checkpoint."""
 from __future__ import annotations
 
+import contextlib
+
 import signal
 import threading
 import time
@@ -39,6 +41,20 @@ def check_out_dir(out: Path, overwrite: bool, resume: bool, run_files=()) -> Non
         (out / ".write_test").unlink()
     except OSError as e:
         raise InputError(f"output folder is not writable ({e.strerror or e})", out) from None
+
+
+def start_run_dir(out: Path, overwrite: bool, resuming: bool, run_files=(), render_dirs=()) -> None:
+    """check_out_dir, then, when a run is replaced (--overwrite, not resuming), delete its files and the PNG
+    renders under ``render_dirs`` so nothing stale mixes with the new run's outputs."""
+    out = Path(out)
+    check_out_dir(out, overwrite, resuming, run_files)
+    if overwrite and not resuming:
+        for f in run_files:
+            with contextlib.suppress(FileNotFoundError):
+                (out / f).unlink()
+        for sub in render_dirs:
+            for f in (out / sub).glob("*.png") if (out / sub).is_dir() else ():
+                f.unlink()
 
 
 class Interrupt:

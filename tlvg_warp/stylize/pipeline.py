@@ -31,7 +31,6 @@ Decisions (beyond the spec, documented):
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import time
@@ -222,11 +221,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     if cfg.background is None:  # record the resolved background (evaluation re-renders with it)
         cfg = dataclasses.replace(cfg, background=[float(v) for v in inp.background])
     if out is not None:
-        check_out_dir(out, overwrite, ck is not None)
-        if overwrite and ck is None:
-            for f in RUN_FILES:
-                with contextlib.suppress(FileNotFoundError):
-                    (out / f).unlink()
+        runs.start_run_dir(out, overwrite, ck is not None, RUN_FILES)
         write_text(out / "config.yaml", config_yaml(cfg))
 
     # --- the feature network and the painting (once) ----------------------------------------------------------

@@ -13,7 +13,6 @@ PLY never is.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import os
@@ -309,14 +308,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     if ck is not None and ck["names"] != names:
         raise InputError("the checkpoint was made on a different dataset (its view names differ)", resume)
     if out is not None:
-        check_out_dir(out, overwrite, resume is not None)
-        if overwrite and ck is None:
-            for f in RUN_FILES:
-                with contextlib.suppress(FileNotFoundError):
-                    (out / f).unlink()
-            for sub in ("test", "train"):  # renders of the replaced run
-                for f in (out / sub).glob("*.png") if (out / sub).is_dir() else ():
-                    f.unlink()
+        runs.start_run_dir(out, overwrite, ck is not None, RUN_FILES, render_dirs=("test", "train"))
         write_text(out / "config.yaml", config_yaml(cfg))
 
     train_idx, test_idx = split_views(len(cams), cfg.holdout_every)
