@@ -1,6 +1,7 @@
 """Warp kernels only (installed as ``tlvg_warp.kernels``); the ops that bridge them to torch live in
 tlvg_warp.ops. Kernels of one scalar type share one Warp module, built once per process."""
 import functools
+import os
 from types import SimpleNamespace
 
 import warp as wp
@@ -16,6 +17,10 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
     from .sh import make_sh
 
     scalar = {"float32": wp.float32, "float64": wp.float64}[scalar_name]
+    if scalar == wp.float32 and os.environ.get("TLVG_WARP_FAST_MATH", "1") != "0":
+        # CUDA fast math (approximate exp/div/sqrt, ~2 ulp, as gsplat builds with): float32 only, the float64
+        # module stays the exact oracle; TLVG_WARP_FAST_MATH=0 turns it off. No effect on the CPU.
+        wp.set_module_options({"fast_math": True}, module_name(scalar))
     project, ewa_cov2d = make_projection(scalar)
     sh_color, sh_backward, sh_coeff_grad = make_sh(scalar, module_name(scalar))
     flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d)

@@ -163,59 +163,75 @@ def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = Fal
     return ranges, ids[:total].clone(), tiles_x, tiles_y  # the copy frees the sort's second half
 
 
+def blend(K, proj: Projected, pouts, cam: Camera, settings: dict):
+    """Bin, then blend front to back: the images, and the per-pixel state the blending backward reads."""
+    device, dtype, n = proj.depth.device, proj.depth.dtype, proj.depth.shape[0]
+    H, W = cam.height, cam.width
+    ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, W, H, settings["all_tiles"])
+    color = torch.empty(H, W, 3, dtype=dtype, device=device)
+    alpha = torch.empty(H, W, dtype=dtype, device=device)
+    depth = torch.empty(H, W, dtype=dtype, device=device)
+    T = torch.empty(H, W, dtype=dtype, device=device)
+    last = torch.empty(H, W, dtype=torch.int32, device=device)
+    weights = torch.zeros(n if settings["weights"] else 1, dtype=dtype, device=device)
+    bg = K.vec3(*map(K.scalar, settings["background"]))
+    w_means2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pouts
+    args = [ct(ranges), ct(ids), w_means2d, w_conic, w_opacity, w_color, w_depth, bg, W, H, tiles_x]
+    wp.launch(K.blend_forward, dim=tiles_x * tiles_y * TILE * TILE, block_dim=TILE * TILE,
+              inputs=args + [int(settings["weights"])],
+              outputs=[ct(color, K.vec3), ct(alpha), ct(depth), ct(T), ct(last), ct(weights)],
+              device=wp.device_from_torch(device), record_tape=False)
+    state = {"args": args, "saved": [ct(depth), ct(T), ct(last)], "threads": tiles_x * tiles_y * TILE * TILE}
+    return color, alpha, depth, weights, state
+
+
 class RasterizeFn(torch.autograd.Function):
     """(means, quats, log_scales, opacity_logits, sh, means2d_probe) -> color, alpha, depth, radii, weights.
 
-    ``means2d_probe`` is a zero tensor whose gradient receives dL/d(screen mean) for density control."""
+    ``means2d_probe`` is a zero tensor whose gradient receives dL/d(screen mean) for density control.
+
+    Memory: the tape runs the blending backward first, then drops the binning and per-pixel state (sorted ids,
+    T, last) before the input gradients are allocated, so the backward's peak never holds both. A second
+    backward through the same graph (retain_graph, gradcheck) rebuilds that state from the kept projection."""
 
     @staticmethod
     def forward(ctx, means, quats, log_scales, opacity_logits, sh, means2d_probe, cam, settings):
         K = kernels_for(means.dtype)
-        device, dtype, n = means.device, means.dtype, means.shape[0]
-        H, W = cam.height, cam.width
+        device, n = means.device, means.shape[0]
         with warp_on(device) as wdev:
             inputs = (means, quats, log_scales, opacity_logits, sh)
             wargs = [to_warp(t, ty) for t, ty in zip(inputs, (K.vec3, K.vec4, K.vec3, K.scalar, K.vec3))]
             tape = wp.Tape()
-            proj, pouts = project(K, wargs, cam, settings["sh_degree"], n, dtype, device, tape)
-            ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, W, H, settings["all_tiles"])
-            color = torch.empty(H, W, 3, dtype=dtype, device=device)
-            alpha = torch.empty(H, W, dtype=dtype, device=device)
-            depth = torch.empty(H, W, dtype=dtype, device=device)
-            T = torch.empty(H, W, dtype=dtype, device=device)
-            last = torch.empty(H, W, dtype=torch.int32, device=device)
-            weights = torch.zeros(n if settings["weights"] else 1, dtype=dtype, device=device)
-            bg = K.vec3(*map(K.scalar, settings["background"]))
-            w_means2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pouts
-            blend_args = [ct(ranges), ct(ids), w_means2d, w_conic, w_opacity, w_color, w_depth,
-                          bg, W, H, tiles_x]
-            wp.launch(K.blend_forward, dim=tiles_x * tiles_y * TILE * TILE, block_dim=TILE * TILE,
-                      inputs=blend_args + [int(settings["weights"])],
-                      outputs=[ct(color, K.vec3), ct(alpha), ct(depth), ct(T), ct(last), ct(weights)],
-                      device=wdev, record_tape=False)
-            n_threads = tiles_x * tiles_y * TILE * TILE
-            io = {}  # filled by backward(): the upstream gradients
+            proj, pouts = project(K, wargs, cam, settings["sh_degree"], n, means.dtype, device, tape)
+            color, alpha, depth, weights, first = blend(K, proj, pouts, cam, settings)
+            kept = {"blend": first}
+            io = {}  # filled by backward(): the upstream gradients, and the input gradients once allocated
+
+            def attach_input_grads():  # runs after blend_backward, before the SH and projection adjoints
+                sh_full = (settings["sh_degree"] + 1) ** 2 == sh.shape[1]  # sh_backward then stores every entry
+                io["grads"] = [attach_grad(a, t, zero=not (t is sh and sh_full)) for a, t in zip(wargs, inputs)]
 
             def blend_backward():
-                wp.launch(K.blend_backward, dim=n_threads, block_dim=TILE * TILE,
-                          inputs=blend_args + [ct(depth), ct(T), ct(last), *io["upstream"]],
-                          outputs=[a.grad for a in blend_args[2:7]], device=wdev)
+                # the sorted ids, T and last go when this returns (stream-ordered: safe with the launch queued);
+                # a second backward through the same graph rebuilds them
+                st = kept.pop("blend", None) or blend(K, proj, pouts, cam, settings)[4]
+                wp.launch(K.blend_backward, dim=st["threads"], block_dim=TILE * TILE,
+                          inputs=st["args"] + st["saved"] + io["upstream"],
+                          outputs=[a.grad for a in st["args"][2:7]], device=wdev)
 
+            tape.record_func(backward=attach_input_grads, arrays=[])
             tape.record_func(backward=blend_backward, arrays=[])
-        ctx.state = (K, tape, inputs, wargs, proj, pouts, io, device)
-        ctx.image_size = (H, W)
-        ctx.sh_degree = settings["sh_degree"]
+        ctx.state = (tape, proj, pouts, io, device, wargs)
+        ctx.image_size = (cam.height, cam.width)
         ctx.mark_non_differentiable(proj.radii, weights)
         return color, alpha, depth, proj.radii, weights if settings["weights"] else None
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
-        K, tape, inputs, wargs, proj, pouts, io, device = ctx.state
+        tape, proj, pouts, io, device, wargs = ctx.state
+        K = kernels_for(proj.depth.dtype)
         # gradient buffers exist only from here on (fresh per call, so a second backward through the same
         # graph, e.g. gradcheck or retain_graph, never sees the first call's sums)
-        sh = inputs[4]  # sh_backward_kernel stores every coefficient it uses: no memset when it uses them all
-        full_sh = (ctx.sh_degree + 1) ** 2 == sh.shape[1]
-        grads = [attach_grad(a, t, zero=not (t is sh and full_sh)) for a, t in zip(wargs, inputs)]
         screen = attach_grad(pouts[0], proj.means2d)  # [N, 2]
         for a, t in zip(pouts[1:5], (proj.conic, proj.depth, proj.opacity, proj.color)):
             attach_grad(a, t)
@@ -223,13 +239,14 @@ class RasterizeFn(torch.autograd.Function):
         # retaining the screen-mean one makes it dL/d(screen mean) after the backward, with no copy
         pouts[0].retain_grad = True
         H, W = ctx.image_size
-        dtype = inputs[0].dtype
+        dtype = proj.depth.dtype
         # an absent upstream gradient is a broadcast zero (stride 0 over rows): no [H, W] buffer, no memset
         ups = [g.contiguous() if g is not None else torch.zeros(shape[-1], dtype=dtype, device=device).expand(shape)
                for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
         io["upstream"] = [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
         with warp_on(device):
             tape.backward()
+        grads = io.pop("grads")
         for a in wargs + pouts[:5]:  # let the buffers go with the autograd graph's references
             a.grad = None
         return (*grads, screen, None, None)
