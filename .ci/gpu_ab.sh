@@ -10,9 +10,14 @@ python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py 2>&1 | tail -
 echo "== benchmark (fast math on, the default)"
 python3 -m tlvg_warp bench raster --out "$OUT/bench" "$@" 2>&1 | tee "$OUT/bench.log" | tail -13
 echo "== ours with TLVG_WARP_FAST_MATH=0"
-TLVG_WARP_FAST_MATH=0 python3 -m tlvg_warp bench raster --peers tlvg_warp --out "$OUT/bench_nofast" "$@" 2>&1 \
+[ -n "${AB_NOFAST:-}" ] && TLVG_WARP_FAST_MATH=0 python3 -m tlvg_warp bench raster --peers tlvg_warp --out "$OUT/bench_nofast" "$@" 2>&1 \
   | tee "$OUT/bench_nofast.log" | tail -5
 echo "== kernel vs host time at 1M"
 for peer in tlvg_warp gsplat; do
   python3 .ci/profile_trace.py 1000000 "$peer" 2>&1 | grep -v "^Module\|Warning\|warn" | tee -a "$OUT/trace.txt"
+done
+echo "== host profile at 1M (cProfile, synchronized steps)"
+for peer in tlvg_warp gsplat; do
+  python3 .ci/host_profile.py 1000000 "$peer" 2>&1 | grep -v "^Module\|Warning\|warn" > "$OUT/host_$peer.txt"
+  head -40 "$OUT/host_$peer.txt" | cut -c1-150
 done

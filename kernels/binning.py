@@ -64,7 +64,6 @@ def tight_rect(u: float, v: float, r: float, q: wp.vec3, k2: float, tiles_x: int
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
 def count_tiles_kernel(
-    order: wp.array(dtype=wp.int32),  # [N] Gaussian ids in depth order
     means2d: wp.array(dtype=wp.vec2),  # [N] float32 copy of the screen means
     radii: wp.array(dtype=wp.int32),  # [N]
     conic: wp.array(dtype=wp.vec3),  # [N] Σ2D⁻¹ (a, b, c)
@@ -74,16 +73,15 @@ def count_tiles_kernel(
     width: int,
     height: int,
     all_tiles: int,  # 1: every visible Gaussian touches every tile (brute-force reference binning)
-    counts: wp.array(dtype=wp.int32),  # [N] out, in depth order (counts[j] for Gaussian order[j])
+    counts: wp.array(dtype=wp.int32),  # [N] out
 ):
-    j = wp.tid()
-    i = order[j]
+    i = wp.tid()
     r = radii[i]
-    counts[j] = 0
+    counts[i] = 0
     if r <= 0:
         return
     if all_tiles != 0:
-        counts[j] = tiles_x * tiles_y
+        counts[i] = tiles_x * tiles_y
         return
     o = opacity[i]
     if o * 255.0 < 1.0:  # never reaches α = 1/255 anywhere
@@ -96,7 +94,7 @@ def count_tiles_kernel(
         for tx in range(rect[0], rect[1]):
             if tile_reachable(m[0], m[1], conic[i], k2, tx, ty, width, height):
                 n += 1
-    counts[j] = n
+    counts[i] = n
 
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
@@ -106,8 +104,8 @@ def emit_keys_kernel(
     radii: wp.array(dtype=wp.int32),  # [N]
     conic: wp.array(dtype=wp.vec3),  # [N]
     opacity: wp.array(dtype=float),  # [N]
-    offsets: wp.array(dtype=wp.int32),  # [N] exclusive prefix sum of counts (depth order)
-    counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian (depth order)
+    offsets: wp.array(dtype=wp.int32),  # [N] exclusive prefix sum of the counts in depth order (offsets[j]: order[j])
+    counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian (Gaussian order)
     tiles_x: int,
     tiles_y: int,
     width: int,
@@ -130,7 +128,7 @@ def emit_keys_kernel(
             return
         rect = tight_rect(m[0], m[1], float(r), conic[i], k2, tiles_x, tiles_y)
     k = offsets[j]
-    stop = k + counts[j]
+    stop = k + counts[i]
     for ty in range(rect[2], rect[3]):
         for tx in range(rect[0], rect[1]):
             # the same test as count_tiles_kernel; the bound keeps memory safe even if the GPU compiler

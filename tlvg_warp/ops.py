@@ -91,45 +91,79 @@ def camera_center(cam: Camera, K):
     return K.vec3(*map(K.scalar, cam.center.tolist()))
 
 
-def project(K, wargs, cam: Camera, sh_degree: int, n: int, dtype, device, tape: wp.Tape | None):
-    """Launch projection (Warp-generated adjoint) and SH color (hand-written backward, see sh_backward_kernel);
-    returns (Projected, warp output arrays [means2d, conic, depth, opacity, color, radii])."""
+def project(K, wargs, cam: Camera, n: int, dtype, device, tape: wp.Tape):
+    """Launch the projection on the tape (Warp-generated adjoint); returns (Projected, warp output arrays
+    [means2d, conic, depth, opacity, color, radii]). The color is filled by ``shade``."""
     z = lambda *shape: torch.zeros(*shape, dtype=dtype, device=device)  # noqa: E731
     proj = Projected(z(n, 2), None, z(n, 3), z(n), z(n), z(n, 3), torch.zeros(n, dtype=torch.int32, device=device))
     outs = [to_warp(proj.means2d, K.vec2), to_warp(proj.conic, K.vec3), to_warp(proj.depth, K.scalar),
             to_warp(proj.opacity, K.scalar), to_warp(proj.color, K.vec3), wp.from_torch(proj.radii, dtype=wp.int32)]
+    with tape:
+        wp.launch(K.project, dim=n, inputs=wargs[:4] + camera_args(cam, K, device), outputs=outs[:4] + outs[5:],
+                  device=wp.device_from_torch(device))
+    return proj, outs
+
+
+def shade(K, wargs, pouts, cam: Camera, sh_degree: int, n: int, device, tape: wp.Tape):
+    """Launch the SH color of the projected Gaussians and record its hand-written backward on the tape (after
+    the projection, so it runs before the projection adjoint: its means gradient is a plain store)."""
     wdev = wp.device_from_torch(device)
     w_means, _q, _s, _o, w_sh = wargs
-    w_color, w_radii = outs[4], outs[5]
-    with (tape if tape is not None else contextlib.nullcontext()):
-        wp.launch(K.project, dim=n, inputs=wargs[:4] + camera_args(cam, K, device), outputs=outs[:4] + outs[5:],
-                  device=wdev)
+    w_color, w_radii = pouts[4], pouts[5]
     center = camera_center(cam, K)
     n_coeffs = (sh_degree + 1) ** 2
     sh_args = [w_means, w_sh, w_radii, center, sh_degree]
     if n:
         wp.launch(K.sh_color, dim=n, inputs=sh_args, outputs=[w_color], device=wdev, record_tape=False)
-    if tape is not None:
-        def sh_backward():  # runs before the projection adjoint (tape order): its means gradient is a plain store
-            if n:
-                g_rgb = w_color.grad  # dL/d(SH sum) overwrites dL/dcolor in place (each thread its own element)
-                wp.launch(K.sh_backward, dim=n, inputs=sh_args + [w_color.grad], outputs=[g_rgb, w_means.grad],
-                          device=wdev)
-                wp.launch(K.sh_coeff_grad, dim=n * n_coeffs,
-                          inputs=[w_means, w_radii, center, n_coeffs, g_rgb], outputs=[w_sh.grad], device=wdev)
 
-        tape.record_func(backward=sh_backward, arrays=[])
-    return proj, outs
+    def sh_backward():
+        if n:
+            g_rgb = w_color.grad  # dL/d(SH sum) overwrites dL/dcolor in place (each thread its own element)
+            wp.launch(K.sh_backward, dim=n, inputs=sh_args + [w_color.grad], outputs=[g_rgb, w_means.grad],
+                      device=wdev)
+            wp.launch(K.sh_coeff_grad, dim=n * n_coeffs,
+                      inputs=[w_means, w_radii, center, n_coeffs, g_rgb], outputs=[w_sh.grad], device=wdev)
+
+    tape.record_func(backward=sh_backward, arrays=[])
 
 
-def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = False):
-    """Depth order, then stably tile-sorted keys -> per-tile [start, end) ranges and the sorted Gaussian ids."""
+def binning_geometry(proj: Projected):
+    """float32 views of what the binning kernels read (copies only on the float64 path)."""
+    return [ct(proj.means2d.float().contiguous(), wp.vec2), ct(proj.radii, wp.int32),
+            ct(proj.conic.float().contiguous(), wp.vec3), ct(proj.opacity.float().contiguous())]
+
+
+def tile_grid(width: int, height: int) -> tuple[int, int]:
+    return (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+
+
+def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: bool = False):
+    """Tiles touched per Gaussian [N] int32, and their total: the one host sync per render (it sizes the key
+    buffers). Only the projection runs before it, so the host waits as little as possible."""
+    n = proj.depth.shape[0]
+    counts = torch.empty(n, dtype=torch.int32, device=proj.depth.device)
+    if n == 0:
+        return counts, 0
+    tiles_x, tiles_y = tile_grid(width, height)
+    wp.launch(K.count_tiles, dim=n, inputs=[*binning_geometry(proj), tiles_x, tiles_y, width, height,
+                                            int(all_tiles)], outputs=[ct(counts)],
+              device=wp.device_from_torch(proj.depth.device))
+    total = int(counts.sum())
+    if total >= 2**31:
+        raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
+    return counts, total
+
+
+def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, width: int, height: int,
+              all_tiles: bool = False):
+    """Depth order, then stably tile-sorted keys -> per-tile [start, end) ranges [tiles, 2] and the sorted
+    Gaussian ids [total]."""
     device = proj.depth.device
     wdev = wp.device_from_torch(device)
     n = proj.depth.shape[0]
-    tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    tiles_x, tiles_y = tile_grid(width, height)
     ranges = torch.zeros(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)
-    if n == 0:
+    if total == 0:
         return ranges, torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
     # depth order: radix sort needs 2x room; culled Gaussians sort anywhere (they emit no keys)
     depth_keys = torch.empty(2 * n, dtype=torch.float32, device=device)
@@ -138,36 +172,26 @@ def bin_tiles(K, proj: Projected, width: int, height: int, all_tiles: bool = Fal
     torch.arange(n, dtype=torch.int32, device=device, out=order[:n])
     wp.utils.radix_sort_pairs(wp.from_torch(depth_keys), wp.from_torch(order), n)
     del depth_keys
-    order = ct(order[:n], wp.int32)
-    geometry = [ct(proj.means2d.float().contiguous(), wp.vec2), ct(proj.radii, wp.int32),
-                ct(proj.conic.float().contiguous(), wp.vec3), ct(proj.opacity.float().contiguous())]
-    counts = torch.empty(n, dtype=torch.int32, device=device)  # [N] in depth order
-    wp.launch(K.count_tiles, dim=n, inputs=[order, *geometry, tiles_x, tiles_y, width, height, int(all_tiles)],
-              outputs=[ct(counts)], device=wdev)
-    ends = torch.cumsum(counts, 0, dtype=torch.int64)
-    total = int(ends[-1])  # the one host sync per render: the key buffer size
-    if total == 0:
-        return ranges, torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
-    if total >= 2**31:
-        raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
-    starts = (ends - counts).to(torch.int32)
-    del ends
+    order = order[:n]
+    sorted_counts = counts[order]  # [N] in depth order
+    starts = (torch.cumsum(sorted_counts, 0, dtype=torch.int32) - sorted_counts)  # exclusive, < 2**31 (checked)
     keys = torch.empty(2 * total, dtype=torch.int32, device=device)
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
     wkeys, wids = wp.from_torch(keys), wp.from_torch(ids)
-    wp.launch(K.emit_keys, dim=n, inputs=[order, *geometry, ct(starts), ct(counts), tiles_x, tiles_y, width,
-                                          height, int(all_tiles)], outputs=[wkeys, wids], device=wdev)
+    wp.launch(K.emit_keys, dim=n, inputs=[ct(order, wp.int32), *binning_geometry(proj), ct(starts), ct(counts),
+                                          tiles_x, tiles_y, width, height, int(all_tiles)],
+              outputs=[wkeys, wids], device=wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
     wp.utils.radix_sort_pairs(wkeys, wids, total, 0, tile_bits)  # stable: each tile stays in depth order
     wp.launch(K.tile_ranges, dim=total, inputs=[wkeys, total], outputs=[ct(ranges)], device=wdev)
     return ranges, ids[:total].clone(), tiles_x, tiles_y  # the copy frees the sort's second half
 
 
-def blend(K, proj: Projected, pouts, cam: Camera, settings: dict):
+def blend(K, proj: Projected, pouts, counts, total: int, cam: Camera, settings: dict):
     """Bin, then blend front to back: the images, and the per-pixel state the blending backward reads."""
     device, dtype, n = proj.depth.device, proj.depth.dtype, proj.depth.shape[0]
     H, W = cam.height, cam.width
-    ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, W, H, settings["all_tiles"])
+    ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, counts, total, W, H, settings["all_tiles"])
     color = torch.empty(H, W, 3, dtype=dtype, device=device)
     alpha = torch.empty(H, W, dtype=dtype, device=device)
     depth = torch.empty(H, W, dtype=dtype, device=device)
@@ -202,8 +226,12 @@ class RasterizeFn(torch.autograd.Function):
             inputs = (means, quats, log_scales, opacity_logits, sh)
             wargs = [to_warp(t, ty) for t, ty in zip(inputs, (K.vec3, K.vec4, K.vec3, K.scalar, K.vec3))]
             tape = wp.Tape()
-            proj, pouts = project(K, wargs, cam, settings["sh_degree"], n, means.dtype, device, tape)
-            color, alpha, depth, weights, first = blend(K, proj, pouts, cam, settings)
+            proj, pouts = project(K, wargs, cam, n, means.dtype, device, tape)
+            counts, total = count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"])
+            # the SH launch goes right after the sync: the GPU shades while the host prepares the binning
+            shade(K, wargs, pouts, cam, settings["sh_degree"], n, device, tape)
+            color, alpha, depth, weights, first = blend(K, proj, pouts, counts, total, cam, settings)
+            del counts
             kept = {"blend": first}
             io = {}  # filled by backward(): the upstream gradients, and the input gradients once allocated
 
@@ -214,7 +242,9 @@ class RasterizeFn(torch.autograd.Function):
             def blend_backward():
                 # the sorted ids, T and last go when this returns (stream-ordered: safe with the launch queued);
                 # a second backward through the same graph rebuilds them
-                st = kept.pop("blend", None) or blend(K, proj, pouts, cam, settings)[4]
+                st = kept.pop("blend", None) or blend(
+                    K, proj, pouts, *count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"]),
+                    cam, settings)[4]
                 wp.launch(K.blend_backward, dim=st["threads"], block_dim=TILE * TILE,
                           inputs=st["args"] + st["saved"] + io["upstream"],
                           outputs=[a.grad for a in st["args"][2:7]], device=wdev)
