@@ -18,18 +18,17 @@ torch.cuda.synchronize()
 reps = 10
 with profile(activities=[ProfilerActivity.CUDA]) as prof:
     for _ in range(reps):
+        torch.cuda._sleep(1)  # a marker kernel launched the moment the step starts
         step()
         torch.cuda.synchronize()
 evs = sorted((e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA),
              key=lambda e: e.time_range.start)
-# steps are separated by the host-side sync: a gap > 150 us between kernels starts a new step
-steps, cur = [], [evs[0]]
-for a, b in zip(evs, evs[1:]):
-    if b.time_range.start - a.time_range.end > 150:
-        steps.append(cur)
-        cur = []
-    cur.append(b)
-steps.append(cur)
+steps = []
+for e in evs:  # each step starts at its marker (the gap after it is the host's time to the first launch)
+    if "sleep" in e.name or "spin" in e.name:
+        steps.append([])
+    if steps:
+        steps[-1].append(e)
 gaps = defaultdict(list)
 spans, busy = [], []
 for s in steps:
