@@ -50,7 +50,7 @@ class FlowTermsFn(torch.autograd.Function):
             ins = [to_warp(means, K.vec3, grads[0]), to_warp(quats, K.vec4, grads[1]),
                    to_warp(log_scales, K.vec3, grads[2]), to_warp(target, K.vec2),
                    wp.from_torch(active.to(torch.int32).contiguous())]
-            cargs = camera_args(cam, K, means.device)
+            cargs = camera_args(cam, K)
             outs = [to_warp(align, K.scalar, torch.zeros_like(align)), to_warp(aniso, K.scalar, torch.zeros_like(aniso))]
             tape = wp.Tape()
             with tape:

@@ -7,11 +7,13 @@ on the same tape with ``Tape.record_func``. Every Warp array gets its own torch-
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 from dataclasses import dataclass
 
 import torch
 import warp as wp
+from warp._src.types import array_t  # what wp.from_torch(return_ctype=True) builds (warp is pinned in pyproject)
 
 from .types import Camera
 
@@ -46,8 +48,16 @@ def warp_on(device: torch.device):
 
 
 def ct(t: torch.Tensor, dtype=None):
-    """A bare array descriptor for launches outside the tape (skips building a wp.array: less Python per call)."""
-    return wp.from_torch(t.detach(), dtype=dtype, return_ctype=True)
+    """A bare array descriptor for launches outside the tape: what ``wp.from_torch(t, dtype, return_ctype=True)``
+    builds, without its per-call checks (a few microseconds each, dozens per render). Callers pass tensors whose
+    dtype matches and whose vector dimension is innermost and contiguous."""
+    elem = t.element_size()
+    shape, strides = t.shape, t.stride()
+    if dtype is not None and hasattr(dtype, "_shape_"):  # vector dtype: the last torch dim is the vector
+        shape, strides = shape[:-1] or (1,), strides[:-1] or (1,)
+    a = array_t(t.data_ptr(), 0, len(shape), tuple(shape), tuple(x * elem for x in strides))
+    a._ref = t  # keeps the memory alive as long as the descriptor
+    return a
 
 
 def to_warp(t: torch.Tensor, dtype, grad: torch.Tensor | None = None):
@@ -64,6 +74,22 @@ def attach_grad(a: wp.array, like: torch.Tensor, zero: bool = True) -> torch.Ten
     return g
 
 
+def packed_zeros(shapes, dtype, device) -> list[torch.Tensor]:
+    """Zero tensors of the given shapes, as contiguous views of one buffer: one allocation and one memset
+    instead of one each (the host, not the GPU, bounds these small steps)."""
+    sizes = [math.prod(s) for s in shapes]
+    buf = torch.zeros(sum(sizes), dtype=dtype, device=device)
+    return [v.view(s) for v, s in zip(buf.split(sizes), shapes)]
+
+
+def attach_grads(arrays, likes) -> list[torch.Tensor]:
+    """``attach_grad`` for several arrays at once, their zeroed grads packed in one buffer."""
+    grads = packed_zeros([t.shape for t in likes], likes[0].dtype, likes[0].device)
+    for a, g in zip(arrays, grads):
+        a.grad = to_warp(g, a.dtype)
+    return grads
+
+
 @dataclass
 class Projected:
     """Per-Gaussian screen-space quantities (torch views of the Warp outputs)."""
@@ -77,40 +103,47 @@ class Projected:
     radii: torch.Tensor  # [N] int32
 
 
-def camera_args(cam: Camera, K, device: torch.device):
+def camera_values(cam: Camera):
+    """(R rows, t, center) of the camera as Python floats, from one read of the 4x4 (no torch ops per value)."""
+    m = cam.world_to_camera.tolist()
+    R = [row[:3] for row in m[:3]]
+    t = [row[3] for row in m[:3]]
+    center = [-(R[0][j] * t[0] + R[1][j] * t[1] + R[2][j] * t[2]) for j in range(3)]
+    return R, t, center
+
+
+def camera_args(cam: Camera, K, values=None):
     """(R, t, fx, fy, cx, cy, width, height, near, far) as kernel values (array reads would become atomics in
     the adjoint); ``camera_center`` gives the center."""
     s = K.scalar
-    R = cam.R.tolist()
-    t = cam.t.tolist()
+    R, t, _ = values or camera_values(cam)
     return [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)),
             s(cam.fx), s(cam.fy), s(cam.cx), s(cam.cy), cam.width, cam.height, s(cam.near), s(cam.far)]
 
 
-def camera_center(cam: Camera, K):
-    return K.vec3(*map(K.scalar, cam.center.tolist()))
+def camera_center(cam: Camera, K, values=None):
+    return K.vec3(*map(K.scalar, (values or camera_values(cam))[2]))
 
 
-def project(K, wargs, cam: Camera, n: int, dtype, device, tape: wp.Tape):
+def project(K, wargs, cam: Camera, n: int, dtype, device, tape: wp.Tape, cam_values=None):
     """Launch the projection on the tape (Warp-generated adjoint); returns (Projected, warp output arrays
     [means2d, conic, depth, opacity, color, radii]). The color is filled by ``shade``."""
-    z = lambda *shape: torch.zeros(*shape, dtype=dtype, device=device)  # noqa: E731
-    proj = Projected(z(n, 2), None, z(n, 3), z(n), z(n), z(n, 3), torch.zeros(n, dtype=torch.int32, device=device))
+    means2d, conic, depth, opacity, color = packed_zeros([(n, 2), (n, 3), (n,), (n,), (n, 3)], dtype, device)
+    proj = Projected(means2d, None, conic, depth, opacity, color, torch.zeros(n, dtype=torch.int32, device=device))
     outs = [to_warp(proj.means2d, K.vec2), to_warp(proj.conic, K.vec3), to_warp(proj.depth, K.scalar),
             to_warp(proj.opacity, K.scalar), to_warp(proj.color, K.vec3), wp.from_torch(proj.radii, dtype=wp.int32)]
     with tape:
-        wp.launch(K.project, dim=n, inputs=wargs[:4] + camera_args(cam, K, device), outputs=outs[:4] + outs[5:],
+        wp.launch(K.project, dim=n, inputs=wargs[:4] + camera_args(cam, K, cam_values), outputs=outs[:4] + outs[5:],
                   device=wp.device_from_torch(device))
     return proj, outs
 
 
-def shade(K, wargs, pouts, cam: Camera, sh_degree: int, n: int, device, tape: wp.Tape):
+def shade(K, wargs, pouts, center, sh_degree: int, n: int, device, tape: wp.Tape):
     """Launch the SH color of the projected Gaussians and record its hand-written backward on the tape (after
     the projection, so it runs before the projection adjoint: its means gradient is a plain store)."""
     wdev = wp.device_from_torch(device)
     w_means, _q, _s, _o, w_sh = wargs
     w_color, w_radii = pouts[4], pouts[5]
-    center = camera_center(cam, K)
     n_coeffs = (sh_degree + 1) ** 2
     sh_args = [w_means, w_sh, w_radii, center, sh_degree]
     if n:
@@ -138,23 +171,23 @@ def tile_grid(width: int, height: int) -> tuple[int, int]:
 
 
 def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: bool = False):
-    """Tiles touched per Gaussian [N] int32, and their total: the one host sync per render (it sizes the key
-    buffers). Only the projection runs before it, so the host waits as little as possible."""
+    """Tiles touched per Gaussian [N] int32, their total, and the binning's inputs: the total is the one host
+    sync per render (it sizes the key buffers). Only the projection runs before it."""
     n = proj.depth.shape[0]
     counts = torch.empty(n, dtype=torch.int32, device=proj.depth.device)
+    geometry = binning_geometry(proj)
     if n == 0:
-        return counts, 0
+        return counts, 0, geometry
     tiles_x, tiles_y = tile_grid(width, height)
-    wp.launch(K.count_tiles, dim=n, inputs=[*binning_geometry(proj), tiles_x, tiles_y, width, height,
-                                            int(all_tiles)], outputs=[ct(counts)],
-              device=wp.device_from_torch(proj.depth.device))
+    wp.launch(K.count_tiles, dim=n, inputs=[*geometry, tiles_x, tiles_y, width, height, int(all_tiles)],
+              outputs=[ct(counts)], device=wp.device_from_torch(proj.depth.device))
     total = int(counts.sum())
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
-    return counts, total
+    return counts, total, geometry
 
 
-def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, width: int, height: int,
+def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, width: int, height: int,
               all_tiles: bool = False):
     """Depth order, then stably tile-sorted keys -> per-tile [start, end) ranges [tiles, 2] and the sorted
     Gaussian ids [total]."""
@@ -178,7 +211,7 @@ def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, width: int, 
     keys = torch.empty(2 * total, dtype=torch.int32, device=device)
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
     wkeys, wids = wp.from_torch(keys), wp.from_torch(ids)
-    wp.launch(K.emit_keys, dim=n, inputs=[ct(order, wp.int32), *binning_geometry(proj), ct(starts), ct(counts),
+    wp.launch(K.emit_keys, dim=n, inputs=[ct(order, wp.int32), *geometry, ct(starts), ct(counts),
                                           tiles_x, tiles_y, width, height, int(all_tiles)],
               outputs=[wkeys, wids], device=wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
@@ -187,11 +220,11 @@ def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, width: int, 
     return ranges, ids[:total].clone(), tiles_x, tiles_y  # the copy frees the sort's second half
 
 
-def blend(K, proj: Projected, pouts, counts, total: int, cam: Camera, settings: dict):
+def blend(K, proj: Projected, pouts, counts, total: int, geometry, cam: Camera, settings: dict):
     """Bin, then blend front to back: the images, and the per-pixel state the blending backward reads."""
     device, dtype, n = proj.depth.device, proj.depth.dtype, proj.depth.shape[0]
     H, W = cam.height, cam.width
-    ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, counts, total, W, H, settings["all_tiles"])
+    ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, counts, total, geometry, W, H, settings["all_tiles"])
     color = torch.empty(H, W, 3, dtype=dtype, device=device)
     alpha = torch.empty(H, W, dtype=dtype, device=device)
     depth = torch.empty(H, W, dtype=dtype, device=device)
@@ -226,18 +259,20 @@ class RasterizeFn(torch.autograd.Function):
             inputs = (means, quats, log_scales, opacity_logits, sh)
             wargs = [to_warp(t, ty) for t, ty in zip(inputs, (K.vec3, K.vec4, K.vec3, K.scalar, K.vec3))]
             tape = wp.Tape()
-            proj, pouts = project(K, wargs, cam, n, means.dtype, device, tape)
-            counts, total = count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"])
+            cam_values = camera_values(cam)
+            proj, pouts = project(K, wargs, cam, n, means.dtype, device, tape, cam_values)
+            center = camera_center(cam, K, cam_values)  # ready before the sync
+            binning = count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"])
             # the SH launch goes right after the sync: the GPU shades while the host prepares the binning
-            shade(K, wargs, pouts, cam, settings["sh_degree"], n, device, tape)
-            color, alpha, depth, weights, first = blend(K, proj, pouts, counts, total, cam, settings)
-            del counts
+            shade(K, wargs, pouts, center, settings["sh_degree"], n, device, tape)
+            color, alpha, depth, weights, first = blend(K, proj, pouts, *binning, cam, settings)
+            del binning
             kept = {"blend": first}
             io = {}  # filled by backward(): the upstream gradients, and the input gradients once allocated
 
             def attach_input_grads():  # runs after blend_backward, before the SH and projection adjoints
                 sh_full = (settings["sh_degree"] + 1) ** 2 == sh.shape[1]  # sh_backward then stores every entry
-                io["grads"] = [attach_grad(a, t, zero=not (t is sh and sh_full)) for a, t in zip(wargs, inputs)]
+                io["grads"] = attach_grads(wargs[:4], inputs[:4]) + [attach_grad(wargs[4], sh, zero=not sh_full)]
 
             def blend_backward():
                 # the sorted ids, T and last go when this returns (stream-ordered: safe with the launch queued);
@@ -262,9 +297,7 @@ class RasterizeFn(torch.autograd.Function):
         K = kernels_for(proj.depth.dtype)
         # gradient buffers exist only from here on (fresh per call, so a second backward through the same
         # graph, e.g. gradcheck or retain_graph, never sees the first call's sums)
-        screen = attach_grad(pouts[0], proj.means2d)  # [N, 2]
-        for a, t in zip(pouts[1:5], (proj.conic, proj.depth, proj.opacity, proj.color)):
-            attach_grad(a, t)
+        screen = attach_grads(pouts[:5], [proj.means2d, proj.conic, proj.depth, proj.opacity, proj.color])[0]  # [N, 2]
         # the projection adjoint would zero the output grads it consumes (Warp's default for arrays written once);
         # retaining the screen-mean one makes it dL/d(screen mean) after the backward, with no copy
         pouts[0].retain_grad = True

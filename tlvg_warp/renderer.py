@@ -1,6 +1,7 @@
 """The public rasterizer: ``render(gaussians, camera, background=None) -> RenderOutput`` (SPEC §2)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -29,7 +30,7 @@ def check_inputs(g: Gaussians, cam: Camera, background) -> tuple:
     if not isinstance(cam, Camera):
         raise InputError(f"render expects a Camera, got {type(cam).__name__}")
     g.validate()  # tensors may have been swapped since construction
-    if not torch.isfinite(cam.world_to_camera).all():
+    if not all(math.isfinite(v) for row in cam.world_to_camera.tolist() for v in row):
         raise InputError("camera world_to_camera has non-finite values")
     if cam.width <= 0 or cam.height <= 0:
         raise InputError(f"camera image size must be positive, got {cam.width}x{cam.height}")
