@@ -37,12 +37,19 @@ def kernels_for(dtype: torch.dtype):
     return raster_kernels({torch.float32: "float32", torch.float64: "float64"}[dtype])
 
 
+_streams: dict = {}  # torch stream handle -> its wp.Stream (wrapping one registers it with Warp: not per call)
+
+
 @contextlib.contextmanager
 def warp_on(device: torch.device):
     """Run Warp launches on torch's current stream so no extra synchronization is needed."""
     if device.type == "cuda":
-        with wp.ScopedStream(wp.stream_from_torch(device)):
-            yield wp.device_from_torch(device)
+        ts = torch.cuda.current_stream(device)
+        stream = _streams.get(ts.cuda_stream)
+        if stream is None:
+            stream = _streams[ts.cuda_stream] = wp.stream_from_torch(ts)  # keeps ts alive: its handle stays unique
+        with wp.ScopedStream(stream):
+            yield stream.device
     else:
         yield wp.device_from_torch(device)
 
