@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import weakref
 from dataclasses import dataclass
 
 import torch
@@ -71,6 +72,25 @@ def to_warp(t: torch.Tensor, dtype, grad: torch.Tensor | None = None):
     if t.numel() == 0:  # torch gives empty tensors arbitrary strides, which from_torch rejects
         return wp.zeros(t.shape[0], dtype=dtype, device=wp.device_from_torch(t.device), requires_grad=grad is not None)
     return wp.from_torch(t.detach().contiguous(), dtype=dtype, grad=grad, requires_grad=grad is not None)
+
+
+_inputs: dict = {}  # id(tensor) -> (weakref, layout key, wp.array): the wrappers of recently rendered inputs
+
+
+def input_array(t: torch.Tensor, dtype) -> wp.array:
+    """``to_warp`` for a render input, reused across renders while the tensor keeps its storage (an optimizer
+    steps the same tensors in place; building a wp.array costs the host more than some kernels take). The entry
+    goes when the tensor does; a tensor given new storage (``t.data = ...``) gets a new wrapper."""
+    if not t.is_contiguous():
+        return to_warp(t, dtype)
+    key = (t.data_ptr(), t.shape, t.dtype, dtype)
+    hit = _inputs.get(id(t))
+    if hit is not None and hit[0]() is t and hit[1] == key:
+        return hit[2]
+    a = to_warp(t, dtype)  # holds a detached alias of t's storage, never t itself (the weak entry can go)
+    tid = id(t)
+    _inputs[tid] = (weakref.ref(t, lambda _r: _inputs.pop(tid, None)), key, a)
+    return a
 
 
 def attach_grad(a: wp.array, like: torch.Tensor, zero: bool = True) -> torch.Tensor:
@@ -264,7 +284,7 @@ class RasterizeFn(torch.autograd.Function):
         device, n = means.device, means.shape[0]
         with warp_on(device) as wdev:
             inputs = (means, quats, log_scales, opacity_logits, sh)
-            wargs = [to_warp(t, ty) for t, ty in zip(inputs, (K.vec3, K.vec4, K.vec3, K.scalar, K.vec3))]
+            wargs = [input_array(t, ty) for t, ty in zip(inputs, (K.vec3, K.vec4, K.vec3, K.scalar, K.vec3))]
             tape = wp.Tape()
             cam_values = camera_values(cam)
             proj, pouts = project(K, wargs, cam, n, means.dtype, device, tape, cam_values)
