@@ -34,15 +34,27 @@ def launch(kernel, *a, **k):
 
 
 wp.launch = launch
-for name in ("project", "count_intersections", "shade", "bin_tiles", "blend", "attach_grads"):
-    f = getattr(ops, name)
+import tlvg_warp.renderer as renderer  # noqa: E402
+
+for mod, name in [(ops, n) for n in ("kernels_for", "input_array", "camera_values", "project", "count_intersections",
+                                     "shade", "bin_tiles", "blend", "attach_grads")] + [(renderer, "check_inputs")]:
+    f = getattr(mod, name)
 
     def wrapped(*a, _f=f, _name=name, **k):
         mark(f"{_name} >")
         r = _f(*a, **k)
         mark(f"{_name} <")
         return r
-    setattr(ops, name, wrapped)
+    setattr(mod, name, wrapped)
+orig_fwd = ops.RasterizeFn.forward
+
+
+def fwd(ctx, *a):
+    mark("forward >")
+    return orig_fwd(ctx, *a)
+
+
+ops.RasterizeFn.forward = staticmethod(fwd)
 orig_bwd = ops.RasterizeFn.backward
 
 
