@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One GPU call: CUDA tests, the full raster benchmark, ours again with fast math off (the A/B of that switch),
-# and kernel vs host time at 1M for ours and gsplat. Usage on the device, after setup:
+# and kernel vs host time at 1M for ours and gsplat (where the host bounds a step: host_gpu_timeline.py).
+# Usage on the device, after setup:
 #   bash .ci/gpu_ab.sh [--garden PATH]      (logs under $OUT)
 set -uo pipefail
 OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
@@ -15,9 +16,4 @@ echo "== ours with TLVG_WARP_FAST_MATH=0"
 echo "== kernel vs host time at 1M"
 for peer in tlvg_warp gsplat; do
   python3 .ci/profile_trace.py 1000000 "$peer" 2>&1 | grep -v "^Module\|Warning\|warn" | tee -a "$OUT/trace.txt"
-done
-echo "== host profile at 1M (cProfile, synchronized steps)"
-for peer in tlvg_warp gsplat; do
-  python3 .ci/host_profile.py 1000000 "$peer" 2>&1 | grep -v "^Module\|Warning\|warn" > "$OUT/host_$peer.txt"
-  head -40 "$OUT/host_$peer.txt" | cut -c1-150
 done

@@ -9,16 +9,15 @@ import torch
 import warp as wp
 
 import tlvg_warp.ops as ops
-from tlvg_warp.eval.bench_raster import PEERS, bench_camera, random_scene
+from tlvg_warp.eval.bench_raster import warm_step
 
 n = int(sys.argv[1]) if len(sys.argv) > 1 else 1_000_000
-g = random_scene(n, -4.0, 3, torch.device("cuda"))
-_, step, _ = PEERS["tlvg_warp"](g, bench_camera(1008, 756))
+step = warm_step("tlvg_warp", n, torch.device("cuda"))
 marks = []
 
 
 def mark(label):
-    if marks is not None and marks_on[0]:
+    if marks_on[0]:
         e = torch.cuda.Event(enable_timing=True)
         e.record()
         marks.append((label, time.perf_counter(), e))
@@ -66,9 +65,6 @@ def bwd(ctx, *grads):
 
 
 ops.RasterizeFn.backward = staticmethod(bwd)
-for _ in range(5):
-    step()
-torch.cuda.synchronize()
 rows = {}
 for it in range(20):
     marks.clear()

@@ -10,17 +10,11 @@ import time
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from tlvg_warp.eval.bench_raster import PEERS, bench_camera, random_scene
+from tlvg_warp.eval.bench_raster import warm_step
 
 n = int(sys.argv[1]) if len(sys.argv) > 1 else 1_000_000
 which = sys.argv[2] if len(sys.argv) > 2 else "tlvg_warp"
-dev = torch.device("cuda")
-g = random_scene(n, -4.0, 3, dev)
-cam = bench_camera(1008, 756)
-_, step, _ = PEERS[which](g, cam)
-for _ in range(5):
-    step()
-torch.cuda.synchronize()
+step = warm_step(which, n, torch.device("cuda"))
 if which == "tlvg_warp":  # the sizes the radix sorts see (depth order over N, then the tile keys)
     import warp as wp
 

@@ -163,6 +163,16 @@ def gswarp_peer(g: Gaussians, cam: Camera):
 PEERS = {"tlvg_warp": ours, "gsplat": gsplat_peer, "gswarp": gswarp_peer}
 
 
+def warm_step(peer: str, n: int, device, warmup: int = 5):
+    """The forward+backward step of ``peer`` on the 1008x756 random scene of ``n`` Gaussians, warmed up (kernels
+    compiled, allocator primed): what the .ci profilers time."""
+    _, step, _ = PEERS[peer](random_scene(n, -4.0, 3, device), bench_camera(1008, 756))
+    for _ in range(warmup):
+        step()
+    _sync(device)
+    return step
+
+
 def run_bench(cases, device, repeats: int, peers=("tlvg_warp", "gsplat", "gswarp"), log=print) -> list[dict]:
     rows = []
     for case_name, (g, cam) in cases:
