@@ -141,18 +141,19 @@ def camera_values(cam: Camera):
 
 def camera_args(cam: Camera, K, values=None):
     """(R, t, fx, fy, cx, cy, width, height, near, far) as kernel values (array reads would become atomics in
-    the adjoint); ``camera_center`` gives the center."""
+    the adjoint); ``values``: ``camera_values(cam)`` when the caller already has them."""
     s = K.scalar
     R, t, _ = values or camera_values(cam)
     return [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)),
             s(cam.fx), s(cam.fy), s(cam.cx), s(cam.cy), cam.width, cam.height, s(cam.near), s(cam.far)]
 
 
-def camera_center(cam: Camera, K, values=None):
-    return K.vec3(*map(K.scalar, (values or camera_values(cam))[2]))
+def camera_center(K, values):
+    """The camera position of ``camera_values`` as a kernel value."""
+    return K.vec3(*map(K.scalar, values[2]))
 
 
-def project(K, wargs, cam: Camera, n: int, dtype, device, tape: wp.Tape, cam_values=None):
+def project(K, wargs, cam: Camera, cam_values, n: int, dtype, device, tape: wp.Tape):
     """Launch the projection on the tape (Warp-generated adjoint); returns (Projected, warp output arrays
     [means2d, conic, depth, opacity, color, radii]). The color is filled by ``shade``."""
     means2d, conic, depth, opacity, color = packed_zeros([(n, 2), (n, 3), (n,), (n,), (n, 3)], dtype, device)
@@ -287,8 +288,8 @@ class RasterizeFn(torch.autograd.Function):
             wargs = [input_array(t, ty) for t, ty in zip(inputs, (K.vec3, K.vec4, K.vec3, K.scalar, K.vec3))]
             tape = wp.Tape()
             cam_values = camera_values(cam)
-            proj, pouts = project(K, wargs, cam, n, means.dtype, device, tape, cam_values)
-            center = camera_center(cam, K, cam_values)  # ready before the sync
+            proj, pouts = project(K, wargs, cam, cam_values, n, means.dtype, device, tape)
+            center = camera_center(K, cam_values)  # ready before the sync
             binning = count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"])
             # the SH launch goes right after the sync: the GPU shades while the host prepares the binning
             shade(K, wargs, pouts, center, settings["sh_degree"], n, device, tape)
