@@ -68,10 +68,25 @@ def ct(t: torch.Tensor, dtype=None):
     return a
 
 
+def canonical(t: torch.Tensor) -> torch.Tensor:
+    """``t.contiguous()`` with the row-major strides spelled out. Torch calls a tensor contiguous whatever the
+    stride of a size-1 dimension (a [1, 3] column slice of a [1, 26] PLY table keeps stride 26), but Warp
+    compares an array's strides with its gradient's literally, so one Gaussian would fail the backward. The
+    memory is the same; only the unused stride changes (a view, no copy)."""
+    t = t.contiguous()
+    strides, step = [], 1
+    for n in reversed(t.shape):
+        strides.append(step)
+        step *= n
+    strides = tuple(reversed(strides))
+    return t if t.stride() == strides else t.as_strided(t.shape, strides)
+
+
 def to_warp(t: torch.Tensor, dtype, grad: torch.Tensor | None = None):
     if t.numel() == 0:  # torch gives empty tensors arbitrary strides, which from_torch rejects
         return wp.zeros(t.shape[0], dtype=dtype, device=wp.device_from_torch(t.device), requires_grad=grad is not None)
-    return wp.from_torch(t.detach().contiguous(), dtype=dtype, grad=grad, requires_grad=grad is not None)
+    return wp.from_torch(canonical(t.detach()), dtype=dtype, grad=None if grad is None else canonical(grad),
+                         requires_grad=grad is not None)
 
 
 _inputs: dict = {}  # id(tensor) -> (weakref, layout key, wp.array): the wrappers of recently rendered inputs
