@@ -1,5 +1,5 @@
-"""VGG-16 relu3 features: torchvision-format weights load, missing/bad weights say how to get them,
-"random" is flagged, shapes, and the lookup order (path > env > TORCH_HOME cache > download)."""
+"""VGG-16 features: torchvision-format weights load, missing/bad weights say how to get them, "random" is
+flagged, shapes, named layers, and the lookup order (path > env > TORCH_HOME cache > HED package > download)."""
 import numpy as np
 import pytest
 import torch
@@ -94,6 +94,7 @@ def test_lookup_order_env_then_cache_then_download(tmp_path, monkeypatch):
     monkeypatch.setenv(vgg_mod.ENV_VAR, str(env_p))
     assert load_vgg().source == str(env_p)
     monkeypatch.delenv(vgg_mod.ENV_VAR)
+    monkeypatch.setattr(vgg_mod.hed, "find_hed_weights", lambda: None)  # no HED package either
     calls = []
     monkeypatch.setattr(vgg_mod, "_download", lambda d: calls.append(d))  # offline: returns None
     with pytest.raises(InputError) as e:
@@ -108,3 +109,25 @@ def test_lookup_order_env_then_cache_then_download(tmp_path, monkeypatch):
 def test_resize_style_to_height_256():
     out = resize_style(np.random.default_rng(0).random((600, 800, 3)).astype(np.float32))
     assert out.shape == (256, 341, 3)
+
+
+def test_named_layers_down_to_relu5_3_match_functional_oracle(tmp_path):
+    """``layers`` offers relu1_2 .. relu5_3 (evaluation reads relu1_2..relu4_3), computed independently here."""
+    sd = torchvision_like_state_dict(1)
+    p = tmp_path / "vgg.pth"
+    torch.save(sd, p)
+    net = load_vgg(str(p))
+    f = torch.nn.functional
+    conv = lambda x, i: f.relu(f.conv2d(x, sd[f"features.{i}.weight"], sd[f"features.{i}.bias"], padding=1))  # noqa
+    x = torch.rand(1, 3, 48, 64)
+    y = (x - torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)) / torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    ref = {}
+    ref["relu1_2"] = y = conv(conv(y, 0), 2)
+    ref["relu2_2"] = y = conv(conv(f.max_pool2d(y, 2), 5), 7)
+    ref["relu3_3"] = y = conv(conv(conv(f.max_pool2d(y, 2), 10), 12), 14)
+    ref["relu4_3"] = y = conv(conv(conv(f.max_pool2d(y, 2), 17), 19), 21)
+    ref["relu5_3"] = conv(conv(conv(f.max_pool2d(y, 2), 24), 26), 28)
+    got = net.layers(x, list(ref))
+    assert set(got) == set(ref)
+    for k in ref:
+        assert got[k].shape == ref[k].shape and torch.allclose(got[k], ref[k], atol=1e-5), k

