@@ -109,11 +109,20 @@ def _f_rest_names(names, path):
 
 
 def load_ply(path) -> Gaussians:
-    """Read an INRIA-style Gaussian PLY (by property name, any order, normals optional)."""
+    """Read an INRIA-style Gaussian PLY (by property name, any order, normals optional). A PlayCanvas /
+    SuperSplat compressed PLY or a Niantic SPZ file is recognized by its header and decoded instead."""
     path = Path(path)
     _require_file(path)
     with open(path, "rb") as f:
+        head = f.read(4)
+        if head == b"NGSP" or head[:2] == b"\x1f\x8b":  # Niantic SPZ (v4, or gzip v1-3)
+            from .splat_formats import load_spz
+            return load_spz(path)
+        f.seek(0)
         order, elements = _read_header(f, path)
+        if elements and elements[0][0] == "chunk":  # PlayCanvas / SuperSplat compressed PLY
+            from .splat_formats import load_compressed_ply
+            return load_compressed_ply(path)
         table, names = _read_vertices(f, path, order, elements)  # [N, P]
     missing = [n for n in _REQUIRED if n not in names]
     if missing:
