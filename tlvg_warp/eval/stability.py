@@ -231,7 +231,7 @@ def _style_feats(vgg, style):
     """The painting's VGG features, once per painting (they cost as much as a short run on CPU)."""
     import hashlib
 
-    from . import metrics as M
+    from . import quick as M
 
     key = (id(vgg), tuple(style.shape), hashlib.sha1(style.detach().cpu().numpy().tobytes()).hexdigest())
     if key not in _FEATS:
@@ -240,7 +240,7 @@ def _style_feats(vgg, style):
 
 
 def run_scenario(sc: Scenario, base: Base, vgg, device: str, vgg_metrics: bool = True) -> dict:
-    from . import metrics as M
+    from . import quick as M
 
     row = {"scenario": sc.name, "what": sc.what, "finished": False, "error": None, "nan": None,
            "hole_fraction": None, "gaussians_in": None, "gaussians_out": None, "time_s": None}

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from tlvg_warp import Camera, Gaussians
-from tlvg_warp.eval import metrics as M
+from tlvg_warp.eval import quick as M
 from tlvg_warp.types import SH_C0
 
 W, H, F_PX = 64, 48, 50.0

@@ -1,4 +1,7 @@
-"""Evaluation metrics for a stylized scene (SPEC §4), without learned optical flow.
+"""Quick gauges for the stability suite (eval/stability.py): NOT a ruler for ranking methods (they score a run
+against its own stored target field and drop pixels that fail the depth test); `evaluate` uses eval/metrics.py.
+
+Original notes:
 
 Multi-view consistency: view i's pixels (alpha > 0.5) are lifted with its rendered expected depth, moved
 into view j with the known poses, projected, and tested against view j's own rendered depth (a pixel whose
