@@ -1,4 +1,5 @@
-"""One exception type for bad user input; the CLI turns it into a one-line message and exit code 2."""
+"""The two failures the CLI reports in one line: bad user input (exit 2) and a file that could not be written
+(disk full, no permission: exit 1). Anything else is a bug and keeps its traceback."""
 
 
 class InputError(ValueError):
@@ -7,3 +8,17 @@ class InputError(ValueError):
     def __init__(self, message: str, path=None):
         self.path = None if path is None else str(path)
         super().__init__(f"{self.path}: {message}" if self.path else message)
+
+
+class WriteError(Exception):
+    """An output file could not be written (the disk is full, the folder is read-only). Raised by the atomic
+    writes, which leave the previous version of the file in place and no temporary file behind."""
+
+    def __init__(self, message: str, path):
+        self.path = str(path)
+        super().__init__(f"{self.path}: {message}")
+
+
+def one_line(message) -> str:
+    """A message as one line: embedded text (torch's, a YAML parser's) may span several."""
+    return " ".join(str(message).split())

@@ -2,28 +2,61 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .errors import WriteError
+
+
+TEMP_MARK = ".tlvg.tmp"  # in every temporary name (``.<stem>.<random>.tlvg.tmp<suffix>``): a run removes leftovers
+
+
+def is_temp(path) -> bool:
+    """A temporary file of :func:`atomic_path` (left behind only when its process was killed)."""
+    name = Path(path).name
+    return name.startswith(".") and TEMP_MARK in name
+
 
 @contextlib.contextmanager
 def atomic_path(path):
-    """Yield a temporary path in the target's folder; on success rename it over ``path``."""
+    """Yield a temporary path in the target's folder; on success rename it over ``path``. On any failure the
+    temporary file goes and ``path`` keeps its previous content; an OSError (disk full, read-only folder)
+    becomes a one-line WriteError naming ``path``. The temporary name keeps the target's suffix (encoders
+    choose their format by it)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{TEMP_MARK}{path.suffix}", dir=path.parent)
+        os.close(fd)
         yield Path(tmp)
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
+    except BaseException as e:
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+        if isinstance(e, OSError):
+            raise WriteError(f"could not write: {_reason(e, path)}", path) from None
         raise
+
+
+def _reason(e: OSError, path: Path) -> str:
+    if e.errno == errno.ENOSPC or (e.errno is None and _free_bytes(path.parent) < 1 << 16):
+        return "no space left on device (the previous version of the file, if any, is kept)"
+    return e.strerror or str(e)
+
+
+def _free_bytes(folder: Path) -> int:
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return 1 << 62
 
 
 def write_bytes(path, data: bytes) -> None:

@@ -26,7 +26,10 @@ _initialized = False
 def init_warp() -> None:
     global _initialized
     if not _initialized:
-        wp.config.quiet = os.environ.get("TLVG_WARP_VERBOSE", "") == ""
+        if os.environ.get("TLVG_WARP_VERBOSE", "") == "":  # no banner, no per-module load lines
+            wp.config.quiet = True  # Warp before 1.19
+            if hasattr(wp, "LOG_WARNING"):
+                wp.config.log_level = wp.LOG_WARNING  # Warp 1.19 replaced `quiet` by a log level
         wp.init()
         _initialized = True
 

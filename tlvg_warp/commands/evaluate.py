@@ -258,6 +258,19 @@ consistency: masked RMSE of reprojected stylized colors (k = 1 short, k = 5 long
 """
 
 
+VGG_METRICS = ("style_fast", "style_gram", "content")  # need pretrained features (SPEC §4)
+
+
+def _not_measured(res: dict, net) -> dict:
+    """With random VGG weights the style and content distances are reported as not measured (None)."""
+    if net.is_random:
+        for k in VGG_METRICS:
+            if k in res["summary"]:
+                res["summary"][k] = None
+        res["not_measured"] = [k for k in VGG_METRICS if k in res["summary"]]
+    return res
+
+
 def run(args) -> int:
     from ..losses.vgg import load_vgg
 
@@ -265,11 +278,14 @@ def run(args) -> int:
     r = load_run(args.run, args.max_views)
     o = load_run(args.against, args.max_views) if args.against else None
     out = Path(args.out) if args.out else r["dir"]
-    net = load_vgg(args.vgg_weights, device=device)
-    res = evaluate_run(r, net, device)
+    weights = args.vgg_weights
+    if weights is None and any((x or {}).get("metrics", {}).get("vgg_random") for x in (r, o)):
+        weights = "random"  # a smoke run made with random weights: no download just to score it
+    net = load_vgg(weights, device=device)
+    res = _not_measured(evaluate_run(r, net, device), net)
     res["vgg"], res["vgg_random"] = net.source, bool(net.is_random)
     if o is not None:
-        ores = evaluate_run(o, net, device)
+        ores = _not_measured(evaluate_run(o, net, device), net)
         ores["vgg"], ores["vgg_random"] = net.source, bool(net.is_random)
         res["against"] = ores
         res["comparison"] = compare(res["summary"], ores["summary"])
