@@ -23,12 +23,26 @@ def is_temp(path) -> bool:
     return name.startswith(".") and TEMP_MARK in name
 
 
+def current_umask() -> int:
+    """The process umask, read from /proc where possible (os.umask can only read it by setting it)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_path(path):
     """Yield a temporary path in the target's folder; on success rename it over ``path``. On any failure the
     temporary file goes and ``path`` keeps its previous content; an OSError (disk full, read-only folder)
     becomes a one-line WriteError naming ``path``. The temporary name keeps the target's suffix (encoders
-    choose their format by it)."""
+    choose their format by it). The file ends with the mode ``open(path, "w")`` gives: 0o666 & ~umask."""
     path = Path(path)
     tmp = None
     try:
@@ -36,7 +50,8 @@ def atomic_path(path):
         fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{TEMP_MARK}{path.suffix}", dir=path.parent)
         os.close(fd)
         yield Path(tmp)
-        os.replace(tmp, path)
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp's 0o600 would hide outputs from others; after the
+        os.replace(tmp, path)  # writer, as some encoders replace the file rather than reuse it
     except BaseException as e:
         if tmp is not None:
             with contextlib.suppress(FileNotFoundError):
