@@ -69,6 +69,7 @@ class StylizeConfig:
     budget_factor: float = 1.5  # budget relative to the input scene when gaussian_budget is 0
     # --- output --------------------------------------------------------------------------------------------------
     keep_sh: bool = False  # keep view-dependent SH bands in stylized.ply (default: degree 0, ~3.6x smaller)
+    web_formats: bool = True  # also write stylized.compressed.ply (SuperSplat/PlayCanvas) and stylized.spz (Niantic)
     background: list | None = None  # render background RGB; None: the dataset's (white for the demo)
     log_every: int = 50  # host reads (log flush, progress bar, NaN check, last-good snapshot) every N iterations
     checkpoint_every: int = 0  # also write checkpoint.pt every N iterations (0: on interrupt / at the end)

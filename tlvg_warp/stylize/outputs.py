@@ -1,6 +1,7 @@
 """Everything a stylization run writes to its folder (besides config.yaml, log.jsonl and checkpoint.pt,
-which the loop keeps current): stylized.ply, cameras.json, renders/ originals/ photos/, style.png,
-comparison.png, orbit.mp4, stroke_field.png, loss_curves.png and metrics.json. All writes are atomic."""
+which the loop keeps current): stylized.ply (and, for web viewers, stylized.compressed.ply and stylized.spz),
+cameras.json, renders/ originals/ photos/, style.png, comparison.png, orbit.mp4 (H.264), stroke_field.png,
+loss_curves.png and metrics.json. All writes are atomic."""
 from __future__ import annotations
 
 import math
@@ -107,22 +108,56 @@ def orbit_path(cams: list, n_frames: int) -> list:
     return out
 
 
+VIDEO_CRF = 18  # x264 quality: visually lossless for these renders, ~1 MB for the demo's 96 frames
+
+
+def _even(frame: np.ndarray) -> np.ndarray:
+    """yuv420p needs even width and height: repeat the last row / column where one is odd."""
+    h, w = frame.shape[:2]
+    return np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+
+
 def write_video(path: Path, frames: list, fps: int) -> str | None:
-    """mp4 (cv2 mp4v). Returns None on success, else a note (the frames are then written as PNGs)."""
+    """mp4 in H.264 (libx264, yuv420p, moov atom first) with imageio-ffmpeg's bundled ffmpeg, so browsers
+    play it. Without imageio-ffmpeg: OpenCV's mp4v, which browsers do not play; returns a note saying so
+    (None when H.264 was written). Raises RuntimeError when no encoder works (the caller then writes PNGs)."""
+    frames = [_even(_u8(f)) for f in frames]
+    h, w = frames[0].shape[:2]
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        _write_video_mp4v(path, frames, fps, w, h)
+        return "orbit.mp4 is MPEG-4 Part 2 (mp4v; browsers do not play it): pip install imageio-ffmpeg for H.264"
+    with atomic_path(path) as tmp:
+        writer = imageio_ffmpeg.write_frames(str(tmp), (w, h), fps=float(fps), codec="libx264", pix_fmt_in="rgb24",
+                                             pix_fmt_out="yuv420p", macro_block_size=1, quality=None,
+                                             output_params=["-crf", str(VIDEO_CRF), "-movflags", "+faststart"])
+        try:
+            writer.send(None)  # start ffmpeg
+            for f in frames:
+                writer.send(np.ascontiguousarray(f))
+        except (RuntimeError, BrokenPipeError) as e:
+            raise RuntimeError(f"ffmpeg failed: {e}") from None
+        finally:
+            writer.close()
+        if not tmp.exists() or tmp.stat().st_size == 0:
+            raise RuntimeError("ffmpeg produced no file")
+    return None
+
+
+def _write_video_mp4v(path: Path, frames: list, fps: int, w: int, h: int) -> None:
     import cv2
 
-    h, w = frames[0].shape[:2]
     with atomic_path(path) as tmp:
         vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
         if not vw.isOpened():
             vw.release()
-            raise OSError("mp4v codec unavailable")
+            raise RuntimeError("mp4v codec unavailable")
         for f in frames:
-            vw.write(cv2.cvtColor(_u8(f), cv2.COLOR_RGB2BGR))
+            vw.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
         vw.release()
         if not tmp.exists() or tmp.stat().st_size == 0:
-            raise OSError("mp4v writer produced no file")
-    return None
+            raise RuntimeError("mp4v writer produced no file")
 
 
 def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
@@ -180,7 +215,16 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
     bad = sum(int((~torch.isfinite(getattr(g, f))).sum()) for f in Gaussians.FIELDS)
     if bad:
         raise RuntimeError(f"refusing to write a PLY with {bad} non-finite values")
-    save_ply(g.to(device="cpu", dtype=torch.float32), out / "stylized.ply")
+    g_cpu = g.to(device="cpu", dtype=torch.float32)
+    save_ply(g_cpu, out / "stylized.ply")
+    web = {}
+    if getattr(cfg, "web_formats", True):  # the same scene for browser viewers (SuperSplat, PlayCanvas, SPZ)
+        from ..io.splat_formats import save_compressed_ply, save_spz
+
+        save_compressed_ply(g_cpu, out / "stylized.compressed.ply")
+        save_spz(g_cpu, out / "stylized.spz")
+        web = {f"bytes_out_{k}": os.path.getsize(out / f"stylized.{k.replace('_', '.')}")
+               for k in ("compressed_ply", "spz")}
     write_json(out / "cameras.json", cameras_json(SimpleNamespace(cameras=inp.cameras, names=inp.names)))
     device = res.gaussians.device
     bg = tuple(float(v) for v in (cfg.background if cfg.background is not None else inp.background))
@@ -224,8 +268,10 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
             frames.append(render(g, cam, bg).color.clamp(0, 1).cpu().numpy())
     if frames:
         try:
-            write_video(out / "orbit.mp4", frames, cfg.orbit_fps)
-        except OSError as e:
+            video_note = write_video(out / "orbit.mp4", frames, cfg.orbit_fps)
+            if video_note:
+                print(video_note)
+        except RuntimeError as e:  # no working encoder (a full disk is a WriteError and stops the run)
             video_note = f"orbit.mp4 not written ({e}); frames are in orbit_frames/"
             for k, f in enumerate(frames):
                 write_image(out / "orbit_frames" / f"frame_{k:04d}.png", f)
@@ -240,6 +286,7 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         "field_mapping": cfg.field_mapping,
         "bytes_in": int(input_bytes) if input_bytes is not None else int(g_in.nbytes()),
         "bytes_out": int(out_bytes),
+        **web,
         "sh_degree_out": g.sh_degree,
         "views": list(inp.names),
         "orbit": video_note or "orbit.mp4",

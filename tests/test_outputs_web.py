@@ -1,0 +1,54 @@
+"""Outputs others can use (issue 16): orbit.mp4 in H.264 that browsers play, and files as readable as the
+umask allows (not mkstemp's private 0600)."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from tlvg_warp.fileio import write_json, write_text
+from tlvg_warp.stylize.outputs import write_video
+
+VIDEO_MEAN_ERR = 4 / 255  # CRF 18 x264 on smooth frames: mean |decoded - sent| well under 2 gray levels
+
+
+def _frames(n: int, h: int, w: int) -> list:
+    """A smooth gradient sliding sideways: [H, W, 3] floats in [0, 1]."""
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    return [np.stack([(x + 3 * k) / (w + 3 * n), y / h, np.full_like(x, 0.5)], -1) for k in range(n)]
+
+
+@pytest.mark.parametrize("size", [(48, 64), (45, 61)])
+def test_orbit_video_is_h264_that_browsers_play(tmp_path, size):
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="imageio-ffmpeg is not installed")
+    h, w = size
+    frames = _frames(12, h, w)
+    path = tmp_path / "orbit.mp4"
+    assert write_video(path, frames, 24) is None  # None: H.264 written, no fallback note
+    reader = imageio_ffmpeg.read_frames(str(path))
+    meta = next(reader)
+    decoded = [np.frombuffer(b, np.uint8).reshape(meta["size"][1], meta["size"][0], 3) for b in reader]
+    assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p")
+    assert meta["size"] == (w + w % 2, h + h % 2)  # yuv420p: odd sizes get one repeated row / column
+    assert len(decoded) == len(frames) and meta["fps"] == 24
+    err = np.mean([np.abs(d[:h, :w] / 255.0 - f).mean() for d, f in zip(decoded, frames)])
+    assert err < VIDEO_MEAN_ERR
+    data = path.read_bytes()
+    assert data.index(b"moov") < data.index(b"mdat")  # +faststart: a browser can start before the download ends
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o027, 0o002])
+def test_outputs_get_the_mode_the_umask_allows(tmp_path, mask):
+    old = os.umask(mask)
+    try:
+        with open(tmp_path / "plain.txt", "w") as f:  # the oracle: what an ordinary open() creates
+            f.write("x")
+        write_text(tmp_path / "atomic.txt", "x")
+        write_json(tmp_path / "sub" / "m.json", {"a": 1})
+    finally:
+        os.umask(old)
+    plain = os.stat(tmp_path / "plain.txt").st_mode & 0o777
+    assert plain == 0o666 & ~mask
+    assert os.stat(tmp_path / "atomic.txt").st_mode & 0o777 == plain
+    assert os.stat(tmp_path / "sub" / "m.json").st_mode & 0o777 == plain
