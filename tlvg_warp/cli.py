@@ -1,21 +1,39 @@
 """`python -m tlvg_warp <command>`: each command lives in tlvg_warp/commands/<name>.py with
-``add_arguments(parser)`` and ``run(args) -> int``. Bad input (InputError) exits 2 with one line."""
+``add_arguments(parser)`` and ``run(args) -> int``. Every expected failure ends in one line on stderr:
+bad input (InputError, a bad flag) exits 2, an output that could not be written (WriteError) exits 1."""
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
 
-from .errors import InputError
+from .errors import InputError, WriteError, one_line
+
+DESCRIPTION = "Turn a 3D Gaussian Splatting scene into a painting you can walk through (flow-guided stylization)."
+EPILOG = """start here:
+  python -m tlvg_warp stylize              the built-in demo scene in the style of The Starry Night
+                                           (a few minutes on a CPU; writes runs/stylize_<time>/)
+  python -m tlvg_warp stylize --data DATASET --style PAINTING.jpg
+                                           your photos (COLMAP, LLFF, Blender or INRIA layout)
+  python -m tlvg_warp COMMAND --help       the options of one command"""
 
 COMMANDS = {
-    "stylize": "flow-guided stylization of a 3DGS scene (the default demo when given nothing)",
+    "stylize": "stylize a 3DGS scene with a painting's brushstrokes; with no arguments, the built-in demo scene "
+               "and The Starry Night",
     "reconstruct": "fit a 3DGS scene to posed photos",
     "evaluate": "metrics for a stylization run (and optionally a second one to compare)",
     "judge": "VLM-as-a-judge pairwise comparison of two runs",
-    "bench": "speed against accuracy (`bench raster` for the rasterizer alone)",
+    "bench": "speed against quality: the stylization sweep by default (`bench sweep`); `bench raster` times the "
+             "rasterizer alone",
     "stability": "drive the pipeline into the places where stylization breaks",
 }
+
+
+class _Parser(argparse.ArgumentParser):
+    """A bad flag is one line too (argparse would print the whole usage first)."""
+
+    def error(self, message):
+        self.exit(2, f"error: {self.prog}: {one_line(message)} (see {self.prog} --help)\n")
 
 
 def _load(name):
@@ -24,8 +42,9 @@ def _load(name):
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = argparse.ArgumentParser(prog="python -m tlvg_warp", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    parser = _Parser(prog="python -m tlvg_warp", description=DESCRIPTION, epilog=EPILOG,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     available = {}
     for name, help_ in COMMANDS.items():
         try:
@@ -34,7 +53,7 @@ def main(argv=None) -> int:
             if e.name != f"tlvg_warp.commands.{name}":
                 raise
             continue
-        p = sub.add_parser(name, help=help_, description=help_)
+        p = sub.add_parser(name, help=help_, description=help_ + ".")
         mod.add_arguments(p)
         available[name] = mod
     args = parser.parse_args(argv)
@@ -44,8 +63,11 @@ def main(argv=None) -> int:
     try:
         return int(available[args.command].run(args) or 0)
     except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
+    except WriteError as e:
+        print(f"error: {one_line(e)}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

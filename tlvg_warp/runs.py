@@ -1,9 +1,11 @@
 """What every run folder shares (reconstruct and stylize): device choice, the refusal to overwrite another run,
-and Ctrl-C that finishes the current iteration before saving a checkpoint."""
+one run at a time per folder (a lock), no trace of a run that stopped on bad input, and Ctrl-C that finishes the
+current iteration before saving a checkpoint."""
 from __future__ import annotations
 
 import contextlib
-
+import fcntl
+import os
 import signal
 import threading
 import time
@@ -12,7 +14,9 @@ from pathlib import Path
 import torch
 
 from .errors import InputError
-from .fileio import atomic_path
+from .fileio import atomic_path, is_temp
+
+LOCK = ".lock"  # held (flock) by the run writing the folder; the kernel releases it when that process dies
 
 
 def resolve_device(name: str) -> torch.device:
@@ -29,7 +33,7 @@ def check_out_dir(out: Path, overwrite: bool, resume: bool, run_files=()) -> Non
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a folder", out)
-    if out.is_dir() and any(out.iterdir()) and not (overwrite or resume):
+    if out.is_dir() and any(p.name != LOCK and not is_temp(p) for p in out.iterdir()) and not (overwrite or resume):
         held = [f for f in run_files if (out / f).exists()]
         what = f"a previous run ({', '.join(held)})" if held else "other files"
         raise InputError(f"output folder already holds {what}; pass --overwrite to replace it or "
@@ -55,6 +59,72 @@ def start_run_dir(out: Path, overwrite: bool, resuming: bool, run_files=(), rend
         for sub in render_dirs:
             for f in (out / sub).glob("*.png") if (out / sub).is_dir() else ():
                 f.unlink()
+
+
+@contextlib.contextmanager
+def run_folder(out: Path, overwrite: bool, resume: bool, run_files=()):
+    """Claim ``out`` for one run of a command: create it, take its lock (a second run on the same folder is refused
+    with one line; the lock of a killed run is free again, as flock locks die with their process), delete the
+    temporary files a killed run left, refuse a folder holding another run (check_out_dir). If the command then
+    stops on bad input (InputError), everything it created in ``out`` is removed again (the folder too when it
+    made it), so the corrected command can run at once. Files that were there before are left alone."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", out)
+    made = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"cannot create the output folder ({e.strerror or e})", out) from None
+    fd = _lock(out)
+    try:
+        for p in sorted(out.rglob(".*"), reverse=True):
+            if is_temp(p) and p.is_file():
+                p.unlink()
+        before = set(out.rglob("*"))
+        check_out_dir(out, overwrite, resume, run_files)
+        yield out
+    except InputError:
+        for p in sorted(set(out.rglob("*")) - before, key=lambda q: len(q.parts), reverse=True):  # deepest first
+            with contextlib.suppress(OSError):
+                p.rmdir() if p.is_dir() and not p.is_symlink() else p.unlink()
+        raise
+    finally:
+        _unlock(out, fd, made)
+
+
+def _lock(out: Path) -> int:
+    path = out / LOCK
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as e:
+            raise InputError(f"output folder is not writable ({e.strerror or e})", out) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            os.close(fd)
+            raise InputError(f"another run{f' (pid {pid})' if pid.isdigit() else ''} is writing to this folder; "
+                             "wait for it to finish or choose another --out", out) from None
+        try:  # the file may have been removed by the run that held it just before: lock the one in the folder
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            return fd
+        os.close(fd)
+
+
+def _unlock(out: Path, fd: int, made: bool) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(out / LOCK)  # while still holding it, so no other run locks the file being removed
+    os.close(fd)
+    if made:
+        with contextlib.suppress(OSError):
+            out.rmdir()  # only when empty: a run that stopped before writing anything leaves no folder
 
 
 class Interrupt:

@@ -12,15 +12,15 @@ DEFAULT_DATA = Path(os.environ.get("TLVG_DATA", Path(__file__).resolve().parents
 
 def add_arguments(p):
     p.add_argument("what", nargs="?", default="sweep", choices=["raster", "sweep"],
-                   help="raster: the rasterizer against gsplat/gswarp; sweep: speed against quality of stylization")
+                   help="sweep (the default): speed against quality of stylization; raster: the rasterizer against gsplat/gswarp")
     p.add_argument("--device", default=None, help="cuda or cpu (default: cuda when available)")
-    p.add_argument("--out", default="bench_out", help="folder for the JSON/markdown/CSV/PNG results")
+    p.add_argument("--out", default="bench_out", help="folder for the JSON/markdown/CSV/PNG results (default: %(default)s)")
     p.add_argument("--quick", action="store_true", help="small sizes for a CPU smoke run")
-    p.add_argument("--repeats", type=int, default=20, help="timed repetitions (median reported)")
+    p.add_argument("--repeats", type=int, default=20, help="timed repetitions, the median is reported (default: %(default)s)")
     p.add_argument("--sizes", default=None, help="raster: comma-separated Gaussian counts (default 1000000,3000000)")
-    p.add_argument("--log-scale", type=float, default=-4.0, help="raster: mean log-scale of the random Gaussians")
-    p.add_argument("--sh-degree", type=int, default=3, help="raster: SH degree of the random Gaussians")
-    p.add_argument("--peers", default="tlvg_warp,gsplat,gswarp", help="raster: which rasterizers to time")
+    p.add_argument("--log-scale", type=float, default=-4.0, help="raster: mean log-scale of the random Gaussians (default: %(default)s)")
+    p.add_argument("--sh-degree", type=int, default=3, help="raster: SH degree of the random Gaussians (default: %(default)s)")
+    p.add_argument("--peers", default="tlvg_warp,gsplat,gswarp", help="raster: which rasterizers to time (default: %(default)s)")
     p.add_argument("--garden", default=str(DEFAULT_DATA / "bench" / "test_garden.npz"), help="raster: garden points")
     p.add_argument("--scene", default=None, help="sweep: PLY scene (default: the built-in demo)")
     p.add_argument("--data", default=None, help="sweep: dataset the scene was trained from")

@@ -29,8 +29,9 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from ..train.reconstruct import (FitDiverged, ReconstructConfig, config_from_dict, fit_scene, load_checkpoint,
-                                     load_config)
+    from ..runs import run_folder
+    from ..train.reconstruct import (RUN_FILES, FitDiverged, ReconstructConfig, config_from_dict, fit_scene,
+                                     load_checkpoint, load_config)
 
     if args.out is None and args.resume is None:
         raise InputError("--out DIR is required (or --resume DIR)")
@@ -45,11 +46,12 @@ def run(args) -> int:
             overrides.append(f"{key}={val}")
     cfg = load_config(args.config, overrides, base)
     dataset = _load(args.data, cfg)
-    try:
-        _, m = fit_scene(dataset, cfg, out, progress=not args.quiet, resume=args.resume, overwrite=args.overwrite)
-    except FitDiverged as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    with run_folder(out, args.overwrite, args.resume is not None, RUN_FILES):  # locked; bad input leaves nothing
+        try:
+            _, m = fit_scene(dataset, cfg, out, progress=not args.quiet, resume=args.resume, overwrite=args.overwrite)
+        except FitDiverged as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
     print(f"{out}: held-out PSNR {m['psnr']:.2f} dB (init {m['psnr_init'] if m['psnr_init'] is None else round(m['psnr_init'], 2)}), "
           f"SSIM {m['ssim']:.4f}, {m['num_gaussians']} Gaussians, {m['ply_bytes'] / 1e6:.1f} MB, "
           f"{m['iterations']} iterations in {m['train_time_s']:.1f} s")

@@ -30,6 +30,8 @@ REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
 
 
 def add_arguments(p):
+    p.epilog = ("With no arguments: the built-in demo (a still life with The Starry Night, a few minutes on a CPU, "
+                "written to runs/stylize_<time>/). Open comparison.png in the run folder when it finishes.")
     p.add_argument("--scene", default=None, metavar="PLY", help="a trained 3DGS scene (INRIA PLY); needs --data")
     p.add_argument("--data", default=None, metavar="DATASET",
                    help="posed photos (COLMAP, LLFF, Blender, INRIA); alone: the scene is fitted first")
@@ -219,11 +221,19 @@ def run(args) -> int:
     else:
         out = Path("runs") / time.strftime("stylize_%Y%m%d_%H%M%S")
     from ..losses import load_vgg
-    from ..stylize.pipeline import check_out_dir, resolve_device
+    from ..runs import run_folder
+    from ..stylize.pipeline import RUN_FILES, resolve_device
 
     device = resolve_device(cfg.device)
     vgg = load_vgg(cfg.vgg_weights, device)  # InputError (how to get the weights) before anything is written
-    check_out_dir(out, args.overwrite, ck is not None)
+    with run_folder(out, args.overwrite, ck is not None, RUN_FILES):  # locked; bad input leaves nothing behind
+        return _run(args, cfg, sources, out, ck, device, vgg, wall0)
+
+
+def _run(args, cfg, sources, out, ck, device, vgg, wall0) -> int:
+    from ..stylize import StylizeDiverged, run_stylize
+    from ..stylize.outputs import RANDOM_VGG_NOTE, write_outputs
+
     inp, in_bytes = build_inputs(args, cfg, sources, out, args.quiet)
     if not args.quiet:
         c = inp.cameras[0]
@@ -241,7 +251,9 @@ def run(args) -> int:
     print(f"{out}: flow alignment {m['flow_alignment']:.3f} (original {m['flow_alignment_original']:.3f}), "
           f"Gaussians {m['gaussians_input']} -> {m['gaussians_final']}, {m['bytes_out'] / 1e6:.2f} MB, "
           f"phases pre {tp['pre']:.1f}s / stylize {tp['stylize']:.1f}s / post {tp['post']:.1f}s, "
-          f"wall {m['wall_time_s']:.1f}s" + (f"\nNOTE: {RANDOM_VGG_NOTE}" if m["vgg_random"] else ""))
+          f"wall {m['wall_time_s']:.1f}s")
+    print(f"open {out / 'comparison.png'} (photo, original and stylized views beside the painting); "
+          f"the stylized scene is {out / 'stylized.ply'}")
     if not math.isfinite(m["flow_alignment"]):
         return 1
     return 0

@@ -225,6 +225,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         write_text(out / "config.yaml", config_yaml(cfg))
 
     # --- the feature network and the painting (once) ----------------------------------------------------------
+    announce = vgg is None  # a caller that passes the network has already said where it came from
     if vgg is None:
         vgg = load_vgg(cfg.vgg_weights, device)
     vgg = vgg.to(device)
@@ -318,8 +319,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                 "phase_time": st.phase_time, "counts": st.counts, "log": st.log,
                 "densify_events": st.densify_events,
                 "config": dataclasses.asdict(cfg), "names": list(inp.names), "sources": inp.sources, "note": note}
-        with atomic_path(out / "checkpoint.pt") as tmp:
-            torch.save(ckpt, tmp)
+        with atomic_path(out / "checkpoint.pt") as tmp, open(tmp, "wb") as f:
+            torch.save(ckpt, f)  # to a file object: a full disk raises OSError (a path gives a RuntimeError)
 
     def write_log():
         if out is not None:
@@ -428,10 +429,9 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         del st.log[snap["log_len"]:]
 
     last_good = _snapshot()
-    if not quiet and vgg.is_random:
-        if vgg.is_random:
-            print("WARNING: VGG-16 is RANDOMLY initialized (not pretrained): the style/content losses are not "
-                  "meaningful; a smoke run only")
+    if not quiet and announce and vgg.is_random:
+        print("WARNING: VGG-16 is RANDOMLY initialized (not pretrained): the style/content losses are not "
+              "meaningful; a smoke run only")
     total = sum(steps)
     with _Interrupt() as intr:
         try:

@@ -240,8 +240,8 @@ def _save_checkpoint(path: Path, st: FitState, config: ReconstructConfig, names,
                           if st.density is not None and st.density.generator is not None else None),
             "torch_rng": torch.get_rng_state(), "config": dataclasses.asdict(config), "names": list(names),
             "note": note}
-    with atomic_path(path) as tmp:
-        torch.save(ckpt, tmp)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(ckpt, f)  # to a file object: a full disk raises OSError (a path gives a RuntimeError)
 
 
 def load_checkpoint(path) -> dict:
