@@ -2,7 +2,8 @@
 
 No arguments: the built-in demo still life with Van Gogh's The Starry Night, sized for a few minutes on a CPU
 (DEMO_ITERATIONS iterations at 1/DEMO_DOWNSCALE of 160x120 unless --iterations / --downscale say otherwise).
-`--data DATASET` alone fits the scene first; `--scene PLY --data DATASET` stylizes a trained scene.
+`--data DATASET` alone fits the scene first; `--scene PLY --data DATASET` stylizes a trained scene; `--scene PLY`
+alone (INRIA, compressed PLY or SPZ) renders stand-in photos from an orbit or `--cameras cameras.json`.
 Writes DIR/stylized.ply, config.yaml, log.jsonl, cameras.json, renders/, originals/, photos/, style.png,
 comparison.png, orbit.mp4, stroke_field.png, loss_curves.png, metrics.json (and checkpoint.pt)."""
 from __future__ import annotations
@@ -32,7 +33,11 @@ REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
 def add_arguments(p):
     p.epilog = ("With no arguments: the built-in demo (a still life with The Starry Night, a few minutes on a CPU, "
                 "written to runs/stylize_<time>/). Open comparison.png in the run folder when it finishes.")
-    p.add_argument("--scene", default=None, metavar="PLY", help="a trained 3DGS scene (INRIA PLY); needs --data")
+    p.add_argument("--scene", default=None, metavar="PLY",
+                   help="a trained 3DGS scene (INRIA PLY, .compressed.ply or .spz); without --data, cameras orbit "
+                        "it (or come from --cameras) and its renders stand in for the photos")
+    p.add_argument("--cameras", default=None, metavar="JSON",
+                   help="with --scene and no --data: the INRIA trainer's cameras.json to render from")
     p.add_argument("--data", default=None, metavar="DATASET",
                    help="posed photos (COLMAP, LLFF, Blender, INRIA); alone: the scene is fitted first")
     p.add_argument("--style", default=None, metavar="IMAGE", help="the painting (default: The Starry Night)")
@@ -130,8 +135,8 @@ def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool):
 
     style = load_style(sources["style"]) if sources.get("style") else builtin_painting()
     scene, data = sources.get("scene"), sources.get("data")
-    if scene is not None and data is None:
-        raise InputError("--scene needs --data (the cameras and photos the scene was trained from)")
+    if scene is not None and data is None:  # no photos: the scene's own renders stand in (issue 16)
+        return _scene_only_inputs(Path(scene), cfg, style, sources)
     if data is None:  # the demo
         w, h = max(8, round(160 / cfg.downscale)), max(8, round(120 / cfg.downscale))
         ds = demo_dataset(width=w, height=h)
@@ -149,6 +154,19 @@ def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool):
             sources["scene"] = str(out / "reconstruct" / "point_cloud.ply")
     photos = [ds.image(i) for i in range(len(ds.cameras))]
     return StylizeInputs(g, list(ds.cameras), list(ds.names), photos, style, bg, dict(sources)), in_bytes
+
+
+def _scene_only_inputs(sp: Path, cfg, style, sources: dict):
+    from ..io import load_ply
+    from ..io.scene_views import render_stand_in_photos, scene_views
+    from ..stylize import StylizeInputs
+
+    g = load_ply(sp)
+    views = scene_views(g, sources.get("cameras"), cfg.downscale)
+    # a scene without photos has no background of its own: white (like the demo) unless the config names one
+    bg = tuple(float(v) for v in cfg.background) if cfg.background is not None else (1.0, 1.0, 1.0)
+    photos = render_stand_in_photos(g, views.cameras, bg)
+    return StylizeInputs(g, views.cameras, views.names, photos, style, bg, dict(sources)), sp.stat().st_size
 
 
 def _fit_first(ds, cfg, out: Path, quiet: bool):
@@ -204,7 +222,9 @@ def run(args) -> int:
             if not _user_set(args, "orbit_frames"):
                 base_over.append(f"orbit_frames={DEMO_ORBIT_FRAMES}")
         cfg = load_config(cfg_path, base_over + overrides)
-    for key, val in (("scene", args.scene), ("data", args.data), ("style", args.style)):
+    if args.cameras is not None and (args.scene is None or args.data is not None):
+        raise InputError("--cameras goes with --scene and no --data")
+    for key, val in (("scene", args.scene), ("data", args.data), ("style", args.style), ("cameras", args.cameras)):
         if val is not None:
             sources[key] = str(Path(val).resolve())
     if sources.get("style") is None and cfg.style is not None:
