@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import os
+import socket
 import sys
 from pathlib import Path
 from urllib.parse import urlparse
 
-from ..errors import InputError
+from ..errors import InputError, one_line
 
 DEFAULT_BASE_URL = "https://api.openai.com/v1"
 
@@ -29,6 +30,31 @@ def add_arguments(p):
     p.add_argument("--quiet", action="store_true", help="no per-request progress lines")
 
 
+CONNECT_TIMEOUT_S = 10.0
+LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
+
+
+def check_endpoint(base_url: str, key, timeout: float) -> None:
+    """Stop before any request (and before judge.json is written) when the endpoint cannot work: not an http(s)
+    URL, no key for a remote endpoint, or nothing accepting connections at its host and port. One line that
+    names the endpoint (never the key)."""
+    u = urlparse(base_url)
+    if u.scheme not in ("http", "https") or not u.hostname:
+        raise InputError(f"judge endpoint {base_url!r} is not an http(s) URL (e.g. {DEFAULT_BASE_URL})")
+    try:
+        port = u.port or (443 if u.scheme == "https" else 80)
+    except ValueError:
+        raise InputError(f"judge endpoint {base_url} has an invalid port") from None
+    if not key and u.hostname not in LOCAL_HOSTS:
+        raise InputError(f"no API key for the judge endpoint {base_url}: pass --api-key or set OPENAI_API_KEY; "
+                         "nothing was sent")
+    try:
+        socket.create_connection((u.hostname, port), timeout=timeout).close()
+    except OSError as e:
+        raise InputError(f"judge endpoint {base_url} does not answer ({one_line(e.strerror or e)} at "
+                         f"{u.hostname}:{port}); nothing was sent") from None
+
+
 def run(args) -> int:
     from ..eval import judge
     from ..fileio import write_json
@@ -38,10 +64,9 @@ def run(args) -> int:
             raise InputError(f"{flag} must be positive, got {v}")
     if args.max_views is not None and args.max_views < 1:
         raise InputError(f"--max-views must be at least 1, got {args.max_views}")
-    judge.resolve_inputs(args.a, args.b, args.style, args.max_views)  # bad input fails before any warning
+    judge.resolve_inputs(args.a, args.b, args.style, args.max_views)  # bad input fails before any request
     key = args.api_key or os.environ.get("OPENAI_API_KEY")
-    if not key and urlparse(args.base_url).hostname not in ("localhost", "127.0.0.1", "::1"):
-        print(f"warning: no --api-key or OPENAI_API_KEY for {args.base_url}", file=sys.stderr)
+    check_endpoint(args.base_url, key, min(args.timeout, CONNECT_TIMEOUT_S))
     out = Path(args.out) if args.out else Path(args.a) / f"judge_vs_{Path(args.b).resolve().name}"
     result = judge.run_judge(args.a, args.b, args.models.split(","), args.base_url, key, style=args.style,
                              seed=args.seed, timeout=args.timeout, retries=args.retries, backoff=args.backoff,

@@ -139,7 +139,8 @@ def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool):
         return _scene_only_inputs(Path(scene), cfg, style, sources)
     if data is None:  # the demo
         w, h = max(8, round(160 / cfg.downscale)), max(8, round(120 / cfg.downscale))
-        ds = demo_dataset(width=w, height=h)
+        # discs sized to the render's pixels: at 1/downscale the same still life from 1/downscale² the discs
+        ds = demo_dataset(width=w, height=h, spacing=max(1.0, cfg.downscale))
         g, bg, in_bytes = ds.gaussians, tuple(ds.background), None
     else:
         ds = _load_dataset(data, cfg)
@@ -147,6 +148,8 @@ def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool):
         if scene is not None:
             sp = Path(scene)
             g = load_ply(sp)
+            if g.num == 0:
+                raise InputError("the scene has no Gaussians (its PLY declares 0 vertices)", sp)
             check_scene_matches(sp, g, ds)
             in_bytes = sp.stat().st_size
         else:

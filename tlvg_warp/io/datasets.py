@@ -128,9 +128,16 @@ def _finish(root, views, kind, downscale, split, holdout_every, background, poin
     bounds = None if bounds is None else bounds[order]
     if downscale is not None and not downscale > 0:
         raise InputError(f"downscale must be positive, got {downscale}")
-    cache, cams, remaps = {}, [], []
+    cache, cams, remaps, scale = {}, [], [], None
     for v in views:
         cam, remap = _fit(v, cache)
+        # every photo of a dataset is at one scale of its camera (images/ full size, images_4/ a quarter): a photo
+        # at another scale is a stray file, not a resized copy
+        scale = scale or cam.width / v.size[0]
+        want = (round(v.size[0] * scale), round(v.size[1] * scale))
+        if max(abs(cam.width - want[0]), abs(cam.height - want[1])) > SIZE_SLACK_PX:
+            raise InputError(f"image is {cam.width}x{cam.height}, but its camera says {v.size[0]:g}x{v.size[1]:g} and "
+                             f"the other photos are at {scale:g} of their camera size ({want[0]}x{want[1]} here)", v.path)
         cams.append(cam.scaled(downscale) if downscale and downscale != 1 else cam)
         remaps.append(remap)
 
@@ -391,5 +398,12 @@ def load_dataset(path, images=None, downscale=None, split=None, holdout_every=8,
     if (root / "cameras.json").is_file():
         views, points = _inria_views(root, images)
         return _finish(root, views, "inria", downscale, split, holdout_every, background, points)
+    for d in (root / "sparse" / "0", root / "sparse", root):  # a COLMAP model with one of its two files missing
+        for ext in (".bin", ".txt"):
+            have = [f for f in ("cameras", "images") if (d / f"{f}{ext}").is_file()]
+            if len(have) == 1:
+                missing = "images" if have == ["cameras"] else "cameras"
+                raise InputError(f"COLMAP model has {have[0]}{ext} but no {missing}{ext} (missing file)",
+                                 d / f"{missing}{ext}")
     raise InputError("no dataset found: expected sparse/0 (COLMAP), poses_bounds.npy (LLFF), "
                      "transforms_*.json (Blender) or cameras.json (INRIA)", root)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, one_line
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 _PNG_SIG = b"\x89PNG\r\n\x1a\n"
@@ -47,33 +47,90 @@ def _jpeg_size(f):
         f.seek(-1, 1)
 
 
+MAX_PIXELS = 1 << 30  # OpenCV's decode limit (CV_IO_MAX_IMAGE_PIXELS); larger claims are refused from the header
+_TAIL = 1 << 16  # bytes read from the end of a file to find its end marker
+
+
+def _damage(f, kind: str, size) -> str | None:
+    """Why a PNG/JPEG cannot decode to ``size``, or None. A PNG must end with its IEND chunk, a JPEG's last scan
+    with the EOI marker FFD9 (libjpeg and libpng only warn on stderr and return a partly grey image). Reads the
+    file's tail, the whole JPEG only when the tail has no FFD9 (bytes appended after EOI; the marker cannot occur
+    inside entropy-coded data), and a PNG's chunk headers: deflate expands at most 1032:1, so image data too
+    small for the size in the header means a corrupt header (libpng would print its error on stderr)."""
+    end = f.seek(0, 2)
+    f.seek(max(0, end - _TAIL))
+    tail = f.read()
+    if kind == "png":
+        if b"IEND" not in tail[-12:]:
+            return "truncated PNG file (it ends before its IEND chunk)"
+        f.seek(8)
+        idat, bits = 0, None
+        while (head := f.read(8)) and len(head) == 8:
+            n, typ = struct.unpack(">I4s", head)
+            if typ == b"IHDR":
+                depth, color = f.read(n)[8:10]
+                bits = depth * {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(color, 4)
+                f.seek(4, 1)
+            else:
+                idat += n if typ == b"IDAT" else 0
+                f.seek(n + 4, 1)
+        raw = size[1] * (1 + (size[0] * (bits or 8) + 7) // 8)
+        if idat * 1032 + 1024 < raw:
+            return f"corrupt PNG: the header claims {size[0]}x{size[1]} but the file holds {idat} bytes of image data"
+        return None
+    if b"\xff\xd9" in tail:
+        return None
+    f.seek(0)
+    data = f.read()
+    if data.rfind(b"\xff\xd9") < data.rfind(b"\xff\xda"):  # no EOI after the last start-of-scan
+        return "truncated JPEG file (it ends before its end-of-image marker)"
+    return None
+
+
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) of an image file, from its header for PNG/JPEG (EXIF orientation ignored, as
-    COLMAP and :func:`read_image` do); other formats are decoded."""
+    COLMAP and :func:`read_image` do); other formats are decoded. Also refuses, naming the file, a PNG/JPEG
+    that is cut short and a header that claims more than MAX_PIXELS, so a dataset's photos are all checked
+    before anything is decoded or written."""
     if not path.is_file():
         raise InputError("missing image file", path)
     with open(path, "rb") as f:
         head = f.read(24)
-        size = None
+        size, kind = None, None
         if head[:8] == _PNG_SIG and head[12:16] == b"IHDR":
-            size = struct.unpack(">II", head[16:24])
+            size, kind = struct.unpack(">II", head[16:24]), "png"
         elif head[:2] == b"\xff\xd8":
-            size = _jpeg_size(f)
+            size, kind = _jpeg_size(f), "jpeg"
         elif path.suffix.lower() not in (".png", ".jpg", ".jpeg"):
             img = read_image(path)
             size = img.shape[1], img.shape[0]
-    if not size or min(size) <= 0:
-        raise InputError("unreadable image (not a valid PNG/JPEG header)", path)
+        if not size or min(size) <= 0:
+            raise InputError("unreadable image (not a valid PNG/JPEG header)", path)
+        if size[0] * size[1] > MAX_PIXELS:
+            raise InputError(f"image header claims {size[0]}x{size[1]} pixels, more than the "
+                             f"{MAX_PIXELS} an image may have (corrupt header?)", path)
+        damage = _damage(f, kind, size) if kind is not None else None
+        if damage:
+            raise InputError(damage, path)
     return int(size[0]), int(size[1])
 
 
 def read_image(path: Path) -> np.ndarray:
-    """float32 [H, W, 3 or 4] RGB(A) in [0, 1]; 8- and 16-bit, gray or color."""
+    """float32 [H, W, 3 or 4] RGB(A) in [0, 1]; 8- and 16-bit, gray or color. PNG/JPEG files are checked
+    (:func:`image_size`) before the decoder sees them."""
     import cv2
 
+    path = Path(path)
     if not path.is_file():
         raise InputError("missing image file", path)
-    a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if head == _PNG_SIG or head[:2] == b"\xff\xd8":
+        image_size(path)
+    try:
+        a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    except cv2.error as e:  # e.g. OpenCV's own pixel limit for formats whose header we do not read
+        raise InputError(f"unreadable image ({one_line(e.err or e)[:120]})", path) from None
     if a is None or a.size == 0:
         raise InputError("unreadable image (corrupt or unsupported format)", path)
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(a.dtype)
