@@ -89,15 +89,20 @@ def field_at_pixels(field: np.ndarray, h: int, w: int) -> np.ndarray:
     return cv2.resize(np.ascontiguousarray(field, np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
 
 
+def render_field(img: np.ndarray) -> np.ndarray:
+    """The render's own doubled-angle field [H,W,2] (length = coherence), SPEC §3 structure tensor."""
+    from ..losses.stroke_field import stroke_field
+
+    return stroke_field(img)[2]
+
+
 def flow_alignment(render, field) -> float:
     """Σ c·c*·cos 2(φ−φ*) / Σ c·c* of one view: φ, c from the render's structure tensor, φ*, c* the common
     reference field [H,W,2] (doubled angle, length = coherence). A pixel counts as much as both fields are
     coherent there: a flat render patch or a direction-less part of the painting says nothing. NaN when the
     weights vanish (a flat render)."""
-    from ..losses.stroke_field import stroke_field
-
     r = _np(render)
-    d = stroke_field(r)[2].astype(np.float64)  # [H,W,2]
+    d = render_field(r).astype(np.float64)  # [H,W,2]
     t = field_at_pixels(_np(field), *r.shape[:2]).astype(np.float64)  # [H,W,2]
     den = (np.linalg.norm(d, axis=-1) * np.linalg.norm(t, axis=-1)).sum()
     return float((d * t).sum() / den) if den > 1e-12 else math.nan

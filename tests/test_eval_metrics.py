@@ -1,0 +1,183 @@
+"""SPEC §4 sanity: known cases lose, on the metric meant to catch them, to a genuine stylization; the flow
+alignment metric breaks when its coherence weighting or its pixel correspondence is broken; statistics.
+
+The genuine stylization is the demo scene with every Gaussian recolored from the painting by a planar map of
+its position (painting texture attached to the geometry: consistent across views). The cases: the painting
+pasted in screen space on every view (sticker), the un-stylized scene, the genuine scene with every Gaussian
+3x wider (blurred), and with half of the Gaussians made transparent (holes)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tlvg_warp.eval import metrics as M
+from tlvg_warp.eval import refs as R
+from tlvg_warp.io.demo import builtin_painting, demo_scene
+from tlvg_warp.losses.stroke_field import stroke_field
+from tlvg_warp.stylize.outputs import _fit_painting
+from tlvg_warp.types import SH_C0
+
+W, H, N_VIEWS, EVAL_H = 56, 42, 7, 64  # 7 views: 6 pairs at k=1, 2 at k=5
+BG = (1.0, 1.0, 1.0)
+BLUR_SCALE = 3.0
+DROP = 0.5
+
+
+def _recolor(g, rgb):
+    out = g.clone()
+    sh = torch.zeros(g.num, 1, 3)
+    sh[:, 0] = (torch.as_tensor(rgb, dtype=torch.float32) - 0.5) / SH_C0
+    out.sh = sh
+    return out
+
+
+def genuine_stylization(g, painting):
+    m = g.means.numpy()
+    lo, hi = m.min(0), m.max(0)
+    uv = (m[:, :2] - lo[:2]) / (hi[:2] - lo[:2])  # [N,2] planar map of the scene onto the painting
+    ph, pw = painting.shape[:2]
+    return _recolor(g, painting[(uv[:, 1] * (ph - 1)).astype(int), (uv[:, 0] * (pw - 1)).astype(int)])
+
+
+@pytest.fixture(scope="module")
+def net():
+    from tlvg_warp.losses.vgg import load_vgg
+
+    n = load_vgg("hed")
+    assert not n.is_random
+    return n
+
+
+@pytest.fixture(scope="module")
+def cases(net):
+    g, cams = demo_scene(n_views=N_VIEWS, width=W, height=H)
+    p = builtin_painting().numpy()
+    photos = [v["color"] for v in R.render_views(g, cams, BG)]
+    refs = R.build_references(g, cams, BG, p, photos, net, eval_height=EVAL_H)
+    gen = genuine_stylization(g, p)
+    blur = gen.clone()
+    blur.log_scales = gen.log_scales + math.log(BLUR_SCALE)
+    holed = gen.clone()
+    drop = torch.from_numpy(np.random.default_rng(0).random(g.num) < DROP)
+    holed.opacity_logits = torch.where(drop, torch.full_like(g.opacity_logits, -20.0), g.opacity_logits)
+    per = {}
+    for name, s in (("genuine", gen), ("unstylized", g), ("blurred", blur), ("holed", holed)):
+        per[name] = R.score_views(*R.stylized_views(s, refs), refs, net)
+    views, a2 = R.stylized_views(g, refs)  # the un-stylized coverage, the painting pasted over every view
+    for v in views:
+        v["color"] = _fit_painting(p, H, W)
+    per["sticker"] = R.score_views(views, a2, refs, net)
+    return refs, per
+
+
+@pytest.mark.parametrize("case,metrics", [
+    ("sticker", ("consistency_k1", "consistency_k5", "content")),
+    ("unstylized", ("style_gram", "style_nnfm", "stroke_stats")),
+    ("blurred", ("detail",)),
+    ("holed", ("holes_1x", "holes_2x", "consistency_k1")),
+])
+def test_known_cases_lose_to_a_genuine_stylization(cases, case, metrics):
+    _, per = cases
+    cmp = R.compare(per["genuine"], per[case])
+    for k in metrics:
+        assert cmp[k]["better"] == "a", (case, k, cmp[k])
+
+
+def test_every_metric_declares_direction_and_unit():
+    for m in M.METRICS.values():
+        assert m.unit and m.words and m.direction in ("higher is better", "lower is better")
+
+
+def test_random_weights_leave_vgg_metrics_not_measured(cases):
+    from tlvg_warp.losses.vgg import load_vgg
+
+    refs, _ = cases
+    rnd = load_vgg("random")
+    per = R.score_views(*R.stylized_views(demo_scene(n_views=N_VIEWS, width=W, height=H)[0], refs), refs, rnd)
+    for k, m in M.METRICS.items():
+        if m.per_view:
+            assert (per[k] is None) == m.pretrained, k
+
+
+# ---------------------------------------------------------------- flow alignment: the weighting and the pixels
+def _stripes(h, w, angle_left, angle_right, period=6.0):
+    """Sinusoidal stripes whose stroke direction (along the stripes) is angle_left on the left half and
+    angle_right on the right half (radians, pixel axes)."""
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    a = np.where(x < w / 2, angle_left, angle_right)
+    phase = (-np.sin(a) * x + np.cos(a) * y) * 2 * np.pi / period  # constant along (cos a, sin a)
+    return np.repeat((0.5 + 0.4 * np.sin(phase))[..., None], 3, -1).astype(np.float32)
+
+
+def _field(h, w, angle_left, c_left, angle_right, c_right):
+    x = np.arange(w)[None, :].repeat(h, 0)
+    a = np.where(x < w / 2, angle_left, angle_right)
+    c = np.where(x < w / 2, c_left, c_right)
+    return np.stack([c * np.cos(2 * a), c * np.sin(2 * a)], -1).astype(np.float32)
+
+
+def check_flow_alignment_orders():
+    """The properties the metric must have (a broken metric fails them):
+    1. coherence weighting: the target is coherent (c 1) horizontal on the left, nearly direction-less (c 0.05)
+       vertical on the right. Horizontal strokes everywhere follow the painting where it has a direction;
+       vertical strokes everywhere follow only its noise. The first must win by a wide margin.
+    2. same pixel: strokes horizontal left / vertical right against a field horizontal left / vertical right
+       score near 1; against the mirrored layout they score near −1."""
+    h, w = 48, 96
+    target = _field(h, w, 0.0, 1.0, np.pi / 2, 0.05)
+    along = M.flow_alignment(_stripes(h, w, 0.0, 0.0), target)
+    noise = M.flow_alignment(_stripes(h, w, np.pi / 2, np.pi / 2), target)
+    assert along - noise > 1.0, (along, noise)  # weighted: ~0.9 vs ~−0.9; unweighted both ~0
+    split = _field(h, w, 0.0, 1.0, np.pi / 2, 1.0)
+    same = M.flow_alignment(_stripes(h, w, 0.0, np.pi / 2), split)
+    mirrored = M.flow_alignment(_stripes(h, w, np.pi / 2, 0.0), split)
+    assert same > 0.8 and mirrored < -0.8, (same, mirrored)
+
+
+def test_flow_alignment_orders_known_cases():
+    check_flow_alignment_orders()
+
+
+def test_flow_alignment_check_catches_missing_coherence_weighting(monkeypatch):
+    unit = lambda d: d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)  # noqa: E731
+    real_render, real_field = M.render_field, M.field_at_pixels
+    # both fields cut to unit length: every pixel weighs the same, whatever either coherence
+    monkeypatch.setattr(M, "render_field", lambda img: unit(real_render(img)))
+    monkeypatch.setattr(M, "field_at_pixels", lambda f, h, w: unit(real_field(f, h, w)))
+    with pytest.raises(AssertionError):
+        check_flow_alignment_orders()
+
+
+def test_flow_alignment_check_catches_mirrored_sampling(monkeypatch):
+    orig = M.field_at_pixels
+    monkeypatch.setattr(M, "field_at_pixels", lambda f, h, w: orig(f, h, w)[:, ::-1])
+    with pytest.raises(AssertionError):
+        check_flow_alignment_orders()
+
+
+def test_common_field_follows_the_unstylized_view(cases):
+    """The field is built from the un-stylized render: its coherent directions line up with that render's own
+    structure (edges of the still life) far better than with a rotated copy of themselves."""
+    refs, _ = cases
+    f = refs.fields[0]
+    rot = np.stack([-f[..., 0], -f[..., 1]], -1)  # every direction turned by 90 degrees
+    assert M.flow_alignment(refs.base[0]["color"], f) > M.flow_alignment(refs.base[0]["color"], rot) + 0.5
+
+
+# ---------------------------------------------------------------- statistics
+def test_interval_covers_mean_and_is_deterministic():
+    x = np.random.default_rng(3).normal(2.0, 1.0, 40)
+    a, b = M.interval(x), M.interval(list(x))
+    assert a == b and a["lo"] < x.mean() < a["hi"]
+    se = x.std(ddof=1) / math.sqrt(x.size)  # oracle: the normal-approximation interval, ±1.96 se
+    assert a["hi"] - a["lo"] == pytest.approx(2 * 1.96 * se, rel=0.2)
+
+
+def test_paired_says_no_difference_when_interval_contains_zero():
+    rng = np.random.default_rng(4)
+    base = rng.normal(0, 1, 30)
+    m = M.METRICS["consistency_k1"]  # lower is better
+    assert M.paired(base, base + rng.normal(0, 0.01, 30), m)["better"] == "no difference"
+    assert M.paired(base, base + 0.5 + rng.normal(0, 0.01, 30), m)["better"] == "a"
+    assert M.paired(base + 0.5, base, m)["better"] == "b"
