@@ -89,3 +89,27 @@ def test_luminance_and_chroma_blind_style_loss():
     feats = lambda im: torch.nn.functional.avg_pool2d(luminance(im), 2)[0].reshape(3, -1)  # noqa: E731
     s = torch.rand(3, 40, dtype=torch.float64)
     assert abs(fast_loss(feats(x2), s).item() - fast_loss(feats(x), s).item()) < 1e-9
+
+
+def test_recolored_gaussians_render_the_recolored_image():
+    """recolor_sh: rendering the mapped Gaussians over M·bg + t equals M·(render) + t (float64 reference
+    renderer), for view-dependent SH too, as long as no colour is clamped at 0."""
+    from tlvg_warp.losses import recolor_sh
+    from tlvg_warp.reference import render_reference
+    from tlvg_warp.types import Camera, Gaussians
+
+    gen = torch.Generator().manual_seed(3)
+    r = lambda *s: torch.randn(*s, generator=gen, dtype=torch.float64)  # noqa: E731
+    n = 60
+    sh = r(n, 4, 3) * 0.05
+    sh[:, 0] = (0.5 + 0.2 * torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5) / 0.28209479177387814
+    g = Gaussians(r(n, 3) * 0.5, r(n, 4), r(n, 3) * 0.3 - 2.0, r(n), sh)
+    m = torch.tensor([[0.5, 0.2, 0.1], [0.1, 0.6, 0.1], [0.2, 0.1, 0.9]], dtype=torch.float64)
+    t = torch.tensor([0.05, 0.1, 0.02], dtype=torch.float64)
+    cam = Camera.look_at((0.2, -3.0, 0.3), [0, 0, 0], width=31, height=23, fov_deg=60.0)
+    bg = torch.tensor([0.3, 0.4, 0.5], dtype=torch.float64)
+    want = render_reference(g, cam, background=tuple(bg.tolist())).color @ m.T + t
+    g2 = Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, recolor_sh(g.sh, m, t))
+    got = render_reference(g2, cam, background=tuple((m @ bg + t).tolist())).color
+    assert torch.allclose(got, want, atol=1e-10)
+    assert (got - render_reference(g, cam, background=tuple(bg.tolist())).color).abs().max() > 0.05

@@ -99,3 +99,18 @@ def luminance(img: torch.Tensor) -> torch.Tensor:
         return (img * w).sum(1, keepdim=True).expand_as(img)
     w = torch.tensor([0.299, 0.587, 0.114], dtype=img.dtype, device=img.device)
     return (img * w).sum(-1, keepdim=True).expand_as(img)
+
+
+def recolor_sh(sh: torch.Tensor, m: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Spherical-harmonic colours of Gaussians under the colour map ``x' = M x + t``: since color =
+    SH(dir) + 0.5 and blending is an affine combination (Σ αT + T_final = 1), rendering the mapped Gaussians
+    over background ``M·bg + t`` gives exactly ``M·render + t`` wherever no colour is clamped at 0. So
+    the pre-process fit can start from the palette it fits to (every coefficient mixes channels by M; the DC
+    term also takes the shift). ``sh`` [N,K,3] -> [N,K,3]."""
+    from ..types import SH_C0
+
+    m = m.to(device=sh.device, dtype=torch.float64)
+    t = t.to(device=sh.device, dtype=torch.float64)
+    out = sh.double() @ m.T  # [N,K,3]
+    out[:, 0] += (m @ torch.full((3,), 0.5, dtype=torch.float64, device=sh.device) + t - 0.5) / SH_C0
+    return out.to(sh.dtype)

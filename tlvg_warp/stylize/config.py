@@ -25,6 +25,7 @@ class StylizeConfig:
     seed: int = 0  # seeds the view order, split sampling and torch's RNG
     device: str = "auto"  # cuda, cpu or auto (cuda when available)
     downscale: float = 1.0  # render resolution divisor (dataset images are loaded at 1/downscale)
+    palette_init: bool = True  # pre-process starts from the Gaussians recolored by the photos' palette map (ours)
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
     style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
     # --- style / content losses ---------------------------------------------------------------------

@@ -202,7 +202,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
 
     from ..losses import (color_transfer, content_loss, fast_loss, field_at_cells, fit_loss,
                           flatten_feats, flow_alignment_score_torch, gram_loss, lab_chroma_loss, load_vgg, luminance,
-                          map_field_canvas, map_field_matched, match_style_cells, nnfm_loss, resize_style,
+                          map_field_canvas, map_field_matched, match_style_cells, nnfm_loss, recolor_sh, resize_style,
                           stroke_field)
     from ..renderer import render
     from ..train.density import DensityConfig, DensityControl
@@ -244,7 +244,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     n_views = len(cams)
     bg = tuple(float(v) for v in (cfg.background if cfg.background is not None else inp.background))
     photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
-    recolored, _, _ = color_transfer(photos, style_work.to(device))  # the palette-matched photos (pre + Lab)
+    recolored, pal_m, pal_t = color_transfer(photos, style_work.to(device))  # palette-matched photos (pre + Lab)
     g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
     inv_depth, photo_feats, originals = [], [], []
     with torch.no_grad():
@@ -258,6 +258,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     # --- parameters, one Adam across the phases ---------------------------------------------------------------------
     n_pre, n_sty, n_post = steps = cfg.phase_steps()
     g_work = g_in if cfg.keep_sh else g_in.with_sh_degree(0)
+    if cfg.palette_init:  # the same colour map the pre-process targets went through, applied in closed form
+        g_work = dataclasses.replace(g_work, sh=recolor_sh(g_work.sh, pal_m, pal_t))
     lrs = LearningRates(cfg.lr_means, cfg.lr_means_final, cfg.lr_means_steps, cfg.lr_sh_dc, cfg.lr_sh_rest,
                         cfg.lr_opacity, cfg.lr_scales, cfg.lr_quats)
     Opt = _optimizer_class()
