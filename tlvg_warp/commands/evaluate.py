@@ -1,18 +1,16 @@
-"""`python -m tlvg_warp evaluate RUN [--against RUN2]`: SPEC §4 metrics of a stylization run folder.
+"""`python -m tlvg_warp evaluate RUN [RUN ...]`: SPEC §4 metrics of stylization runs of one scene and painting,
+all measured with one ruler (eval/refs.py builds the references from the un-stylized scene, the views, the
+photos and the painting; nothing a run stored about its own targets is read).
 
-Reads RUN/stylized.ply, cameras.json (INRIA), style.png (or config.yaml's `style`), renders/ and
-originals/ (the run's stylized and un-stylized views, PNG), photos/, metrics.json and, when the run stored
-them, fields/<view>.npy (target doubled-angle fields). Multi-view consistency is measured on fresh renders
-of stylized.ply (it needs depth); the image metrics (flow alignment, style and content distance) on the
-PNGs the run wrote, falling back to the fresh renders. Writes evaluation.json and evaluation.html (images
-embedded, nothing linked) to --out (default: RUN).
+A run folder gives stylized.ply, cameras.json, photos/, style.png (or config.yaml's style), metrics.json
+(times, counts) and orbit.mp4. The un-stylized scene: --scene, else the one the run's checkpoint.pt names,
+else RUN/reconstruct/point_cloud.ply, else the built-in demo when the run was made on it. Writes
+evaluation.json and evaluation.html (self-contained) to --out.
 """
 from __future__ import annotations
 
-import base64
-import html
 import json
-import math
+import os
 import time
 from pathlib import Path
 
@@ -22,16 +20,26 @@ import torch
 from ..errors import InputError
 from ..fileio import write_json, write_text
 
-REPORT_THUMB_H = 240  # px height of each image in the HTML report (large views are shrunk to keep it small)
+MAX_REPORT_VIEWS = 4  # views shown as thumbnails (evenly spaced)
+CAM_TOL = 1e-4  # cameras.json round trip (float32 positions): runs of the same views agree far closer
+
+
+def default_cache() -> Path:
+    return Path(os.environ.get("TLVG_EVAL_CACHE", Path.home() / ".cache" / "tlvg_warp" / "eval_refs"))
 
 
 def add_arguments(p):
-    p.add_argument("run", help="stylization run folder (stylized.ply, cameras.json, style.png, renders/, ...)")
-    p.add_argument("--against", default=None, help="a second run on the same scene and painting to compare")
-    p.add_argument("--vgg-weights", default=None, help="VGG-16 weights path, or 'random' (smoke runs only)")
-    p.add_argument("--out", default=None, help="folder for evaluation.json/.html (default: RUN)")
+    p.add_argument("runs", nargs="+", metavar="RUN", help="stylization run folders of one scene and painting")
+    p.add_argument("--against", action="append", default=[], metavar="RUN", help="alias: one more run to score")
+    p.add_argument("--scene", default=None, metavar="PLY", help="the un-stylized scene (default: from the runs)")
+    p.add_argument("--vgg-weights", default=None, help="VGG-16 weights path, 'hed', or 'random' (then style and "
+                   "content metrics are not measured)")
+    p.add_argument("--out", default=None, help="folder for evaluation.json/.html (default: RUN for one run, "
+                   "else RUN's parent/evaluation)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     p.add_argument("--max-views", type=int, default=0, help="evaluate only the first N cameras (0: all)")
+    p.add_argument("--eval-height", type=int, default=256, help="height of the style/content evaluation size")
+    p.add_argument("--cache", default=None, help=f"reference cache folder (default {default_cache()})")
 
 
 # ---------------------------------------------------------------- reading a run folder
@@ -46,13 +54,12 @@ def _read_json(path: Path):
 
 def cameras_from_json(path: Path):
     """INRIA cameras.json -> (names, [Camera]) (rotation = camera-to-world, principal point at the center)."""
+    from ..io.datasets import inria_camera_entries
     from ..types import Camera
 
     data = _read_json(path)
     if not isinstance(data, list) or not data:
         raise InputError("expected a non-empty list of cameras", path)
-    from ..io.datasets import inria_camera_entries
-
     names, cams = [], []
     for name, w2c, fx, fy, w, h in inria_camera_entries(data, path):
         cams.append(Camera(torch.from_numpy(w2c), fx, fy, w / 2, h / 2, int(w), int(h), name=name))
@@ -60,13 +67,13 @@ def cameras_from_json(path: Path):
     return names, cams
 
 
-def _image(path: Path, shape=None):
+def _image(path: Path, shape=None) -> np.ndarray:
     from ..io.images import read_image
 
     a = read_image(path)[:, :, :3]
     if shape is not None and a.shape[:2] != tuple(shape):
         raise InputError(f"image is {a.shape[1]}x{a.shape[0]}, expected {shape[1]}x{shape[0]}", path)
-    return torch.from_numpy(np.ascontiguousarray(a))
+    return np.ascontiguousarray(a, np.float32)
 
 
 def _view_file(folder: Path, name: str, index: int):
@@ -77,28 +84,43 @@ def _view_file(folder: Path, name: str, index: int):
     return None
 
 
-def load_run(run, max_views: int = 0) -> dict:
-    """Everything evaluate needs from a run folder; InputError naming the file when something is wrong."""
+def _yaml(path: Path) -> dict:
     import yaml
 
+    if not path.is_file():
+        return {}
+    try:
+        cfg = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise InputError(f"unreadable YAML ({str(e).splitlines()[0]})", path) from None
+    if not isinstance(cfg, dict):
+        raise InputError("expected a mapping", path)
+    return cfg
+
+
+def _sources(run: Path) -> dict:
+    ck = run / "checkpoint.pt"
+    if not ck.is_file():
+        return {}
+    try:
+        return dict(torch.load(ck, map_location="cpu", weights_only=False, mmap=True).get("sources") or {})
+    except Exception as e:  # noqa: BLE001 - a checkpoint we cannot read only loses the hint
+        raise InputError(f"unreadable checkpoint ({type(e).__name__})", ck) from None
+
+
+def load_run(run, max_views: int = 0) -> dict:
+    """What evaluate reads from a run folder; InputError naming the file when something is wrong."""
     from ..io.ply import load_ply
 
     run = Path(run)
     if not run.is_dir():
         raise InputError("run folder not found", run)
-    cfg = {}
-    if (run / "config.yaml").is_file():
-        try:
-            cfg = yaml.safe_load((run / "config.yaml").read_text()) or {}
-        except yaml.YAMLError as e:
-            raise InputError(f"unreadable YAML ({e})", run / "config.yaml") from None
-        if not isinstance(cfg, dict):
-            raise InputError("expected a mapping", run / "config.yaml")
+    cfg = _yaml(run / "config.yaml")
     ply = run / "stylized.ply"
     if not ply.is_file():
         raise InputError("missing stylized.ply (not a stylization run folder?)", run)
-    g = load_ply(ply)
     names, cams = cameras_from_json(run / "cameras.json")
+    n_total = len(cams)
     if max_views > 0:
         names, cams = names[:max_views], cams[:max_views]
     style = run / "style.png"
@@ -106,199 +128,250 @@ def load_run(run, max_views: int = 0) -> dict:
         style = Path(cfg["style"])
     if not style.is_file():
         raise InputError("no painting: neither style.png nor config.yaml's style exists", run)
-    painting = _image(style)
-    metrics = {}
-    if (run / "metrics.json").is_file():
-        metrics = _read_json(run / "metrics.json")
-        if not isinstance(metrics, dict):
-            raise InputError("expected a JSON object", run / "metrics.json")
-    bg = cfg.get("background") or [1.0, 1.0, 1.0]
-    per = {"renders": [], "originals": [], "photos": [], "fields": []}
+    photos = []
     for i, (n, c) in enumerate(zip(names, cams)):
-        for sub in ("renders", "originals", "photos"):
-            f = _view_file(run / sub, n, i)
-            per[sub].append(_image(f, (c.height, c.width)) if f is not None else None)
-        f = next((p for p in (run / "fields" / f"{n}.npy", run / "fields" / f"view_{i:03d}.npy") if p.is_file()), None)
-        fld = None
-        if f is not None:
-            fld = np.load(f)
-            if fld.shape != (c.height, c.width, 2):
-                raise InputError(f"target field has shape {fld.shape}, expected {(c.height, c.width, 2)}", f)
-        per["fields"].append(fld)
-    return {"dir": run, "config": cfg, "gaussians": g, "ply_bytes": ply.stat().st_size, "names": names,
-            "cameras": cams, "painting": painting, "style_path": str(style), "metrics": metrics,
-            "background": [float(x) for x in bg], **per}
+        f = _view_file(run / "photos", n, i)
+        if f is None:
+            raise InputError(f"missing photo of view {n}", run / "photos")
+        photos.append(_image(f, (c.height, c.width)))
+    metrics = _read_json(run / "metrics.json") if (run / "metrics.json").is_file() else {}
+    if not isinstance(metrics, dict):
+        raise InputError("expected a JSON object", run / "metrics.json")
+    bg = cfg.get("background") or [1.0, 1.0, 1.0]
+    return {"dir": run, "name": run.name, "gaussians": load_ply(ply), "bytes": ply.stat().st_size, "names": names,
+            "cameras": cams, "painting": _image(style), "photos": photos, "metrics": metrics,
+            "background": tuple(float(x) for x in bg), "video": run / "orbit.mp4", "n_total": n_total}
+
+
+def resolve_scene(run: dict, scene=None):
+    """The un-stylized scene of a run (see the module doc)."""
+    from ..io.ply import load_ply
+
+    if scene is not None:
+        return load_ply(Path(scene))
+    src = _sources(run["dir"])
+    for cand in (src.get("scene"), run["dir"] / "reconstruct" / "point_cloud.ply"):
+        if cand and Path(cand).is_file():
+            return load_ply(Path(cand))
+    if not src.get("data"):
+        from ..io.demo import demo_scene
+
+        c = run["cameras"][0]
+        g, cams = demo_scene(n_views=run["n_total"], width=c.width, height=c.height)
+        if len(cams) == len(run["cameras"]) and all(
+                torch.allclose(a.world_to_camera.double(), b.world_to_camera.double(), atol=CAM_TOL)
+                for a, b in zip(cams, run["cameras"])):
+            return g
+    raise InputError("cannot find the un-stylized scene of this run; pass --scene PLY", run["dir"])
+
+
+def check_same_setting(runs: list) -> None:
+    """Runs compared with one ruler must share cameras, photos and painting."""
+    a = runs[0]
+    for r in runs[1:]:
+        same_cams = len(r["cameras"]) == len(a["cameras"]) and all(
+            (x.width, x.height) == (y.width, y.height) and abs(x.fx - y.fx) < 1e-3 and
+            torch.allclose(x.world_to_camera.double(), y.world_to_camera.double(), atol=CAM_TOL)
+            for x, y in zip(r["cameras"], a["cameras"]))
+        if not same_cams:
+            raise InputError(f"not the same views as {a['dir']} (cameras.json differs)", r["dir"] / "cameras.json")
+        if r["painting"].shape != a["painting"].shape or not np.array_equal(r["painting"], a["painting"]):
+            raise InputError(f"not the same painting as {a['dir']}", r["dir"] / "style.png")
+        if any(not np.array_equal(p, q) for p, q in zip(r["photos"], a["photos"])):
+            raise InputError(f"not the same photos as {a['dir']}", r["dir"] / "photos")
 
 
 # ---------------------------------------------------------------- evaluation
-def _wall_time(m: dict):
-    for key in ("wall_time_s", "total_time_s", "time_s"):
+def wall_time(m: dict):
+    for key in ("wall_time_s", "total_time_s"):
         if isinstance(m.get(key), (int, float)):
             return float(m[key])
-    t = m.get("time") or m.get("time_s") or m.get("times")
+    t = m.get("time_per_phase_s") or m.get("time")
     if isinstance(t, dict):
-        if isinstance(t.get("total"), (int, float)):
-            return float(t["total"])
         vals = [float(v) for v in t.values() if isinstance(v, (int, float))]
         return sum(vals) if vals else None
     return None
 
 
-def evaluate_run(run: dict, net, device) -> dict:
+def winners(names, per_views) -> dict:
+    """Per metric: the run whose paired difference to every other run favours it (95%), else absent."""
     from ..eval import metrics as M
+    from ..eval.refs import compare
 
-    t0 = time.perf_counter()
-    g = run["gaussians"].to(device=device)
-    views = M.render_views(g, run["cameras"], run["background"])
-    originals = run["originals"] if all(o is not None for o in run["originals"]) else None
-    # image metrics on the PNGs the run wrote (when present); consistency on the fresh renders (they carry depth)
-    res = M.scene_metrics(views, run["painting"], net, originals, run["fields"], colors=run["renders"])
-    res["per_view"] = [dict(name=n, **r) for n, r in zip(run["names"], res["per_view"])]
-    m = run["metrics"]
-    res["summary"] |= {"gaussians": run["gaussians"].num, "bytes": run["ply_bytes"], "wall_time_s": _wall_time(m)}
-    for k in ("gaussians_in", "gaussians_out", "gaussians_input", "gaussians_final", "bytes_in", "bytes_out"):
-        if k in m:
-            res["summary"][k] = m[k]
-    res["flow_target"] = "stored" if any(f is not None for f in run["fields"]) else "canvas"
-    res["content_reference"] = "originals" if originals is not None else None
-    res["eval_time_s"] = time.perf_counter() - t0
-    res["run"] = str(run["dir"])
-    res["run_metrics"] = m
-    return res
-
-
-LOWER_IS_BETTER = {"consistency_k1", "consistency_k5", "style_fast", "style_gram", "content", "gaussians",
-                   "bytes", "wall_time_s", "nan"}
-
-
-def compare(a: dict, b: dict) -> dict:
-    """Per summary metric: value of each run and which is better ("run", "against" or "tie")."""
     out = {}
-    for k, va in a.items():
-        vb = b.get(k)
-        if not isinstance(va, (int, float)) or not isinstance(vb, (int, float)):
+    if len(names) < 2:
+        return out
+    for k in M.METRICS:
+        if not M.METRICS[k].per_view:
             continue
-        if math.isclose(va, vb, rel_tol=1e-9, abs_tol=1e-12):
-            better = "tie"
-        else:
-            better = "run" if (va < vb) == (k in LOWER_IS_BETTER) else "against"
-        out[k] = {"run": va, "against": vb, "better": better}
+        for i, n in enumerate(names):
+            if per_views[i].get(k) is None:
+                continue
+            if all(compare({k: per_views[i][k]}, {k: per_views[j][k]}).get(k, {}).get("better") == "a"
+                   for j in range(len(names)) if j != i):
+                out[k] = n
     return out
 
 
-# ---------------------------------------------------------------- report
-def _png_b64(img) -> str:
-    import cv2
+def evaluate_runs(run_dirs, net, device, *, scene=None, max_views: int = 0, eval_height: int = 256,
+                  cache_dir=None, log=print) -> tuple[dict, list, "object"]:
+    """Score every run with one set of references. Returns (result dict, loaded runs, refs)."""
+    from ..eval.refs import build_references, compare, score_views, stylized_views, summarize
 
-    a = img.detach().cpu().numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
-    a = np.clip(np.nan_to_num(a, nan=0.0), 0, 1)
-    if a.shape[0] > REPORT_THUMB_H:
-        a = cv2.resize(a, (max(1, round(a.shape[1] * REPORT_THUMB_H / a.shape[0])), REPORT_THUMB_H),
-                       interpolation=cv2.INTER_AREA)
-    u8 = (a * 255 + 0.5).astype(np.uint8)
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(u8, cv2.COLOR_RGB2BGR))
-    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode()
+    runs = [load_run(d, max_views) for d in run_dirs]
+    check_same_setting(runs)
+    g0 = resolve_scene(runs[0], scene)
+    t0 = time.perf_counter()
+    refs = build_references(g0, runs[0]["cameras"], runs[0]["background"], runs[0]["painting"], runs[0]["photos"],
+                            net, eval_height=eval_height, cache_dir=cache_dir, device=device)
+    log(f"references: {refs.key} ({time.perf_counter() - t0:.1f}s)")
+    per, results = [], []
+    for r in runs:
+        t1 = time.perf_counter()
+        pv = score_views(*stylized_views(r["gaussians"], refs, device), refs, net)
+        m = r["metrics"]
+        scalars = {"gaussians": r["gaussians"].num, "bytes": r["bytes"], "wall_time_s": wall_time(m)}
+        per.append(pv)
+        results.append({"run": str(r["dir"]), "name": r["name"], "summary": summarize(pv) | scalars,
+                        "per_view": pv, "phase_times_s": m.get("time_per_phase_s"),
+                        "eval_time_s": round(time.perf_counter() - t1, 3)})
+        log(f"scored {r['dir']} ({time.perf_counter() - t1:.1f}s)")
+    names = unique_names(runs)
+    pairs = {f"{names[i]} vs {names[j]}": compare(per[i], per[j])
+             for i in range(len(runs)) for j in range(i + 1, len(runs))}
+    res = {"vgg": net.source, "vgg_random": bool(net.is_random), "references": refs.key,
+           "eval_height": eval_height, "views": runs[0]["names"], "names": names, "runs": results,
+           "comparisons": pairs, "winners": winners(names, per),
+           "not_measured": [k for k, v in per[0].items() if v is None]}
+    return res, runs, refs
 
 
-def _fmt(v):
-    if v is None:
-        return "–"
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return html.escape(str(v))
+def unique_names(runs) -> list[str]:
+    names = [r["name"] for r in runs]
+    if len(set(names)) < len(names):
+        names = [f"{r['dir'].parent.name}/{r['name']}" for r in runs]
+    if len(set(names)) < len(names):
+        names = [f"{n} ({i + 1})" for i, n in enumerate(names)]
+    return names
 
 
-def stroke_picture(painting):
+def report_html(res: dict, runs: list, refs) -> str:
+    from ..eval import report as H
     from ..losses.stroke_field import field_picture, stroke_field
     from ..losses.vgg import resize_style
 
-    p = resize_style(painting.numpy() if isinstance(painting, torch.Tensor) else painting)
-    th, c, _ = stroke_field(p)
-    return field_picture(p, th, c)
+    names = res["names"]
+    sums = [r["summary"] for r in res["runs"]]
+    warn = ("<p class=warn>VGG-16 weights are random: style, content and flow-alignment metrics are not "
+            "measured.</p>" if res["vgg_random"] else "")
+    body = [f"<p>{len(names)} run(s): " + ", ".join(H.esc(r['run']) for r in res["runs"]) + "</p>", warn,
+            f"<p class=small>VGG: {H.esc(res['vgg'])}; references {res['references']}; "
+            f"{len(res['views'])} views; style/content measured at height {res['eval_height']} px.</p>",
+            H.METHOD_NOTE, "<h2>Results</h2>", H.results_table(names, sums, res["winners"])]
+    if res["comparisons"]:
+        body.append("<h2>Paired comparisons</h2>" + comparisons_table(res["comparisons"]))
+    body += ["<h2>Means with 95% intervals</h2>", H.bars_chart(names, sums),
+             "<h2>Per view</h2>", H.per_view_chart(names, [r["per_view"] for r in res["runs"]]),
+             "<h2>Speed and quality</h2>",
+             H.speed_chart(names, [s.get("wall_time_s") for s in sums], sums)]
+    work = resize_style(refs.painting)
+    th, c, _ = stroke_field(work)
+    body.append("<h2>Painting</h2><div class=row>" + H.figure(refs.painting, "painting")
+                + H.figure(field_picture(work, th, c), "its stroke field") + "</div>")
+    n = len(refs.cameras)
+    pick = sorted(set(np.linspace(0, n - 1, min(MAX_REPORT_VIEWS, n)).round().astype(int)))
+    stylized = {}
+    from ..eval.refs import render_views
+
+    for r, name in zip(runs, names):
+        vs = render_views(r["gaussians"], [refs.cameras[i] for i in pick], refs.background)
+        stylized[name] = [v["color"] for v in vs]
+    body.append("<h2>Views</h2>")
+    for k, i in enumerate(pick):
+        cells = [H.figure(refs.photos[i], "photo"), H.figure(refs.base[i]["color"], "un-stylized")]
+        cells += [H.figure(stylized[nm][k], nm) for nm in names]
+        if refs.fields is not None:
+            th, c = 0.5 * np.arctan2(refs.fields[i][..., 1], refs.fields[i][..., 0]), np.linalg.norm(refs.fields[i], axis=-1)
+            cells.append(H.figure(field_picture(refs.base[i]["color"], th, c), "common stroke field"))
+        body.append(f"<h3>{H.esc(res['views'][i])}</h3><div class=row>{''.join(cells)}</div>")
+    vids = [(nm, H.video(r["video"])) for nm, r in zip(names, runs)]
+    if any(v for _, v in vids):
+        body.append("<h2>Orbit videos</h2><div class=row>" + "".join(
+            f"<figure>{v}<figcaption>{H.esc(nm)}</figcaption></figure>" for nm, v in vids if v) + "</div>")
+    return H.page("tlvg_warp evaluation", "".join(body))
 
 
-def report_html(result: dict, run: dict, other: dict | None = None, other_run: dict | None = None) -> str:
-    s = result["summary"]
-    keys = list(s)
-    head = "<tr><th>metric</th><th>run</th>" + ("<th>against</th><th>better</th>" if other else "") + "</tr>"
+def comparisons_table(comparisons: dict) -> str:
+    from ..eval import report as H
+
+    keys = [k for k in H.M.METRICS if any(k in c for c in comparisons.values())]
+    head = "<tr><th class=l>metric</th>" + "".join(f"<th>{H.esc(p)}: a − b [95%]</th>" for p in comparisons) + "</tr>"
     rows = []
-    cmp_ = result.get("comparison", {})
     for k in keys:
-        extra = ""
-        if other:
-            extra = f"<td>{_fmt(other['summary'].get(k))}</td><td>{_fmt(cmp_.get(k, {}).get('better'))}</td>"
-        rows.append(f"<tr><td>{html.escape(k)}</td><td>{_fmt(s[k])}</td>{extra}</tr>")
-    def img(a, cap):
-        if a is None:
-            return ""
-        return f"<figure><img src='{_png_b64(a)}'><figcaption>{html.escape(cap)}</figcaption></figure>"
-    views = []
-    for i, name in enumerate(run["names"]):
-        pv = result["per_view"][i]
-        cells = [img(run["photos"][i], "photo"), img(run["originals"][i], "original render"),
-                 img(run["renders"][i] if run["renders"][i] is not None else None, "stylized (run)")]
-        if other_run is not None and i < len(other_run["names"]):
-            cells.append(img(other_run["renders"][i], "stylized (against)"))
-        info = ", ".join(f"{k} {_fmt(v)}" for k, v in pv.items() if k != "name")
-        views.append(f"<h3>{html.escape(name)}</h3><div class=row>{''.join(cells)}</div><p class=small>{info}</p>")
-    vgg_note = ("<p class=warn>VGG is randomly initialized: style and content distances are NOT meaningful.</p>"
-                if result.get("vgg_random") else "")
-    return f"""<!doctype html><html><head><meta charset=utf-8><title>tlvg_warp evaluation</title><style>
-body{{font-family:sans-serif;margin:1.5em}} table{{border-collapse:collapse}} td,th{{border:1px solid #ccc;
-padding:3px 8px;text-align:right}} .row{{display:flex;gap:8px;flex-wrap:wrap}} figure{{margin:0}}
-figcaption,.small{{font-size:12px;color:#555}} .warn{{color:#b00;font-weight:bold}}</style></head><body>
-<h1>Evaluation of {html.escape(str(run['dir']))}</h1>
-{f"<p>against {html.escape(str(other_run['dir']))}</p>" if other_run else ""}{vgg_note}
-<p class=small>VGG: {html.escape(str(result.get('vgg')))}; flow target: {result.get('flow_target')};
-consistency: masked RMSE of reprojected stylized colors (k = 1 short, k = 5 long range; lower is better).</p>
-<table>{head}{''.join(rows)}</table>
-<h2>Painting and its stroke field</h2><div class=row>{img(run['painting'], 'painting')}
-{img(stroke_picture(run['painting']), 'stroke field (LIC)')}</div>
-<h2>Views</h2>{''.join(views)}</body></html>
-"""
+        tds = []
+        for p, c in comparisons.items():
+            d = c.get(k)
+            if not d or d.get("mean") is None:
+                tds.append("<td>–</td>")
+                continue
+            a, b = p.split(" vs ", 1)
+            who = {"a": a, "b": b}.get(d["better"], d["better"])
+            tds.append(f"<td>{H.fmt(d['mean'], 3)} <span class=small>[{H.fmt(d['lo'], 3)}, {H.fmt(d['hi'], 3)}]"
+                       f"</span><br>{'<b>' + H.esc(who) + '</b>' if who != 'no difference' else 'no difference'}</td>")
+        rows.append(f"<tr>{H.metric_head(k)}{''.join(tds)}</tr>")
+    return f"<table>{head}{''.join(rows)}</table>"
 
 
-VGG_METRICS = ("style_fast", "style_gram", "content")  # need pretrained features (SPEC §4)
+def _print_table(res: dict) -> None:
+    from ..eval import metrics as M
+    from ..eval.report import fmt
+
+    names = res["names"]
+    print(f"{'metric':<16}" + "".join(f"{n[:22]:>24}" for n in names))
+    for k in M.METRICS:
+        vals = []
+        for r in res["runs"]:
+            s = r["summary"].get(k)
+            if s is None:
+                vals.append("not measured")
+            elif isinstance(s, dict):
+                vals.append("–" if s["mean"] is None else f"{fmt(s['mean'], 3)} [{fmt(s['lo'], 2)},{fmt(s['hi'], 2)}]")
+            else:
+                vals.append(fmt(s))
+        w = res["winners"].get(k)
+        print(f"{k:<16}" + "".join(f"{v:>24}" for v in vals) + (f"   winner: {w}" if w else ""))
 
 
-def _not_measured(res: dict, net) -> dict:
-    """With random VGG weights the style and content distances are reported as not measured (None)."""
-    if net.is_random:
-        for k in VGG_METRICS:
-            if k in res["summary"]:
-                res["summary"][k] = None
-        res["not_measured"] = [k for k in VGG_METRICS if k in res["summary"]]
-    return res
+def pick_weights(args_weights, run_dirs):
+    """--vgg-weights, else random when every run was itself a random-weights smoke run (no download just to
+    score it: its style metrics are then not measured), else the default resolution order."""
+    if args_weights is not None:
+        return args_weights
+    flags = []
+    for d in run_dirs:
+        f = Path(d) / "metrics.json"
+        try:
+            flags.append(bool(json.loads(f.read_text()).get("vgg_random")) if f.is_file() else False)
+        except (OSError, ValueError):
+            flags.append(False)
+    return "random" if flags and all(flags) else None
 
 
 def run(args) -> int:
     from ..losses.vgg import load_vgg
 
+    dirs = list(dict.fromkeys([*args.runs, *args.against]))
+    if args.eval_height < 16:
+        raise InputError(f"--eval-height must be at least 16, got {args.eval_height}")
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    r = load_run(args.run, args.max_views)
-    o = load_run(args.against, args.max_views) if args.against else None
-    out = Path(args.out) if args.out else r["dir"]
-    weights = args.vgg_weights
-    if weights is None and any((x or {}).get("metrics", {}).get("vgg_random") for x in (r, o)):
-        weights = "random"  # a smoke run made with random weights: no download just to score it
-    net = load_vgg(weights, device=device)
-    res = _not_measured(evaluate_run(r, net, device), net)
-    res["vgg"], res["vgg_random"] = net.source, bool(net.is_random)
-    if o is not None:
-        ores = _not_measured(evaluate_run(o, net, device), net)
-        ores["vgg"], ores["vgg_random"] = net.source, bool(net.is_random)
-        res["against"] = ores
-        res["comparison"] = compare(res["summary"], ores["summary"])
+    out = Path(args.out) if args.out else (Path(dirs[0]) if len(dirs) == 1 else Path(dirs[0]).parent / "evaluation")
+    net = load_vgg(pick_weights(args.vgg_weights, dirs), device=device)
+    res, runs, refs = evaluate_runs(dirs, net, device, scene=args.scene, max_views=args.max_views,
+                                    eval_height=args.eval_height, cache_dir=Path(args.cache) if args.cache else default_cache())
     write_json(out / "evaluation.json", res)
-    write_text(out / "evaluation.html", report_html(res, r, res.get("against"), o))
-    s = res["summary"]
-    print(f"{'metric':<18}{'run':>14}" + (f"{'against':>14}" if o else ""))
-    for k, v in s.items():
-        line = f"{k:<18}{_fmt(v):>14}"
-        if o:
-            line += f"{_fmt(res['against']['summary'].get(k)):>14}"
-        print(line)
+    write_text(out / "evaluation.html", report_html(res, runs, refs))
+    _print_table(res)
     if net.is_random:
-        print("note: VGG is randomly initialized (--vgg-weights random): style/content distances are not meaningful")
+        print("note: VGG-16 weights are random: style, content and flow alignment are not measured")
     print(f"wrote {out / 'evaluation.json'} and {out / 'evaluation.html'}")
     return 0

@@ -1,0 +1,192 @@
+"""The HTML that people read (evaluate and study): metric names in words with units and directions, intervals,
+winners, charts inline (matplotlib PNG, base64), thumbnails 320 px wide, the orbit video embedded."""
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+
+import numpy as np
+
+from . import metrics as M
+
+THUMB_W = 320  # px: strokes stay visible (small renders are enlarged with nearest neighbour)
+MAX_VIDEO_BYTES = 40 << 20  # larger orbit videos are linked instead of embedded
+CSS = """body{font-family:system-ui,sans-serif;margin:1.5em;max-width:1400px;color:#222}
+table{border-collapse:collapse;margin:.6em 0}td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}
+th{background:#f3f3f3}td.l,th.l{text-align:left}.win{background:#d8f5d0;font-weight:bold}
+.row{display:flex;gap:8px;flex-wrap:wrap}figure{margin:0}figcaption,.small{font-size:13px;color:#555}
+.warn{color:#b00;font-weight:bold}.nm{color:#999;font-style:italic}"""
+
+
+def esc(x) -> str:
+    return html.escape(str(x))
+
+
+def png_uri(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def image_uri(img, width: int = THUMB_W) -> str:
+    import cv2
+
+    a = np.clip(np.nan_to_num(np.asarray(img, np.float32)), 0, 1)
+    h, w = a.shape[:2]
+    interp = cv2.INTER_NEAREST if w < width else cv2.INTER_AREA
+    a = cv2.resize(a, (width, max(1, round(h * width / w))), interpolation=interp)
+    ok, buf = cv2.imencode(".png", cv2.cvtColor((a * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode()
+
+
+def figure(img, caption: str) -> str:
+    return f"<figure><img src='{image_uri(img)}' width={THUMB_W}><figcaption>{esc(caption)}</figcaption></figure>"
+
+
+def video(path) -> str:
+    if path is None or not path.is_file():
+        return ""
+    if path.stat().st_size > MAX_VIDEO_BYTES:
+        return f"<p><a href='{esc(path.resolve().as_uri())}'>orbit video ({esc(path.name)})</a></p>"
+    uri = "data:video/mp4;base64," + base64.b64encode(path.read_bytes()).decode()
+    return f"<video controls loop muted width={2 * THUMB_W} src='{uri}'></video>"
+
+
+def fmt(v, digits: int = 4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return f"{v:,}" if isinstance(v, int) else esc(v)
+
+
+def cell(s) -> str:
+    """'mean [lo, hi]' of an interval dict, a plain number, or 'not measured'."""
+    if s is None:
+        return "<span class=nm>not measured</span>"
+    if isinstance(s, dict):
+        if s.get("mean") is None:
+            return "–"
+        return f"{fmt(s['mean'])} <span class=small>[{fmt(s['lo'], 3)}, {fmt(s['hi'], 3)}]</span>"
+    return fmt(s)
+
+
+def metric_head(k: str) -> str:
+    m = M.METRICS[k]
+    return f"<td class=l><b>{esc(m.words)}</b><br><span class=small>{esc(m.unit)}; {m.direction}</span></td>"
+
+
+def results_table(names, summaries, winners, keys=None) -> str:
+    """One row per metric, one column per run; the winner's cell green (a win needs every paired interval
+    against the others to exclude 0; otherwise the row says 'no clear winner')."""
+    keys = keys or [k for k in M.METRICS if any(k in s for s in summaries)]
+    head = "<tr><th class=l>metric</th>" + "".join(f"<th>{esc(n)}</th>" for n in names) + "<th>verdict</th></tr>"
+    rows = []
+    for k in keys:
+        w = winners.get(k)
+        cells = "".join(f"<td{' class=win' if w == n else ''}>{cell(s.get(k))}</td>" for n, s in zip(names, summaries))
+        verdict = f"{esc(w)} wins" if w else ("no clear winner" if len(names) > 1 else "")
+        rows.append(f"<tr>{metric_head(k)}{cells}<td>{verdict}</td></tr>")
+    return f"<table>{head}{''.join(rows)}</table>"
+
+
+def _measured(summaries):
+    return [k for k, m in M.METRICS.items() if m.per_view and any(isinstance(s.get(k), dict)
+                                                                    and s[k].get("mean") is not None for s in summaries)]
+
+
+def bars_chart(names, summaries) -> str:
+    """Bars with 95% intervals, one panel per measured per-view metric."""
+    from matplotlib.figure import Figure
+
+    keys = _measured(summaries)
+    if not keys:
+        return ""
+    cols = 4
+    rows = math.ceil(len(keys) / cols)
+    fig = Figure(figsize=(4 * cols, 3.0 * rows))
+    for i, k in enumerate(keys):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        s = [x.get(k) or {} for x in summaries]
+        mean = np.array([np.nan if v.get("mean") is None else v["mean"] for v in s])
+        err = np.array([[m - (v.get("lo") if v.get("lo") is not None else m) for m, v in zip(mean, s)],
+                        [(v.get("hi") if v.get("hi") is not None else m) - m for m, v in zip(mean, s)]])
+        ax.bar(range(len(names)), mean, yerr=err, capsize=4, color=[f"C{j}" for j in range(len(names))])
+        ax.set_xticks(range(len(names)), names, rotation=20, fontsize=8)
+        m = M.METRICS[k]
+        ax.set_title(f"{m.words}\n({'↑' if m.higher_better else '↓'} {m.direction})", fontsize=8)
+        ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    return f"<img src='{png_uri(fig)}' style='max-width:100%'>"
+
+
+def per_view_chart(names, per_views) -> str:
+    """Per-view values (x: view index) of every measured metric, one series per run."""
+    from matplotlib.figure import Figure
+
+    keys = [k for k in _measured([{k: {"mean": 1} for k, v in p.items() if v} for p in per_views])]
+    if not keys:
+        return ""
+    cols = 4
+    rows = math.ceil(len(keys) / cols)
+    fig = Figure(figsize=(4 * cols, 2.8 * rows))
+    for i, k in enumerate(keys):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        for j, (n, p) in enumerate(zip(names, per_views)):
+            if p.get(k):
+                ax.scatter(range(len(p[k])), p[k], s=12, color=f"C{j}", label=n)
+        ax.set_title(M.METRICS[k].words, fontsize=8)
+        ax.set_xlabel("view", fontsize=7)
+        ax.tick_params(labelsize=7)
+        if i == 0:
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    return f"<img src='{png_uri(fig)}' style='max-width:100%'>"
+
+
+def speed_chart(names, times, summaries) -> str:
+    """Time on x, each measured metric on y (its interval as error bar), the Pareto front in red."""
+    from matplotlib.figure import Figure
+
+    from .pareto import pareto_front
+
+    t = np.array([np.nan if x is None else x for x in times], np.float64)
+    keys = _measured(summaries)
+    if not keys or not np.isfinite(t).any():
+        return "<p class=small>speed-quality chart: no run recorded its wall time</p>"
+    cols = 4
+    rows = math.ceil(len(keys) / cols)
+    fig = Figure(figsize=(4 * cols, 3.0 * rows))
+    for i, k in enumerate(keys):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        m = M.METRICS[k]
+        y = np.array([np.nan if not s.get(k) or s[k].get("mean") is None else s[k]["mean"] for s in summaries])
+        lo = np.array([np.nan if not s.get(k) or s[k].get("lo") is None else s[k]["lo"] for s in summaries])
+        hi = np.array([np.nan if not s.get(k) or s[k].get("hi") is None else s[k]["hi"] for s in summaries])
+        front = pareto_front(t, y, m.higher_better)
+        ax.errorbar(t, y, yerr=[y - lo, hi - y], fmt="o", color="0.5", ms=4, capsize=3)
+        o = np.argsort(t[front])
+        ax.plot(t[front][o], y[front][o], "-o", color="tab:red", ms=5, label="Pareto front")
+        for xi, yi, n in zip(t, y, names):
+            if np.isfinite(xi) and np.isfinite(yi):
+                ax.annotate(n, (xi, yi), xytext=(3, 3), textcoords="offset points", fontsize=7)
+        ax.set_xlabel("wall time (s)", fontsize=7)
+        ax.set_title(f"{m.words}\n({m.direction})", fontsize=8)
+        ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    return f"<img src='{png_uri(fig)}' style='max-width:100%'>"
+
+
+def page(title: str, body: str) -> str:
+    return (f"<!doctype html><html><head><meta charset=utf-8><title>{esc(title)}</title><style>{CSS}</style>"
+            f"</head><body><h1>{esc(title)}</h1>{body}</body></html>\n")
+
+
+METHOD_NOTE = ("<p class=small>Every run is measured with the same ruler: references (the un-stylized scene's "
+               "renders, depth and coverage; a common stroke field per view from a nearest-neighbour match of "
+               "pretrained VGG features of the un-stylized render to the painting; the photos) are built by the "
+               "evaluation itself, never taken from a run. Values are means over views with a 95% bootstrap "
+               "interval; a run wins a metric only when the 95% interval of its paired per-view difference "
+               "to every other run excludes 0.</p>")
