@@ -169,3 +169,15 @@ def test_hed_edges_of_a_real_photo_agree_with_canny_random_backbone_does_not(tmp
         prob_r = hed.hed_edges(rnd, img)[0].numpy()
     f_rnd = _f_score(_strong_edges(prob_r, frac), canny)
     assert f_hed >= EDGE_F_MIN > f_rnd, (f_hed, f_rnd)
+
+
+def test_converted_cache_file_loads_as_weights_and_names_hed(tmp_path, monkeypatch):
+    """The cache file is a plain state dict: it can travel to a machine without h5py or the package."""
+    monkeypatch.setenv("TLVG_CACHE_DIR", str(tmp_path / "cache"))
+    src = tmp_path / "a.weights.h5"
+    _write_fake_hed(src)
+    first = load_vgg(str(src))
+    cached = next((tmp_path / "cache").iterdir())
+    again = load_vgg(str(cached))
+    assert "HED" in again.source and again.hed is not None
+    assert all(torch.equal(a, b) for a, b in zip(first.state_dict().values(), again.state_dict().values()))

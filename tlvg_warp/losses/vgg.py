@@ -153,9 +153,10 @@ def _load_torchvision(path: Path) -> VGG16Features:
         sd = sd["state_dict"]
     if not isinstance(sd, dict):
         raise InputError(f"not a state dict (got {type(sd).__name__}); expected torchvision's {VGG_FILE}", path)
-    net = VGG16Features()
+    from_hed = any(k.startswith("hed.") for k in sd)  # a converted HED backbone (hed.py's cache file)
+    net = VGG16Features(with_hed=from_hed)
     _check_and_load(net, sd, path)
-    net.source = str(path)
+    net.source = f"HED VGG-16 backbone (converted) from {path}" if from_hed else str(path)
     return net
 
 
