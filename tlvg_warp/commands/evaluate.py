@@ -158,7 +158,7 @@ def resolve_scene(run: dict, scene=None):
 
         c = run["cameras"][0]
         g, cams = demo_scene(n_views=run["n_total"], width=c.width, height=c.height)
-        if len(cams) == len(run["cameras"]) and all(
+        if all(
                 torch.allclose(a.world_to_camera.double(), b.world_to_camera.double(), atol=CAM_TOL)
                 for a, b in zip(cams, run["cameras"])):
             return g
@@ -228,7 +228,9 @@ def evaluate_runs(run_dirs, net, device, *, scene=None, max_views: int = 0, eval
     per, results = [], []
     for r in runs:
         t1 = time.perf_counter()
-        pv = score_views(*stylized_views(r["gaussians"], refs, device), refs, net)
+        views, a2 = stylized_views(r["gaussians"], refs, device)
+        r["colors"] = [v["color"] for v in views]  # for the report (not written to JSON)
+        pv = score_views(views, a2, refs, net)
         m = r["metrics"]
         scalars = {"gaussians": r["gaussians"].num, "bytes": r["bytes"], "wall_time_s": wall_time(m)}
         per.append(pv)
@@ -280,12 +282,7 @@ def report_html(res: dict, runs: list, refs) -> str:
                 + H.figure(field_picture(work, th, c), "its stroke field") + "</div>")
     n = len(refs.cameras)
     pick = sorted(set(np.linspace(0, n - 1, min(MAX_REPORT_VIEWS, n)).round().astype(int)))
-    stylized = {}
-    from ..eval.refs import render_views
-
-    for r, name in zip(runs, names):
-        vs = render_views(r["gaussians"], [refs.cameras[i] for i in pick], refs.background)
-        stylized[name] = [v["color"] for v in vs]
+    stylized = {name: [r["colors"][i] for i in pick] for r, name in zip(runs, names)}
     body.append("<h2>Views</h2>")
     for k, i in enumerate(pick):
         cells = [H.figure(refs.photos[i], "photo"), H.figure(refs.base[i]["color"], "un-stylized")]
