@@ -21,11 +21,12 @@ COMMANDS = {
     "stylize": "stylize a 3DGS scene with a painting's brushstrokes; with no arguments, the built-in demo scene "
                "and The Starry Night",
     "reconstruct": "fit a 3DGS scene to posed photos",
-    "evaluate": "metrics for a stylization run (and optionally a second one to compare)",
+    "evaluate": "SPEC §4 metrics of stylization runs of one scene and painting, one ruler for all",
     "judge": "VLM-as-a-judge pairwise comparison of two runs",
     "bench": "speed against quality: the stylization sweep by default (`bench sweep`); `bench raster` times the "
              "rasterizer alone",
     "stability": "drive the pipeline into the places where stylization breaks",
+    "study": "configs x scenes x paintings: resumable runs, Table 1 per scene, ablations, speed-quality chart",
 }
 
 
