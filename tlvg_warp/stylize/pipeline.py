@@ -194,10 +194,13 @@ def check_out_dir(out: Path, overwrite: bool, resume: bool) -> None:
 
 
 def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=None, overwrite=False,
-                progress=True, vgg=None, interrupt_at: int | None = None, quiet=False) -> StylizeResult:
+                progress=True, vgg=None, interrupt_at: int | None = None, quiet=False,
+                on_progress=None) -> StylizeResult:
     """Run the three phases. ``resume``: a run folder / checkpoint to continue. ``vgg``: a loaded feature
     network (default: load_vgg(cfg.vgg_weights)). ``interrupt_at``: behave as if Ctrl-C came after that
-    step (tests). Raises KeyboardInterrupt after saving a checkpoint, StylizeDiverged on NaN."""
+    step (tests). ``on_progress(step, gaussians)``: called at every log flush (every ``log_every`` steps and
+    at the end of each phase) with the current Gaussians, detached (the live viewer, ``stylize --view``).
+    Raises KeyboardInterrupt after saving a checkpoint, StylizeDiverged on NaN."""
     from tqdm import tqdm
 
     from ..losses import (color_transfer, content_loss, fast_loss, field_at_cells, fit_loss,
@@ -530,6 +533,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                     intr.flag = True
                 if step % cfg.log_every == 0 or k + 1 == n_phase or intr.flag:
                     flush(step, phase, k, img, fld)
+                    if on_progress is not None:
+                        on_progress(step, opt.params.detached())
                     if k + 1 == n_phase or step % (cfg.log_every * 10) == 0:
                         write_log()
                 if out is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
