@@ -45,9 +45,13 @@ form. Answer "tie" only when the two are truly indistinguishable on that criteri
 Also give each image an Authenticity score from 1 to 10: how convincingly it reads as a real painting by \
 the same artist (10 = indistinguishable from a physical painting).
 
+Also score each image from 1 to 10 on each of the three criteria (10 = best).
+
 Answer with JSON only, no other text:
 {"flow_alignment": "A" | "B" | "tie", "materiality": "A" | "B" | "tie", "aesthetics": "A" | "B" | "tie", \
-"authenticity": {"A": <integer 1-10>, "B": <integer 1-10>}}"""
+"authenticity": {"A": <integer 1-10>, "B": <integer 1-10>}, \
+"scores": {"flow_alignment": {"A": <1-10>, "B": <1-10>}, "materiality": {"A": <1-10>, "B": <1-10>}, \
+"aesthetics": {"A": <1-10>, "B": <1-10>}}}"""
 
 
 # ----------------------------------------------------------------------------------------------- inputs
@@ -152,19 +156,28 @@ def parse_verdict(text: str) -> dict:
     auth = obj.get("authenticity")
     if not isinstance(auth, dict):
         raise ValueError("authenticity missing")
+    out["authenticity"] = _pair_scores(auth, "authenticity")
+    per = obj.get("scores")  # per-criterion 1-10 scores: optional (older prompts), validated when given
+    if per is not None:
+        if not isinstance(per, dict) or any(not isinstance(per.get(c), dict) for c in CRITERIA):
+            raise ValueError("scores: expected {criterion: {A: s, B: s}} for every criterion")
+        out["scores"] = {c: _pair_scores(per[c], f"scores.{c}") for c in CRITERIA}
+    return out
+
+
+def _pair_scores(d: dict, what: str) -> dict:
     scores = {}
     for pos in ("A", "B"):
-        s = auth.get(pos, auth.get(pos.lower()))
+        s = d.get(pos, d.get(pos.lower()))
         if isinstance(s, str):
             try:
                 s = float(s)
             except ValueError:
                 pass
         if isinstance(s, bool) or not isinstance(s, (int, float)) or not 1 <= s <= 10:
-            raise ValueError(f"authenticity {pos}: {s!r} is not a score in 1-10")
+            raise ValueError(f"{what} {pos}: {s!r} is not a score in 1-10")
         scores[pos] = float(s)
-    out["authenticity"] = scores
-    return out
+    return scores
 
 
 # -------------------------------------------------------------------------------------------- transport
@@ -250,6 +263,9 @@ def aggregate(records) -> dict:
     rates = [v for v in out["win_rate"].values() if v is not None]
     out["win_rate"]["average"] = _mean(rates)
     out["authenticity"] = {k: _mean([r["authenticity"][k] for r in valid]) for k in ("a", "b")}
+    scored = [r for r in valid if r.get("scores")]
+    out["scores"] = {c: {k: _mean([r["scores"][c][k] for r in scored]) for k in ("a", "b")} for c in CRITERIA}
+    out["scored"] = len(scored)
     return out
 
 
@@ -284,6 +300,8 @@ def run_judge(run_a, run_b, models, base_url, api_key=None, style=None, seed=0, 
             back = lambda v: "tie" if v == "tie" else pos[v]  # noqa: E731 - position -> run
             rec["verdict"] = {c: back(p[c]) for c in CRITERIA}
             rec["authenticity"] = {pos[k]: v for k, v in p["authenticity"].items()}
+            if "scores" in p:
+                rec["scores"] = {c: {pos[k]: v for k, v in p["scores"][c].items()} for c in CRITERIA}
         if log:
             log(f"{view} {m}: " + ("ok" if res["valid"] else "invalid (" + "; ".join(res["errors"]) + ")"))
         return rec
@@ -320,19 +338,47 @@ def format_table(result) -> str:
     for c in CRITERIA:
         k = p["counts"][c]
         counts = f"{k['a']}/{k['tie']}/{k['b']}"
-        lines.append(f"{CRITERION_NAMES[c]:<16}{_pct(p['win_rate'][c]):>13}{counts:>12}")
+        sc = p.get("scores", {}).get(c, {})
+        lines.append(f"{CRITERION_NAMES[c]:<16}{_pct(p['win_rate'][c]):>13}{counts:>12}"
+                     f"{_score(sc.get('b')):>9}{_score(sc.get('a')):>9}")
     au = p["authenticity"]
     lines.append(f"{'Average':<16}{_pct(p['win_rate']['average']):>13}{'':>12}"
                  f"{_score(au['b']):>9}{_score(au['a']):>9}")
-    lines.append(f"Invalid answers: {p['invalid']} of {p['n']}   (scores: mean Authenticity 1-10)")
+    lines.append(f"Invalid answers: {p['invalid']} of {p['n']}   (scores: mean 1-10 per criterion; Average row: "
+                 f"Authenticity)")
     lines.append("")
-    lines.append(f"{'Model':<24}{'Flow':>9}{'Mater.':>9}{'Aesth.':>9}{'B auth':>8}{'A auth':>8}{'invalid':>9}")
+    lines.append(f"{'Model':<24}{'Flow':>9}{'Mater.':>9}{'Aesth.':>9}{'B auth':>8}{'A auth':>8}{'invalid':>9}"
+                 "   B/A score: flow, materiality, aesthetics")
     for m, s in result["per_model"].items():
         w = s["win_rate"]
+        sc = s.get("scores", {})
+        ba = "  ".join(f"{_score(sc.get(c, {}).get('b'))}/{_score(sc.get(c, {}).get('a'))}" for c in CRITERIA)
         lines.append(f"{m[:23]:<24}{_pct(w['flow_alignment']):>9}{_pct(w['materiality']):>9}"
                      f"{_pct(w['aesthetics']):>9}{_score(s['authenticity']['b']):>8}"
-                     f"{_score(s['authenticity']['a']):>8}{s['invalid']:>5}/{s['n']}")
+                     f"{_score(s['authenticity']['a']):>8}{s['invalid']:>5}/{s['n']}   {ba}")
     return "\n".join(lines)
+
+
+LOCAL_HOSTS = ("localhost", "127.0.0.1", "::1")
+PREFLIGHT_TIMEOUT_S = 5.0
+
+
+def preflight(base_url: str, api_key=None) -> None:
+    """Stop before sending anything (SPEC §4): a remote endpoint without a key, or an endpoint that does not
+    accept a connection, is a one-line InputError naming the endpoint (never the key)."""
+    import socket
+    from urllib.parse import urlparse
+
+    u = urlparse(base_url)
+    if u.scheme not in ("http", "https") or not u.hostname:
+        raise InputError("not an http(s) endpoint", base_url)
+    if not api_key and u.hostname not in LOCAL_HOSTS:
+        raise InputError("no API key (pass --api-key or set OPENAI_API_KEY)", base_url)
+    port = u.port or (443 if u.scheme == "https" else 80)
+    try:
+        socket.create_connection((u.hostname, port), timeout=PREFLIGHT_TIMEOUT_S).close()
+    except OSError as e:
+        raise InputError(f"endpoint does not answer ({type(e).__name__})", base_url) from None
 
 
 def stderr_log(msg):
