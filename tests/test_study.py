@@ -1,0 +1,70 @@
+"""`python -m tlvg_warp study`: a tiny CPU study (the demo scene, 2 configs, 4 iterations, random VGG so the
+style metrics are 'not measured'): tables, CSV, report; a second invocation skips every finished run."""
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from tlvg_warp.cli import main
+from tlvg_warp.eval.metrics import interval
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    root = tmp_path_factory.mktemp("study")
+    y = root / "study.yaml"
+    y.write_text(f"""out: out
+device: cpu
+iterations: 4
+vgg_weights: random
+eval_height: 32
+max_views: 6
+set: [orbit_frames=0, comparison_views=1, log_every=2]
+configs: {{tlvg: {REPO}/configs/tlvg.yaml, abcgs: {REPO}/configs/abcgs.yaml}}
+ours: tlvg
+baseline: abcgs
+ablations: [abcgs]
+scenes: {{demo: {{demo: true, downscale: 4}}}}
+paintings: {{starry: builtin}}
+""")
+    assert main(["study", str(y)]) == 0
+    return root / "out", y
+
+
+def test_study_writes_table_per_scene_ablation_and_report(study):
+    out, _ = study
+    res = json.loads((out / "study.json").read_text())
+    assert set(res["status"].values()) == {"ran"}
+    rows = res["tables"]["demo"]["rows"]
+    assert [r["config"] for r in rows] == ["tlvg", "abcgs"]
+    for r in rows:
+        assert r["style_gram"] is None and r["flow_alignment"] is None  # random VGG: not measured
+        c = r["consistency_k1"]
+        assert c["lo"] <= c["mean"] <= c["hi"] and c["n"] == 5  # 6 views -> 5 pairs
+    # the evaluation is the one `evaluate` writes for the same runs (one ruler)
+    ev = json.loads((out / "eval" / "demo__starry" / "evaluation.json").read_text())
+    by = {r["name"]: r for r in ev["runs"]}
+    for r in rows:
+        assert interval(by[r["config"]]["per_view"]["consistency_k1"]) == r["consistency_k1"]
+    assert [r["config"] for r in res["ablation"]] == ["abcgs"]
+    with open(out / "study.csv") as f:
+        table = list(csv.DictReader(f))
+    assert {r["metric"] for r in table if r["mean"] == "not measured"} == {"flow_alignment", "style_gram",
+                                                                             "style_nnfm", "content"}
+    html = (out / "study.html").read_text()
+    for text in ("Scene demo", "Ablations", "Speed and quality", "Multi-view error", "not measured", "base64"):
+        assert text in html, text
+
+
+def test_study_resume_skips_finished_runs(study, capsys):
+    out, y = study
+    stamps = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/*/*/stylized.ply")}
+    assert len(stamps) == 2
+    assert main(["study", str(y)]) == 0
+    res = json.loads((out / "study.json").read_text())
+    assert set(res["status"].values()) == {"skipped"}
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
+    assert capsys.readouterr().out.count("skip demo/starry/") == 2

@@ -1,0 +1,377 @@
+"""A study: configs x scenes x paintings, each scene fitted once, every stylization run once (finished runs are
+skipped, interrupted ones resumed), every (scene, painting) evaluated with one ruler, then the paper's Table 1
+per scene (a row per config), the ablation table, the speed-quality chart, optionally the VLM panel; written
+as study.json, study.csv and study.html.
+
+STUDY.yaml (paths relative to the YAML file):
+    out: runs/study            # study folder
+    device: auto               # cpu | cuda | auto (stylize and evaluate)
+    iterations: 3000           # per stylization
+    vgg_weights: null          # null: the default resolution (SPEC §3); random: smoke runs
+    eval_height: 256           # style/content evaluation height
+    max_views: 0               # evaluate the first N views (0: all)
+    set: []                    # KEY=VALUE overrides for every stylization
+    configs: {tlvg: configs/tlvg.yaml, abcgs: configs/abcgs.yaml, ...}
+    ours: tlvg
+    baseline: abcgs
+    ablations: [no_advection, ...]  # compared with `ours` in the ablation table
+    scenes: {fern: {data: path, downscale: 4, fit_iterations: 7000}, demo: {demo: true, downscale: 4}}
+    paintings: {starry_night: path}
+    judge: {models: [m1, m2], base_url: URL, max_views: 4}   # used with --judge
+"""
+from __future__ import annotations
+
+import csv
+import io
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import InputError
+from ..fileio import write_json, write_text
+from . import metrics as M
+
+TOP_KEYS = {"out", "device", "iterations", "vgg_weights", "eval_height", "max_views", "set", "configs", "ours",
+            "baseline", "ablations", "scenes", "paintings", "judge"}
+
+
+@dataclass
+class Study:
+    path: Path
+    out: Path
+    configs: dict
+    scenes: dict
+    paintings: dict
+    device: str = "auto"
+    iterations: int = 3000
+    vgg_weights: str | None = None
+    eval_height: int = 256
+    max_views: int = 0
+    overrides: list = field(default_factory=list)
+    ours: str | None = None
+    baseline: str | None = None
+    ablations: list = field(default_factory=list)
+    judge: dict = field(default_factory=dict)
+
+
+def load_study(path) -> Study:
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("study file not found", path)
+    try:
+        d = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise InputError(f"unreadable YAML ({str(e).splitlines()[0]})", path) from None
+    if not isinstance(d, dict):
+        raise InputError("expected a mapping", path)
+    bad = sorted(set(d) - TOP_KEYS)
+    if bad:
+        raise InputError(f"unknown key(s) {bad}; known: {sorted(TOP_KEYS)}", path)
+    for k in ("configs", "scenes", "paintings"):
+        if not isinstance(d.get(k), dict) or not d[k]:
+            raise InputError(f"'{k}' must be a non-empty mapping of name: ...", path)
+    root = path.parent
+    rel = lambda p: p if p in (None, "builtin") else str((root / p).resolve())  # noqa: E731
+    configs = {n: rel(p) for n, p in d["configs"].items()}
+    for n, p in configs.items():
+        if not Path(p).is_file():
+            raise InputError(f"config {n!r}: {p} not found", path)
+    scenes = {}
+    for n, s in d["scenes"].items():
+        s = dict(s or {})
+        if not s.get("demo"):
+            if not s.get("data") or not Path(rel(s["data"])).exists():
+                raise InputError(f"scene {n!r}: data {s.get('data')!r} not found", path)
+            s["data"] = rel(s["data"])
+        scenes[n] = s
+    paintings = {n: rel(p) for n, p in d["paintings"].items()}
+    for n, p in paintings.items():
+        if p != "builtin" and not Path(p).is_file():
+            raise InputError(f"painting {n!r}: {p} not found", path)
+    st = Study(path, Path(rel(d.get("out", "study"))), configs, scenes, paintings, str(d.get("device", "auto")),
+               int(d.get("iterations", 3000)), d.get("vgg_weights"), int(d.get("eval_height", 256)),
+               int(d.get("max_views", 0)), list(d.get("set") or []), d.get("ours"), d.get("baseline"),
+               list(d.get("ablations") or []), dict(d.get("judge") or {}))
+    for role in ("ours", "baseline", *st.ablations):
+        name = getattr(st, role) if role in ("ours", "baseline") else role
+        if name is not None and name not in configs:
+            raise InputError(f"{role} {name!r} is not one of the configs {sorted(configs)}", path)
+    return st
+
+
+def resolve_device(dev: str) -> str:
+    import torch
+
+    return ("cuda" if torch.cuda.is_available() else "cpu") if dev == "auto" else dev
+
+
+# ---------------------------------------------------------------- running
+def fit_scene_once(st: Study, name: str, log) -> Path | None:
+    """The scene's un-stylized PLY (fitted here once); None for the built-in demo."""
+    s = st.scenes[name]
+    if s.get("demo"):
+        return None
+    ply = st.out / "scenes" / name / "point_cloud.ply"
+    if ply.is_file():
+        log(f"scene {name}: fitted already ({ply})")
+        return ply
+    from ..io import load_dataset
+    from ..train.reconstruct import ReconstructConfig, fit_scene
+
+    ds = load_dataset(s["data"], downscale=s.get("downscale"))
+    rc = ReconstructConfig(iterations=int(s.get("fit_iterations", 7000)), holdout_every=0,
+                           device=resolve_device(st.device), save_renders=False)
+    log(f"scene {name}: fitting {len(ds.cameras)} photos ({rc.iterations} iterations)")
+    fit_scene(ds, rc, ply.parent, progress=False, overwrite=True)
+    return ply
+
+
+def run_dir(st: Study, scene: str, painting: str, config: str) -> Path:
+    return st.out / "runs" / scene / painting / config
+
+
+def finished(d: Path) -> bool:
+    return (d / "metrics.json").is_file() and (d / "stylized.ply").is_file()
+
+
+def stylize_once(st: Study, scene: str, ply, painting: str, config: str, log) -> str:
+    """'skipped' (finished before), 'ran', or 'failed (rc)'."""
+    from ..cli import main
+
+    d = run_dir(st, scene, painting, config)
+    if finished(d):
+        log(f"skip {scene}/{painting}/{config}: finished")
+        return "skipped"
+    s = st.scenes[scene]
+    argv = ["stylize", "--config", st.configs[config], "--out", str(d), "--iterations", str(st.iterations),
+            "--device", resolve_device(st.device), "--quiet"]
+    if st.paintings[painting] != "builtin":
+        argv += ["--style", st.paintings[painting]]
+    if ply is not None:
+        argv += ["--scene", str(ply), "--data", s["data"]]
+    if s.get("downscale"):
+        argv += ["--downscale", str(s["downscale"])]
+    if st.vgg_weights is not None:
+        argv += ["--vgg-weights", str(st.vgg_weights)]
+    for o in st.overrides:
+        argv += ["--set", str(o)]
+    if (d / "checkpoint.pt").is_file():
+        argv += ["--resume", str(d)]
+    elif d.exists():
+        argv += ["--overwrite"]
+    log(f"stylize {scene}/{painting}/{config} ...")
+    rc = main(argv)
+    return "ran" if rc == 0 and finished(d) else f"failed ({rc})"
+
+
+# ---------------------------------------------------------------- tables
+def pooled(per_lists: list) -> dict:
+    """Per-view dicts of several (scene, painting) evaluations of one config, concatenated in a fixed order,
+    so configs stay paired view by view."""
+    out = {}
+    for pv in per_lists:
+        for k, v in pv.items():
+            out[k] = None if v is None or out.get(k, []) is None else out.get(k, []) + list(v)
+    return out
+
+
+def config_rows(names, per_views, times, counts) -> tuple[list, dict]:
+    from ..commands.evaluate import winners
+
+    rows = []
+    for n, pv, t, c in zip(names, per_views, times, counts):
+        rows.append({"config": n, **{k: (None if v is None else M.interval(v)) for k, v in pv.items()},
+                     "gaussians": c, "wall_time_s": t})
+    return rows, winners(names, per_views)
+
+
+def ablation_rows(st: Study, pooled_all: dict) -> list:
+    from .refs import compare
+
+    out = []
+    if st.ours not in pooled_all:
+        return out
+    for a in st.ablations:
+        if a in pooled_all:
+            out.append({"config": a, **compare(pooled_all[a], pooled_all[st.ours])})
+    return out
+
+
+def csv_text(tables: dict, ablation: list) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["table", "config", "metric", "mean", "lo", "hi", "n", "winner_or_verdict"])
+    for scene, t in tables.items():
+        for r in t["rows"]:
+            for k in M.METRICS:
+                v = r.get(k)
+                if isinstance(v, dict):
+                    w.writerow([scene, r["config"], k, v["mean"], v["lo"], v["hi"], v["n"],
+                                "winner" if t["winners"].get(k) == r["config"] else ""])
+                elif v is not None:
+                    w.writerow([scene, r["config"], k, v, "", "", "", ""])
+                elif M.METRICS[k].per_view:
+                    w.writerow([scene, r["config"], k, "not measured", "", "", "", ""])
+    for r in ablation:
+        for k, v in r.items():
+            if k != "config" and isinstance(v, dict):
+                w.writerow(["ablation (config - ours)", r["config"], k, v["mean"], v["lo"], v["hi"], v["n"],
+                            v["better"]])
+    return buf.getvalue()
+
+
+def run_study(st: Study, judge_cfg: dict | None = None, log=print) -> dict:
+    import torch
+
+    from ..commands.evaluate import evaluate_runs, report_html, wall_time
+    from ..losses.vgg import load_vgg
+
+    t0 = time.perf_counter()
+    device = torch.device(resolve_device(st.device))
+    status, evals = {}, {}
+    plys = {s: fit_scene_once(st, s, log) for s in st.scenes}
+    for s in st.scenes:
+        for p in st.paintings:
+            for c in st.configs:
+                status[f"{s}/{p}/{c}"] = stylize_once(st, s, plys[s], p, c, log)
+    net = load_vgg(st.vgg_weights, device=device)
+    for s in st.scenes:
+        for p in st.paintings:
+            dirs = [run_dir(st, s, p, c) for c in st.configs if finished(run_dir(st, s, p, c))]
+            if not dirs:
+                continue
+            res, runs, refs = evaluate_runs(dirs, net, device, scene=plys[s], max_views=st.max_views,
+                                            eval_height=st.eval_height, log=log,
+                                            cache_dir=st.out / "eval_cache")
+            out = st.out / "eval" / f"{s}__{p}"
+            write_json(out / "evaluation.json", res)
+            write_text(out / "evaluation.html", report_html(res, runs, refs))
+            evals[(s, p)] = {Path(r["run"]).name: r for r in res["runs"]}
+    configs = list(st.configs)
+    tables, pooled_all = {}, {}
+    for s in st.scenes:
+        have = [c for c in configs if all(c in evals.get((s, p), {}) for p in st.paintings)]
+        pv = [pooled([evals[(s, p)][c]["per_view"] for p in st.paintings]) for c in have]
+        times = [_mean([evals[(s, p)][c]["summary"]["wall_time_s"] for p in st.paintings]) for c in have]
+        counts = [_mean([evals[(s, p)][c]["summary"]["gaussians"] for p in st.paintings]) for c in have]
+        rows, win = config_rows(have, pv, times, counts)
+        tables[s] = {"rows": rows, "winners": win}
+        for c, v in zip(have, pv):
+            pooled_all.setdefault(c, []).append(v)
+    pooled_all = {c: pooled(v) for c, v in pooled_all.items() if len(v) == len(tables)}
+    overall = {c: {k: (None if v is None else M.interval(v)) for k, v in pv.items()} for c, pv in pooled_all.items()}
+    all_times = {c: _mean([r["wall_time_s"] for t in tables.values() for r in t["rows"] if r["config"] == c])
+                 for c in pooled_all}
+    result = {"study": str(st.path), "out": str(st.out), "device": str(device), "vgg": net.source,
+              "vgg_random": bool(net.is_random), "iterations": st.iterations, "status": status,
+              "tables": tables, "ablation": ablation_rows(st, pooled_all), "overall": overall,
+              "times": all_times, "ours": st.ours, "baseline": st.baseline}
+    if judge_cfg:
+        result["judge"] = run_panel(st, judge_cfg, log)
+    result["wall_s"] = round(time.perf_counter() - t0, 1)
+    write_json(st.out / "study.json", result)
+    write_text(st.out / "study.csv", csv_text(tables, result["ablation"]))
+    write_text(st.out / "study.html", study_html(result))
+    _ = wall_time  # noqa: F841 (re-exported for callers)
+    return result
+
+
+def _mean(xs):
+    xs = [x for x in xs if isinstance(x, (int, float))]
+    return sum(xs) / len(xs) if xs else None
+
+
+def run_panel(st: Study, jc: dict, log) -> dict:
+    """The VLM panel on ours vs baseline for every (scene, painting): {scene/painting: judge result}."""
+    from . import judge
+
+    out = {}
+    for s in st.scenes:
+        for p in st.paintings:
+            a, b = run_dir(st, s, p, st.ours), run_dir(st, s, p, st.baseline)
+            if finished(a) and finished(b):
+                res = judge.run_judge(a, b, jc["models"], jc["base_url"], jc.get("api_key"),
+                                      max_views=jc.get("max_views"), log=None)
+                out[f"{s}/{p}"] = res
+                write_json(st.out / "judge" / f"{s}__{p}.json", res)
+                log(judge.format_table(res))
+    return out
+
+
+# ---------------------------------------------------------------- report
+def config_table_html(rows, winners) -> str:
+    from . import report as H
+
+    keys = [k for k in M.METRICS if any(k in r for r in rows)]
+    head = "<tr><th class=l>config</th>" + "".join(
+        f"<th title='{H.esc(M.METRICS[k].unit)}'>{H.esc(M.METRICS[k].words)}<br><span class=small>"
+        f"{H.esc(M.METRICS[k].unit)}; {'↑' if M.METRICS[k].higher_better else '↓'}</span></th>" for k in keys) + "</tr>"
+    body = []
+    for r in rows:
+        tds = "".join(f"<td{' class=win' if winners.get(k) == r['config'] else ''}>{H.cell(r.get(k))}</td>"
+                      for k in keys)
+        body.append(f"<tr><td class=l><b>{H.esc(r['config'])}</b></td>{tds}</tr>")
+    return f"<table>{head}{''.join(body)}</table>"
+
+
+def ablation_html(rows, ours) -> str:
+    from . import report as H
+
+    if not rows:
+        return "<p class=small>no ablations</p>"
+    keys = [k for k in M.METRICS if any(k in r for r in rows)]
+    head = "<tr><th class=l>ablation</th>" + "".join(f"<th>{H.esc(M.METRICS[k].words)}<br><span class=small>"
+                                                    f"{'↑' if M.METRICS[k].higher_better else '↓'}</span></th>"
+                                                    for k in keys) + "</tr>"
+    body = []
+    for r in rows:
+        tds = []
+        for k in keys:
+            d = r.get(k)
+            if not d or d.get("mean") is None:
+                tds.append("<td>–</td>")
+                continue
+            word = {"a": "better", "b": "worse"}.get(d["better"], d["better"])
+            tds.append(f"<td>{H.fmt(d['mean'], 3)} <span class=small>[{H.fmt(d['lo'], 3)}, {H.fmt(d['hi'], 3)}]"
+                       f"</span><br>{word}</td>")
+        body.append(f"<tr><td class=l><b>{H.esc(r['config'])}</b></td>{''.join(tds)}</tr>")
+    return (f"<p class=small>Each cell: the ablation minus {H.esc(ours)}, mean paired difference over every view of "
+            f"every scene and painting with its 95% interval; 'worse' / 'better' only when the interval excludes 0."
+            f"</p><table>{head}{''.join(body)}</table>")
+
+
+def judge_html(panel: dict) -> str:
+    from . import judge
+    from . import report as H
+
+    parts = []
+    for key, res in panel.items():
+        parts.append(f"<h3>{H.esc(key)}</h3><pre>{H.esc(judge.format_table(res))}</pre>")
+    return "".join(parts)
+
+
+def study_html(res: dict) -> str:
+    from . import report as H
+
+    body = [f"<p>{H.esc(res['study'])}: {res['iterations']} iterations per run on {H.esc(res['device'])}; "
+            f"VGG: {H.esc(res['vgg'])}</p>"]
+    if res["vgg_random"]:
+        body.append("<p class=warn>VGG-16 weights are random: style, content and flow alignment are not measured."
+                    "</p>")
+    body.append(H.METHOD_NOTE)
+    for s, t in res["tables"].items():
+        body.append(f"<h2>Scene {H.esc(s)}</h2>" + config_table_html(t["rows"], t["winners"]))
+    body.append(f"<h2>Ablations (vs {H.esc(res['ours'])})</h2>" + ablation_html(res["ablation"], res["ours"]))
+    names = list(res["overall"])
+    sums = [res["overall"][n] for n in names]
+    body.append("<h2>Speed and quality (all scenes)</h2>"
+                + H.speed_chart(names, [res["times"].get(n) for n in names], sums))
+    body.append("<h2>Means with 95% intervals (all scenes)</h2>" + H.bars_chart(names, sums))
+    if res.get("judge"):
+        body.append("<h2>VLM-as-a-judge</h2>" + judge_html(res["judge"]))
+    links = "".join(f"<li>{H.esc(k)}: {H.esc(v)}</li>" for k, v in res["status"].items())
+    body.append(f"<h2>Runs</h2><ul class=small>{links}</ul><p class=small>Per (scene, painting) reports: "
+                f"eval/&lt;scene&gt;__&lt;painting&gt;/evaluation.html</p>")
+    return H.page("tlvg_warp study", "".join(body))
