@@ -1,0 +1,180 @@
+"""`python -m tlvg_warp view RUN|FILE`: the scene in the browser (viser; issue 16).
+
+RUN (a stylization run folder): stylized.ply, a "Scene" dropdown to switch to the un-stylized scene, and the
+training cameras of cameras.json as frustums. The run folder does not copy the un-stylized scene; it is found
+where evaluate finds it: --original, checkpoint.pt's sources["scene"], reconstruct/point_cloud.ply, or the
+built-in demo scene when the run's cameras are the demo's. When none exists the viewer says so and shows the
+stylized scene alone.
+FILE: any scene the project reads (INRIA .ply, .compressed.ply, .spz), with the cameras.json of an INRIA
+layout when one lies beside it. Serves on 127.0.0.1 (--host / --port) until Ctrl-C."""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from ..errors import InputError
+
+CAM_TOL = 1e-4  # the demo cameras are regenerated from the same formula: float32 round-off only
+
+
+def add_arguments(p):
+    from ..viewer import DEFAULT_HOST, DEFAULT_PORT, UP_AXES
+
+    p.add_argument("path", metavar="RUN|FILE",
+                   help="a stylization run folder, or a scene file (INRIA .ply, .compressed.ply, .spz)")
+    p.add_argument("--host", default=DEFAULT_HOST,
+                   help=f"address to bind (default {DEFAULT_HOST}: this machine only; 0.0.0.0 serves the network)")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT,
+                   help=f"port (default {DEFAULT_PORT}; a busy port moves to the next free one)")
+    p.add_argument("--original", default=None, metavar="PLY",
+                   help="with RUN: the un-stylized scene, when the run does not record where it is")
+    p.add_argument("--cameras", default=None, metavar="JSON",
+                   help="an INRIA cameras.json to draw as frustums (default: the run's, or one beside FILE)")
+    p.add_argument("--up", default=None, choices=sorted(UP_AXES),
+                   help="world up axis (default: from the cameras; -y without cameras, as COLMAP scenes)")
+
+
+# --- what a run folder holds ----------------------------------------------------------------------------------
+def read_cameras(path: Path) -> tuple[list, list]:
+    """INRIA cameras.json -> (names, [Camera])."""
+    import json
+
+    from ..io.datasets import inria_camera_entries
+    from ..types import Camera
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise InputError("missing file", path) from None
+    except (OSError, ValueError) as e:
+        raise InputError(f"unreadable JSON ({e})", path) from None
+    if not isinstance(data, list) or not data:
+        raise InputError("expected a non-empty list of cameras", path)
+    names, cams = [], []
+    for name, w2c, fx, fy, w, h in inria_camera_entries(data, path):
+        cams.append(Camera(torch.from_numpy(w2c), fx, fy, w / 2, h / 2, int(w), int(h), name=name))
+        names.append(name)
+    return names, cams
+
+
+def run_sources(run: Path) -> dict:
+    """Where the run's inputs came from (checkpoint.pt's ``sources``); {} when there is no checkpoint."""
+    ck = run / "checkpoint.pt"
+    if not ck.is_file():
+        return {}
+    try:
+        return dict(torch.load(ck, map_location="cpu", weights_only=False, mmap=True).get("sources") or {})
+    except Exception as e:  # noqa: BLE001 - an unreadable checkpoint is one line
+        raise InputError(f"unreadable checkpoint ({type(e).__name__})", ck) from None
+
+
+def find_original(run: Path, cams: list):
+    """(Gaussians or None, where from / why not)."""
+    from ..io.ply import load_ply
+
+    src = run_sources(run)
+    for cand in (src.get("scene"), run / "reconstruct" / "point_cloud.ply"):
+        if cand and Path(cand).is_file():
+            return load_ply(Path(cand)), str(cand)
+    if cams and not src.get("data") and not src.get("scene"):
+        from ..io.demo import demo_scene
+
+        g, dc = demo_scene(n_views=len(cams), width=cams[0].width, height=cams[0].height)
+        if all(torch.allclose(a.world_to_camera.double(), b.world_to_camera.double(), atol=CAM_TOL)
+               for a, b in zip(dc, cams)):
+            return g, "the built-in demo scene"
+    if src.get("scene"):
+        return None, f"the un-stylized scene {src['scene']} no longer exists; pass --original PLY"
+    return None, ("this run does not record its un-stylized scene (no checkpoint.pt sources, no "
+                  "reconstruct/point_cloud.ply); pass --original PLY to compare")
+
+
+def cameras_beside(scene: Path):
+    for d in (scene.parent, scene.parent.parent, scene.parent.parent.parent):
+        if (d / "cameras.json").is_file():
+            return d / "cameras.json"
+    return None
+
+
+def load_view(path, original=None, cameras=None) -> dict:
+    """What the viewer shows: {"scenes": {name: Gaussians}, "cameras": [Camera], "notes": [str], "title"}."""
+    from ..io.ply import load_ply
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError("no such run folder or scene file", p)
+    notes, cams = [], []
+    if p.is_dir():
+        ply = p / "stylized.ply"
+        if not ply.is_file():
+            raise InputError("missing stylized.ply (not a stylization run folder?); pass a scene file instead", p)
+        cj = Path(cameras) if cameras else p / "cameras.json"
+        if cj.is_file() or cameras:
+            _, cams = read_cameras(cj)
+        else:
+            notes.append("no cameras.json in the run folder: no training cameras to show")
+        scenes = {"stylized": load_ply(ply)}
+        if original is not None:
+            g0, where = load_ply(Path(original)), str(original)
+        else:
+            g0, where = find_original(p, cams)
+        if g0 is not None:
+            scenes["un-stylized"] = g0
+            notes.append(f"un-stylized: {where}")
+        else:
+            notes.append(where)
+        title = p.resolve().name
+    else:
+        scenes = {p.name: load_ply(p)}
+        cj = Path(cameras) if cameras else cameras_beside(p)
+        if cj is not None:
+            _, cams = read_cameras(cj)
+            notes.append(f"cameras: {cj}")
+        title = p.name
+    return {"scenes": scenes, "cameras": cams, "notes": notes, "title": title}
+
+
+def open_viewer(content: dict, host: str, port: int, up=None):
+    """A running SceneViewer showing ``content`` (load_view's dict)."""
+    from ..viewer import UP_AXES, DEFAULT_UP, SceneViewer, scene_center, scene_radius, up_from_cameras
+
+    v = SceneViewer(host, port, title=f"tlvg_warp: {content['title']}")
+    first = next(iter(content["scenes"].values()))
+    center = scene_center(first)
+    for name, g in content["scenes"].items():
+        v.set_scene(name, g)
+    cams = content["cameras"]
+    if cams:
+        v.add_cameras(cams, center)
+    for n in content["notes"]:
+        v.note(n)
+    up_vec = UP_AXES[up] if up else (up_from_cameras(cams) if cams else UP_AXES[DEFAULT_UP])
+    v.frame(center, up_vec, cams, scene_radius(first, center))
+    return v
+
+
+def serve_forever(v, quiet=False) -> int:
+    if not quiet:
+        print("press Ctrl-C to stop", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        v.stop()
+    return 0
+
+
+def run(args) -> int:
+    content = load_view(args.path, args.original, args.cameras)
+    v = open_viewer(content, args.host, args.port, args.up)
+    shown = ", ".join(f"{n} ({g.num:,} Gaussians)" for n, g in content["scenes"].items())
+    print(f"viewer: {v.address}  ({shown}; {len(content['cameras'])} training cameras)", flush=True)
+    for n in content["notes"]:
+        print(f"  {n}", flush=True)
+    sys.stdout.flush()
+    return serve_forever(v)
