@@ -8,6 +8,8 @@ from the normalized w,x,y,z quaternion and S = diag(exp(log_scales)); rgb = clam
 ``SceneViewer`` is the server; ``python -m tlvg_warp view`` and ``stylize --view`` drive it."""
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import threading
 
@@ -97,7 +99,8 @@ class SceneViewer:
             import viser
         except ImportError:
             raise InputError(INSTALL_HINT) from None
-        self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own address box; ours is one line
+            self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         self.server.gui.configure_theme(control_layout="floating", control_width="medium", show_logo=False,
                                         show_share_button=False)
         self._lock = threading.Lock()
@@ -218,7 +221,8 @@ class SceneViewer:
         ic.up = tuple(float(v) for v in up)
 
     def stop(self) -> None:
-        self.server.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
 
 
 def scene_radius(g: Gaussians, center) -> float:

@@ -55,6 +55,11 @@ def add_arguments(p):
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
     p.add_argument("--device", default=None, choices=["cpu", "cuda", "auto"], help="(config: device)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--view", action="store_true",
+                   help="watch it in the browser while it optimizes (viser; the splats refresh every log_every "
+                        "iterations); the viewer stays open after the run until Ctrl-C")
+    p.add_argument("--host", default="127.0.0.1", help="with --view: address to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8080, help="with --view: port (default 8080, or the next free one)")
 
 
 # --- inputs ----------------------------------------------------------------------------------------------------
@@ -263,12 +268,19 @@ def _run(args, cfg, sources, out, ck, device, vgg, wall0) -> int:
         print(f"stylize: {inp.gaussians.num} Gaussians, {len(inp.cameras)} views at {c.width}x{c.height}, "
               f"{cfg.iterations} iterations {cfg.phase_steps()} on {device}; VGG: "
               + (RANDOM_VGG_NOTE if vgg.is_random else vgg.source) + f"; out: {out}")
+    viewer = _live_viewer(inp, cfg, args) if getattr(args, "view", False) else None
     try:
         res = run_stylize(inp, cfg, out, resume=args.resume, overwrite=True, progress=not args.quiet,
-                          vgg=vgg, quiet=args.quiet)
+                          vgg=vgg, quiet=args.quiet, on_progress=viewer.on_progress if viewer else None)
     except StylizeDiverged as e:
         print(f"error: {e}", file=sys.stderr)
+        if viewer is not None:
+            viewer.stop()
         return 1
+    except BaseException:
+        if viewer is not None:
+            viewer.stop()
+        raise
     m = write_outputs(out, res, input_bytes=in_bytes, wall_start=wall0)
     tp = m["time_per_phase_s"]
     print(f"{out}: flow alignment {m['flow_alignment']:.3f} (original {m['flow_alignment_original']:.3f}), "
@@ -277,6 +289,38 @@ def _run(args, cfg, sources, out, ck, device, vgg, wall0) -> int:
           f"wall {m['wall_time_s']:.1f}s")
     print(f"open {out / 'comparison.png'} (photo, original and stylized views beside the painting); "
           f"the stylized scene is {out / 'stylized.ply'}")
+    if viewer is not None:
+        viewer.update("stylized", res.gaussians)
+        viewer.set_status(f"finished: {out / 'stylized.ply'}")
+        print(f"viewer: {viewer.address} shows the result; press Ctrl-C to stop", flush=True)
+        from .view import serve_forever
+
+        serve_forever(viewer, quiet=True)
     if not math.isfinite(m["flow_alignment"]):
         return 1
     return 0
+
+
+def _live_viewer(inp, cfg, args):
+    """A viewer of the optimization: "stylized" (refreshed by run_stylize's on_progress) and the input."""
+    from ..viewer import SceneViewer, scene_center, scene_radius, up_from_cameras
+
+    v = SceneViewer(args.host, args.port, title="tlvg_warp: stylize (live)")
+    g0 = inp.gaussians.detach().to("cpu")
+    v.set_scene("stylized", g0)
+    v.set_scene("un-stylized", g0)
+    center = scene_center(g0)
+    v.add_cameras(inp.cameras, center)
+    v.frame(center, up_from_cameras(inp.cameras), inp.cameras, scene_radius(g0, center))
+    v.set_status("iteration 0")
+
+    def on_progress(step, g):
+        try:
+            v.update("stylized", g)
+            v.set_status(f"iteration {step} / {cfg.iterations}")
+        except Exception as e:  # noqa: BLE001 - a viewer problem must not stop the optimization
+            print(f"viewer: update failed ({type(e).__name__}: {e})", file=sys.stderr)
+
+    v.on_progress = on_progress
+    print(f"viewer: {v.address} (live: the splats refresh every {cfg.log_every} iterations)", flush=True)
+    return v
