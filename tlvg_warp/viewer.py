@@ -70,12 +70,21 @@ def rotmat_to_wxyz(R: np.ndarray) -> np.ndarray:
     return np.array([w, x, y, z])
 
 
-def scene_center(g: Gaussians) -> np.ndarray:
-    """The median of the means: a far-away background does not drag it off the subject."""
+def _bounds(g: Gaussians):
+    """The 5-95 % quantile box of the means: far-away background and stray splats do not stretch it."""
     m = g.means.detach().double().cpu()
     if m.shape[0] > 200_000:
         m = m[:: m.shape[0] // 200_000]
-    return m.median(dim=0).values.numpy()
+    if m.shape[0] == 0:
+        return np.zeros(3), np.zeros(3)
+    q = torch.quantile(m, torch.tensor([0.01, 0.99], dtype=torch.float64), dim=0).numpy()
+    return q[0], q[1]
+
+
+def scene_center(g: Gaussians) -> np.ndarray:
+    """The middle of the 1-99 % box of the means (the subject, not the background)."""
+    lo, hi = _bounds(g)
+    return (lo + hi) / 2
 
 
 def up_from_cameras(cams) -> np.ndarray:
@@ -217,7 +226,9 @@ class SceneViewer:
             side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
             side /= np.linalg.norm(side)
             r = radius if radius and radius > 0 else 1.0
-            ic.position, ic.look_at = center + r * (0.8 * side + 0.45 * up), center
+            side = side + np.cross(up, side)  # a three-quarter view
+            side /= np.linalg.norm(side)
+            ic.position, ic.look_at = center + 0.8 * r * (0.95 * side + 0.3 * up), center
         ic.up = tuple(float(v) for v in up)
 
     def stop(self) -> None:
@@ -225,10 +236,8 @@ class SceneViewer:
             self.server.stop()
 
 
-def scene_radius(g: Gaussians, center) -> float:
-    """A viewing distance that frames most of the scene: twice the median distance of the means to the center."""
-    m = g.means.detach().double().cpu().numpy()
-    if m.shape[0] > 200_000:
-        m = m[:: m.shape[0] // 200_000]
-    d = np.linalg.norm(m - np.asarray(center)[None], axis=1)
-    return float(2.0 * np.median(d)) if d.size else 1.0
+def scene_radius(g: Gaussians, center=None) -> float:
+    """A viewing distance that frames the subject: the diagonal of the 1-99 % box of the means."""
+    lo, hi = _bounds(g)
+    d = float(np.linalg.norm(hi - lo))
+    return d if d > 1e-9 else 1.0
