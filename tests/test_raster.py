@@ -259,3 +259,29 @@ def test_bad_input_is_a_clear_error():
         render(g, cam)
     with pytest.raises(InputError, match="background"):
         render(g, camera(), background=[1.0, 2.0])
+
+
+def test_private_warp_array_descriptor_is_still_what_from_torch_builds():
+    """ops.ct builds Warp's private array_t itself (speed): fail here, by name, if Warp moves or changes it."""
+    import warp as wp
+
+    from tlvg_warp.ops import ct, warp_array_ctype
+
+    t = torch.arange(12, dtype=torch.float32).reshape(4, 3)
+    ref = wp.from_torch(t, dtype=wp.vec3, return_ctype=True)
+    assert type(ref) is warp_array_ctype()
+    ours = ct(t, wp.vec3)
+    for f in ("data", "grad", "ndim"):
+        assert getattr(ours, f) == getattr(ref, f), f
+    assert tuple(ours.shape)[:ours.ndim] == tuple(ref.shape)[:ref.ndim]
+    assert tuple(ours.strides)[:ours.ndim] == tuple(ref.strides)[:ref.ndim]
+
+
+def test_backward_after_an_in_place_change_is_refused():
+    """The raster op saves its inputs for backward: autograd's version check catches a stale graph."""
+    g = leafs(random_scene(30, 0, seed=3))
+    out = render(g, camera())
+    with torch.no_grad():
+        g.means.add_(0.01)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        out.color.sum().backward()

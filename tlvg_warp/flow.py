@@ -57,11 +57,13 @@ class FlowTermsFn(torch.autograd.Function):
                 wp.launch(K.flow_terms, dim=n, inputs=ins + [cargs[0], cargs[1], cargs[2], cargs[3], cam.width, cam.height],
                           outputs=outs, device=wdev)
         ctx.state = (tape, outs, grads, means.device)
+        ctx.save_for_backward(means, quats, log_scales)  # autograd's in-place check on the inputs
         return align, aniso
 
     @staticmethod
     def backward(ctx, g_align, g_aniso):
         tape, outs, grads, device = ctx.state
+        ctx.saved_tensors  # noqa: B018 (raises if an input changed in place since the forward)
         ctx.state = None
         for o, g in zip(outs, (g_align, g_aniso)):
             if g is not None:

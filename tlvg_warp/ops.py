@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import torch
 import warp as wp
-from warp._src.types import array_t  # what wp.from_torch(return_ctype=True) builds (warp is pinned in pyproject)
 
 from .types import Camera
 
@@ -58,6 +57,29 @@ def warp_on(device: torch.device):
         yield wp.device_from_torch(device)
 
 
+def warp_array_ctype():
+    """Warp's C array descriptor class (``array_t``): what ``wp.from_torch(..., return_ctype=True)`` builds.
+
+    The one place this module touches Warp's private API (``warp._src.types``; ``warp.types`` before 1.10).
+    tests/test_raster.py checks that it still is the class from_torch returns, with the fields ``ct`` fills,
+    so a Warp upgrade that moves or changes it fails there by name rather than as a crash in a kernel."""
+    global _ARRAY_T
+    if _ARRAY_T is None:
+        try:
+            from warp._src.types import array_t
+        except ImportError:
+            try:
+                from warp.types import array_t
+            except ImportError as e:
+                raise ImportError(f"this Warp ({wp.config.version}) has no array_t in warp._src.types or "
+                                  f"warp.types: tlvg_warp.ops.warp_array_ctype needs updating") from e
+        _ARRAY_T = array_t
+    return _ARRAY_T
+
+
+_ARRAY_T = None
+
+
 def ct(t: torch.Tensor, dtype=None):
     """A bare array descriptor for launches outside the tape: what ``wp.from_torch(t, dtype, return_ctype=True)``
     builds, without its per-call checks (a few microseconds each, dozens per render). Callers pass tensors whose
@@ -66,7 +88,7 @@ def ct(t: torch.Tensor, dtype=None):
     shape, strides = t.shape, t.stride()
     if dtype is not None and hasattr(dtype, "_shape_"):  # vector dtype: the last torch dim is the vector
         shape, strides = shape[:-1] or (1,), strides[:-1] or (1,)
-    a = array_t(t.data_ptr(), 0, len(shape), tuple(shape), tuple(x * elem for x in strides))
+    a = warp_array_ctype()(t.data_ptr(), 0, len(shape), tuple(shape), tuple(x * elem for x in strides))
     a._ref = t  # keeps the memory alive as long as the descriptor
     return a
 
@@ -333,6 +355,9 @@ class RasterizeFn(torch.autograd.Function):
             tape.record_func(backward=attach_input_grads, arrays=[])
             tape.record_func(backward=blend_backward, arrays=[])
         ctx.state = (tape, proj, pouts, io, device, wargs)
+        # the inputs are read by the tape's adjoints: saving them lets autograd refuse a backward after an
+        # in-place change (torch's version counter) instead of returning stale gradients
+        ctx.save_for_backward(means, quats, log_scales, opacity_logits, sh)
         ctx.image_size = (cam.height, cam.width)
         ctx.mark_non_differentiable(proj.radii, weights)
         return color, alpha, depth, proj.radii, weights if settings["weights"] else None
@@ -340,6 +365,7 @@ class RasterizeFn(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
         tape, proj, pouts, io, device, wargs = ctx.state
+        ctx.saved_tensors  # noqa: B018 (raises if an input changed in place since the forward)
         K = kernels_for(proj.depth.dtype)
         # gradient buffers exist only from here on (fresh per call, so a second backward through the same
         # graph, e.g. gradcheck or retain_graph, never sees the first call's sums)

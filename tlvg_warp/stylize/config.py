@@ -68,12 +68,16 @@ class StylizeConfig:
     max_world_size: float = 0.1  # prune above this fraction of the extent (3DGS)
     gaussian_budget: int = 0  # hard cap on the Gaussian count; 0: budget_factor x the starting count
     budget_factor: float = 1.5  # budget relative to the input scene when gaussian_budget is 0
+    use_budget: bool = True  # cap the Gaussian count at the budget (ours; ABC-GS has no cap)
+    prune_unseen: bool = True  # prune Gaussians that contribute to no view over an epoch (ours; ABC-GS has none)
     # --- output --------------------------------------------------------------------------------------------------
     keep_sh: bool = False  # keep view-dependent SH bands in stylized.ply (default: degree 0, ~3.6x smaller)
     web_formats: bool = True  # also write stylized.compressed.ply (SuperSplat/PlayCanvas) and stylized.spz (Niantic)
     background: list | None = None  # render background RGB; None: the dataset's (white for the demo)
     log_every: int = 50  # host reads (log flush, progress bar, NaN check, last-good snapshot) every N iterations
-    checkpoint_every: int = 0  # also write checkpoint.pt every N iterations (0: on interrupt / at the end)
+    checkpoint_every: int = 0  # also write checkpoint.pt every N iterations (0: by time only, below)
+    checkpoint_seconds: float = 60.0  # ... and at the first log point a minute after the last one (0: off); a
+    # killed run (SIGKILL, power loss) loses about this much; log.jsonl is written at the same point
     orbit_frames: int = 96  # frames of orbit.mp4 (interpolated between the dataset cameras)
     orbit_fps: int = 24  # frame rate of orbit.mp4
     comparison_views: int = 4  # rows of comparison.png
@@ -105,7 +109,7 @@ class StylizeConfig:
                 raise InputError(f"config {k} must be one of {', '.join(opts)}, got {getattr(self, k)!r}")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if (f.name.startswith(("w_", "lr_")) or f.name in ("max_screen_size", "max_world_size", "min_opacity",
+            if (f.name.startswith(("w_", "lr_")) or f.name in ("checkpoint_seconds", "max_screen_size", "max_world_size", "min_opacity",
                                                                "percent_dense", "densify_grad_threshold")):
                 if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                     raise InputError(f"config {f.name} must be a finite number >= 0, got {v}")

@@ -68,12 +68,6 @@ def comparison_grid(rows: list, painting: np.ndarray, caption: str) -> np.ndarra
 
 
 # --- the orbit path ------------------------------------------------------------------------------------------
-def _rot_to_quat(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_quat()
-
-
 def orbit_path(cams: list, n_frames: int) -> list:
     """Cameras interpolated through the dataset cameras in order (positions linear, rotations slerp); a closed
     loop when the last camera is about one step from the first (an orbit), an open path otherwise.

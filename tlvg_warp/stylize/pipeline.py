@@ -8,7 +8,7 @@ Every iteration renders ONE training view, drawn at random without replacement p
    0.8·L1 + 0.2·(1−SSIM), density control on (``density_in_pre``).
 2. stylize: style (FAST on luminance by default) + content + inverse depth + TV + opacity/scale anchors
    + Lab chroma (0.2 → 0.05) + flow alignment + anisotropy; xyz unlocked with its exponential decay, the
-   tangential hook after every Adam step, density control under the Gaussian budget.
+   tangential hook after every Adam step of this phase (and of no other), density control under the budget.
 3. post-process: every view rendered and recolored once more; colors and rotations fit to them
    (xyz, scales, opacities keep their values: their gradients are dropped, Adam skips them).
 
@@ -20,11 +20,12 @@ inverse depth (at the start), the target stroke fields (at the start of stylize,
 Decisions (beyond the spec, documented):
 - keep_sh False (default): the whole run works at SH degree 0 (the input's view-dependent bands are
   dropped at the start), so stylized.ply is exactly what was optimized.
-- The content loss compares the features the style loss already computed (luminance features when
-  luminance_only) with the same features of the original photo: one VGG pass per iteration. Chroma is
-  governed by the Lab statistics term, which is the paper's split.
+- The content loss compares RGB VGG features of the render with those of the original photo, also when the
+  style loss is luminance-only (SPEC §3, as ARF-Plus: only the style term is decoupled); that costs a second
+  VGG pass per iteration when luminance_only. The RGB-loss ablation changes the style term's input only.
 - The "matched" target field of a view is built from the FAST/NNFM cell match of that view's render at the
-  start of stylize and then held fixed (a target that moved with the render would chase itself).
+  start of stylize and then held fixed (a target that moved with the render would chase itself). The match
+  is on luminance features whatever the style term's input, so the RGB-loss ablation keeps the same fields.
 - The opacity / scale anchors follow density control: a clone or split child is anchored at its own
   value when it is born.
 - lock_xyz locks positions during stylize only (the pre-process is a photometric fit).
@@ -189,10 +190,6 @@ def load_checkpoint(path) -> dict:
     return runs.read_checkpoint(path, CHECKPOINT_FORMAT, "stylize")
 
 
-def check_out_dir(out: Path, overwrite: bool, resume: bool) -> None:
-    runs.check_out_dir(out, overwrite, resume, RUN_FILES)
-
-
 def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=None, overwrite=False,
                 progress=True, vgg=None, interrupt_at: int | None = None, quiet=False,
                 on_progress=None) -> StylizeResult:
@@ -232,13 +229,15 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     if vgg is None:
         vgg = load_vgg(cfg.vgg_weights, device)
     vgg = vgg.to(device)
-    lum = luminance if cfg.luminance_only else (lambda x: x)
+    style_in = luminance if cfg.luminance_only else (lambda x: x)  # the style term's input (and nothing else)
     style_np = inp.style.detach().cpu().numpy().astype(np.float32)
     style_work = torch.from_numpy(resize_style(style_np, cfg.style_height)).contiguous()  # [hs,ws,3]
     with torch.no_grad():
-        sf = vgg(lum(style_work.to(device)), scale=1.0)  # [1,768,fh,fw]
-    style_cells = tuple(sf.shape[-2:])
-    style_feats = flatten_feats(sf).contiguous()  # [768, Ns]
+        sf_lum = vgg(luminance(style_work.to(device)), scale=1.0)  # [1,768,fh,fw]: the field match
+        sf = sf_lum if cfg.luminance_only else vgg(style_work.to(device), scale=1.0)
+    style_cells = tuple(sf_lum.shape[-2:])
+    style_feats = flatten_feats(sf).contiguous()  # [768, Ns]: the style term's target
+    match_feats = flatten_feats(sf_lum).contiguous()
     s_theta, s_coh, s_doubled = stroke_field(style_work.numpy())
     style_doubled_cells = torch.from_numpy(field_at_cells(s_doubled, style_cells)).to(device)
 
@@ -255,7 +254,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
             ro = render(g_in, cam, bg)
             inv_depth.append(inverse_depth(ro.depth))
             originals.append(ro.color.clamp(0, 1).cpu())
-            photo_feats.append(flatten_feats(vgg(lum(photos[i]), scale=cfg.vgg_scale)))
+            photo_feats.append(flatten_feats(vgg(photos[i], scale=cfg.vgg_scale)))  # content: RGB
     extent = scene_extent(cams)
 
     # --- parameters, one Adam across the phases ---------------------------------------------------------------------
@@ -267,6 +266,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                         cfg.lr_opacity, cfg.lr_scales, cfg.lr_quats)
     Opt = _optimizer_class()
     budget = cfg.gaussian_budget or max(g_in.num, int(math.ceil(cfg.budget_factor * g_in.num)))
+    if not cfg.use_budget:
+        budget = 1 << 62
     st = _State()
     gen = torch.Generator().manual_seed(cfg.seed)
     if ck is not None:
@@ -275,8 +276,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         params = GaussianParams(g_work, g_work.sh_degree)
     opt = Opt(params, lrs, extent, lrs.means_steps)
     opt.anchors = None
-    if cfg.tangential_lambda > 0:
-        opt.register_post_step_hook(tangential_hook(cfg.tangential_lambda), fields=("means",))
+    # the tangential hook acts in the Stylize phase only (SPEC §3); the loop installs it per step
+    stylize_hooks = [(tangential_hook(cfg.tangential_lambda), ("means",))] if cfg.tangential_lambda > 0 else []
     # 3DGS's screen-size rule was set for ~1000-pixel images; larger renders scale it so that a sharper view
     # of the same scene does not prune every splat as "too big on screen" (seen in the stability suite)
     longest = max(max(c.width, c.height) for c in cams)
@@ -284,7 +285,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     dcfg = DensityConfig(grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
                          min_opacity=cfg.min_opacity, max_screen_size=screen_limit,
                          max_world_size=cfg.max_world_size, interval=cfg.densify_interval, start=0, until=1 << 62,
-                         opacity_reset_interval=0, max_gaussians=budget, prune_unseen=True,
+                         opacity_reset_interval=0, max_gaussians=budget, prune_unseen=cfg.prune_unseen,
                          contribution_window=2 * n_views - 1)  # any 2n-1 consecutive views hold an epoch
     density = DensityControl(dcfg, params.num, device)
     density.generator = torch.Generator(device=device).manual_seed(cfg.seed + 1)
@@ -334,7 +335,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
 
     # --- phase set-up (idempotent: a resumed run restores these from the checkpoint) ----------------------------
     def features(img):
-        return flatten_feats(vgg(lum(img), scale=cfg.vgg_scale))
+        return flatten_feats(vgg(img, scale=cfg.vgg_scale))
 
     def ensure_stylize_targets():
         if opt.anchors is None:
@@ -349,8 +350,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                 if cfg.field_mapping == "canvas":
                     _, _, d = map_field_canvas(torch.from_numpy(s_doubled).to(device), cam.height, cam.width)
                 else:
-                    f = vgg(lum(render(g, cam, bg).color), scale=cfg.vgg_scale)  # [1,768,hc,wc]
-                    idx, w = match_style_cells(flatten_feats(f), style_feats)
+                    f = vgg(luminance(render(g, cam, bg).color), scale=cfg.vgg_scale)  # [1,768,hc,wc]
+                    idx, w = match_style_cells(flatten_feats(f), match_feats)
                     _, _, d = map_field_matched(style_doubled_cells, idx, w, cam.height, cam.width,
                                                 tuple(f.shape[-2:]))
                 fl.append(flow_field_tensor(d.to(device=device, dtype=torch.float32)))
@@ -434,6 +435,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         del st.log[snap["log_len"]:]
 
     last_good = _snapshot()
+    last_ck = [time.perf_counter()]
     if not quiet and announce and vgg.is_random:
         print("WARNING: VGG-16 is RANDOMLY initialized (not pretrained): the style/content losses are not "
               "meaningful; a smoke run only")
@@ -460,6 +462,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                     phase_t0 = time.perf_counter()
                 timer.begin(step)
                 opt.set_step(step)
+                opt.hooks = stylize_hooks if phase == "stylize" else []
                 if not st.order:
                     st.order = torch.randperm(n_views, generator=gen).tolist()
                 vi = st.order.pop()
@@ -474,7 +477,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                 fld = None
                 if phase == "stylize":
                     fld = st.fields[vi]
-                    a = features(img)
+                    a = features(style_in(img))  # the style term's features
+                    a_rgb = features(img) if cfg.luminance_only else a  # the content term's (RGB)
                     timer.mark("vgg")
                     if cfg.style_loss == "fast":
                         terms["style"] = fast_loss(a, style_feats)
@@ -483,7 +487,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                     else:
                         terms["style"] = gram_loss(a, style_feats)
                     timer.mark("style")
-                    terms["content"] = content_loss(a, photo_feats[vi])
+                    terms["content"] = content_loss(a_rgb, photo_feats[vi])
                     terms["depth"] = ((inverse_depth(rout.depth) - inv_depth[vi]) ** 2).mean()
                     terms["tv"] = tv_loss(img)
                     terms["opacity_reg"] = anchor_norm(opt.params.opacity_logits, opt.anchors["opacity_logits"])
@@ -531,14 +535,19 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                                          for t in LOG_TERMS])))
                 if interrupt_at is not None and step == interrupt_at:
                     intr.flag = True
-                if step % cfg.log_every == 0 or k + 1 == n_phase or intr.flag:
+                # periodic checkpoints come at a flush, with the log written: a killed run resumes from a
+                # consistent (parameters, log) pair
+                ck_due = out is not None and ((cfg.checkpoint_every and step % cfg.checkpoint_every == 0) or (
+                    cfg.checkpoint_seconds and time.perf_counter() - last_ck[0] >= cfg.checkpoint_seconds))
+                if step % cfg.log_every == 0 or k + 1 == n_phase or intr.flag or ck_due:
                     flush(step, phase, k, img, fld)
                     if on_progress is not None:
                         on_progress(step, opt.params.detached())
-                    if k + 1 == n_phase or step % (cfg.log_every * 10) == 0:
+                    if k + 1 == n_phase or step % (cfg.log_every * 10) == 0 or ck_due:
                         write_log()
-                if out is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
+                if ck_due:
                     save_checkpoint("periodic")
+                    last_ck[0] = time.perf_counter()
                 if intr.flag:
                     raise KeyboardInterrupt
         except KeyboardInterrupt:
@@ -577,7 +586,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         "setup_time_s": None, "stage_split": timer.summary(), "device": str(device),
         "gaussians_input": start_counts["input"], "gaussians_before_stylize": st.counts["before_stylize"],
         "gaussians_after_stylize": st.counts.get("after_stylize", st.counts["before_stylize"]),
-        "gaussians_final": final.num, "gaussian_budget": budget, "densify_events": st.densify_events,
+        "gaussians_final": final.num, "gaussian_budget": budget if cfg.use_budget else None, "densify_events": st.densify_events,
         "extent": extent, "flow_terms": "warp kernel",
         "vgg_random": bool(vgg.is_random), "vgg_source": vgg.source,
     }

@@ -3,7 +3,7 @@ pruning of Gaussians that contribute to no training view. One component, used by
 the stylization loop::
 
     dc = DensityControl(DensityConfig(...), num=params.num, device=params.device)
-    out = render(params.gaussians(), cam, return_weights=dc.wants_weights)
+    out = render(params.gaussians(), cam, return_weights=dc.wants_weights_at(step))
     loss.backward()
     dc.accumulate(out, cam.width, cam.height)        # on-device, no host sync
     opt.step()
@@ -81,11 +81,6 @@ class DensityControl:
     @property
     def num(self) -> int:
         return int(self.grad_accum.shape[0])
-
-    @property
-    def wants_weights(self) -> bool:
-        """Whether no-contribution pruning is on (renders then need ``return_weights`` at some steps)."""
-        return bool(self.config.prune_unseen)
 
     def wants_weights_at(self, step: int) -> bool:
         """Whether the render of ``step`` (1-based) should return Σ αT: only during the last
@@ -211,14 +206,6 @@ class DensityControl:
             done = self.contrib_views >= w
             self.contrib = torch.where(done, torch.zeros_like(self.contrib), self.contrib)
             self.contrib_views = torch.where(done, torch.zeros_like(self.contrib_views), self.contrib_views)
-
-    @torch.no_grad()
-    def prune(self, opt: GaussianOptimizer, mask: torch.Tensor) -> None:
-        """Remove the Gaussians where ``mask`` is True (optimizer state and accumulators follow)."""
-        keep = ~mask
-        opt.rebuild(keep, None)
-        self.grad_accum, self.denom, self.max_radii = self.grad_accum[keep], self.denom[keep], self.max_radii[keep]
-        self.contrib, self.contrib_views = self.contrib[keep], self.contrib_views[keep]
 
     @torch.no_grad()
     def reset_opacity(self, opt: GaussianOptimizer) -> None:

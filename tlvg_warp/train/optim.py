@@ -260,11 +260,5 @@ def tangential_hook(lam: float = 1.0):
     return hook
 
 
-def build_gaussians_optimizer(g: Gaussians, lrs: LearningRates, extent: float, max_sh_degree=None,
-                              frozen=(), decay_steps=None) -> tuple[GaussianParams, GaussianOptimizer]:
-    params = GaussianParams(g, max_sh_degree, frozen)
-    return params, GaussianOptimizer(params, lrs, extent, decay_steps)
-
-
 __all__ = ["FIELDS", "GEOMETRY", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
-           "quat_to_rotmat", "footprint_normals", "tangential_hook", "build_gaussians_optimizer", "sh_coeffs"]
+           "quat_to_rotmat", "footprint_normals", "tangential_hook", "sh_coeffs"]

@@ -30,7 +30,7 @@ from ..runs import Interrupt as _Interrupt, StageTimer, resolve_device
 from ..fileio import atomic_path, write_image, write_json, write_text
 from ..types import Gaussians
 from .density import DensityConfig, DensityControl
-from .optim import GEOMETRY, GaussianOptimizer, GaussianParams, LearningRates
+from .optim import GaussianOptimizer, GaussianParams, LearningRates
 
 TIMED_STAGES = ("render", "loss", "backward", "optimizer", "density")  # the time split in metrics.json
 RUN_FILES = ("config.yaml", "checkpoint.pt", "point_cloud.ply", "metrics.json", "cameras.json")
@@ -79,7 +79,8 @@ class ReconstructConfig:
     device: str = "auto"  # cuda, cpu or auto (cuda when available)
     progress_every: int = 50  # host reads (progress bar, NaN check, snapshot) every this many iterations
     timing_every: int = 20  # sample the per-phase time split every this many iterations
-    checkpoint_every: int = 0  # also write checkpoint.pt every this many iterations (0: on interrupt/end)
+    checkpoint_every: int = 0  # also write checkpoint.pt every this many iterations (0: by time only, below)
+    checkpoint_seconds: float = 60.0  # ... and a minute after the last one (0: off): a killed run loses about that
     final_checkpoint: bool = True  # write checkpoint.pt at the end (lets --resume extend a run)
     save_renders: bool = True  # write renders of the held-out views to test/
 
@@ -124,7 +125,7 @@ class ReconstructConfig:
             raise InputError(f"config device must be auto, cpu or cuda, got {self.device!r}")
         if self.background is not None and len(self.background) != 3:
             raise InputError(f"config background must be 3 numbers, got {self.background!r}")
-        for k in ("lr_means", "lr_means_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity", "lr_scales", "lr_quats"):
+        for k in ("checkpoint_seconds", "lr_means", "lr_means_final", "lr_sh_dc", "lr_sh_rest", "lr_opacity", "lr_scales", "lr_quats"):
             if not getattr(self, k) >= 0:
                 raise InputError(f"config {k} must be >= 0, got {getattr(self, k)}")
         return self
@@ -180,10 +181,6 @@ def split_views(n: int, holdout_every: int) -> tuple[list[int], list[int]]:
     return train, test
 
 
-def check_out_dir(out: Path, overwrite: bool, resume: bool) -> None:
-    runs.check_out_dir(out, overwrite, resume, RUN_FILES)
-
-
 def cameras_json(dataset) -> list[dict]:
     """INRIA ``cameras.json`` entries: position = camera center, rotation = camera-to-world 3x3 (rows)."""
     out = []
@@ -209,12 +206,10 @@ class FitState:
     generator: torch.Generator | None = None  # view order and background colors (CPU)
 
 
-def _image_list(dataset, images, device):
-    n = len(dataset.cameras)
+def _image_list(dataset, device):
     out = []
-    for i in range(n):
-        img = images(i) if callable(images) else (images[i] if images is not None else dataset.image(i))
-        img = torch.as_tensor(img)
+    for i in range(len(dataset.cameras)):
+        img = torch.as_tensor(dataset.image(i))
         cam = dataset.cameras[i]
         if tuple(img.shape) != (cam.height, cam.width, 3):
             raise InputError(f"image {i} is {tuple(img.shape)}, expected [{cam.height}, {cam.width}, 3]")
@@ -281,18 +276,14 @@ def _restore(st: FitState, snap: dict) -> None:
 
 
 def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, gaussians: Gaussians | None = None,
-              progress: bool = True, *, images=None, freeze_geometry: bool = False, resume=None,
-              overwrite: bool = False, callback=None, extent: float | None = None, return_state: bool = False):
+              progress: bool = True, *, resume=None, overwrite: bool = False, callback=None):
     """Fit Gaussians to ``dataset`` (anything with ``.cameras``, ``.names``, ``.image(i)``, ``.points``).
 
     out_dir: where the run's files go (None: nothing is written, Ctrl-C just stops).
     gaussians: start from these instead of initializing from the dataset's points.
-    images: per-view targets overriding ``dataset.image(i)`` (a list or ``i -> [H,W,3]``), e.g. the
-        recolored photos of the stylization pre-process.
-    freeze_geometry: keep xyz, scale and opacity fixed, no density control (the post-process color fit).
     resume: a run folder (or checkpoint path) to continue from.
-    callback: ``fn(step, state)`` after every iteration (tests, the stylization driver).
-    Returns (Gaussians, metrics) — or (Gaussians, metrics, FitState) with return_state."""
+    callback: ``fn(step, state)`` after every iteration (tests).
+    Returns (Gaussians, metrics)."""
     from tqdm import tqdm
 
     t_start = time.perf_counter()
@@ -312,7 +303,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
         write_text(out / "config.yaml", config_yaml(cfg))
 
     train_idx, test_idx = split_views(len(cams), cfg.holdout_every)
-    targets = _image_list(dataset, images, device)
+    targets = _image_list(dataset, device)
     bg_fixed = cfg.background if cfg.background is not None else getattr(
         dataset, "background", (1.0, 1.0, 1.0) if getattr(dataset, "kind", "") == "blender" else (0.0, 0.0, 0.0))
     bg_fixed = tuple(float(v) for v in bg_fixed)
@@ -325,25 +316,22 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
         ext = float(ck["extent"])
         g0 = None
     elif gaussians is not None:
-        ext = float(extent) if extent is not None else scene_extent(cams)
+        ext = scene_extent(cams)
         g0 = gaussians.detach().to(device=device, dtype=torch.float32)
     else:
         g0, ext, init_note = initialize(dataset, cfg.sh_degree, cfg.init_opacity, cfg.init_random_points,
                                         cfg.max_init_points, device, cfg.seed)
-        ext = float(extent) if extent is not None else ext
-    frozen = GEOMETRY if freeze_geometry else ()
     lrs = cfg.learning_rates()
     if ck is not None:
         params = GaussianParams.from_state_dict(ck["params"], device)
-        params.frozen = frozen if freeze_geometry else params.frozen
     else:
         if g0.num > cfg.max_gaussians:  # the budget holds from the start: keep the most opaque
             keep = torch.topk(g0.opacity_logits, cfg.max_gaussians).indices.sort().values
             g0 = g0.subset(keep)
-        params = GaussianParams(g0, max(cfg.sh_degree, g0.sh_degree), frozen)
+        params = GaussianParams(g0, max(cfg.sh_degree, g0.sh_degree))
     opt = GaussianOptimizer(params, lrs, ext, lrs.means_steps)
     density = None
-    if cfg.densify and not freeze_geometry:
+    if cfg.densify:
         density = DensityControl(cfg.density_config(len(train_idx)), params.num, device)
         density.generator = torch.Generator(device=device).manual_seed(cfg.seed + 1)
     gen = torch.Generator().manual_seed(cfg.seed)
@@ -391,7 +379,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     pbar = tqdm(total=cfg.iterations, initial=start_step, disable=not progress, dynamic_ncols=True,
                 desc="reconstruct", unit="it")
     interrupted = False
-    t_loop = time.perf_counter()
+    t_loop = last_ck = time.perf_counter()
     last_report = start_step
     with _Interrupt() as intr:
         try:
@@ -441,8 +429,10 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
                     last_report = step
                     pbar.set_postfix(loss=f"{lv:.4f}", psnr=f"{-10 * math.log10(max(mv, 1e-12)):.2f}",
                                      n=st.params.num, refresh=False)
-                if out is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-                    _save_checkpoint(out / "checkpoint.pt", st, cfg, names)
+                if out is not None and ((cfg.checkpoint_every and step % cfg.checkpoint_every == 0) or (
+                        cfg.checkpoint_seconds and time.perf_counter() - last_ck >= cfg.checkpoint_seconds)):
+                    _save_checkpoint(out / "checkpoint.pt", st, cfg, names, note="periodic")
+                    last_ck = time.perf_counter()
                 if intr.flag:
                     raise KeyboardInterrupt
         except KeyboardInterrupt:
@@ -497,9 +487,8 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     metrics["wall_time_s"] = time.perf_counter() - t_start
     if out is not None:
         write_json(out / "metrics.json", metrics)
-    result = (final, metrics)
-    return result + (st,) if return_state else result
+    return final, metrics
 
 
 __all__ = ["ReconstructConfig", "FitDiverged", "FitState", "fit_scene", "load_config", "config_yaml",
-           "config_from_dict", "split_views", "cameras_json", "load_checkpoint", "check_out_dir"]
+           "config_from_dict", "split_views", "cameras_json", "load_checkpoint"]
