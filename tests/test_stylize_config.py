@@ -45,7 +45,7 @@ ABCGS = {
     "lr_means": 0.0, "lr_means_final": 0.0, "lock_xyz": True,  # spatial_lr_scale stays 0 for a loaded PLY
     "lr_sh_dc": 0.0025, "lr_sh_rest": 0.000125, "lr_opacity": 0.05, "lr_scales": 0.005, "lr_quats": 0.001,
     "density_in_pre": True, "density_in_stylize": False, "densify_interval": 50, "densify_grad_threshold": 2e-4,
-    "percent_dense": 0.01, "min_opacity": 0.005, "max_screen_size": 20.0, "max_world_size": 0.1,
+    "percent_dense": 0.01, "split_mode": "3dgs", "min_opacity": 0.005, "max_screen_size": 20.0, "max_world_size": 0.1,
     "use_budget": False, "prune_unseen": False, "palette_init": False, "keep_sh": True,
     "vgg_scale": 0.5, "style_height": 256,
 }

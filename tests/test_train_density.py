@@ -110,6 +110,28 @@ def test_split_children_within_3_sigma_many():
         assert 0.85 < float(z.std()) < 1.15
 
 
+def test_moment_matched_split_keeps_mean_and_covariance():
+    """split_mode="moments": the two children, as an equal mixture, have the parent's mean and covariance
+    (oracle: Σ_mix = ½ΣΣ_child + ½Σ(μ_c − μ)(μ_c − μ)ᵀ, computed here in float64)."""
+    n = 50
+    params, opt, dc = build([(BIG, 0.5, HIGH, 5)] * n)
+    dc.config.split_mode = "moments"
+    mu, q, ls = (params.means.detach().double().clone(), params.quats.detach().double().clone(),
+                 params.log_scales.detach().double().clone())
+    R = quat_to_rotmat(q)
+    cov = R @ torch.diag_embed((2 * ls).exp()) @ R.transpose(1, 2)
+    dc.densify_and_prune(opt, EXTENT, STEP)
+    assert params.num == 2 * n
+    c = [params.means.detach().double()[k * n:(k + 1) * n] for k in range(2)]
+    cl = [params.log_scales.detach().double()[k * n:(k + 1) * n] for k in range(2)]
+    qc = params.quats.detach().double()[:n]
+    Rc = quat_to_rotmat(qc)
+    mix = sum(0.5 * (Rc @ torch.diag_embed((2 * l).exp()) @ Rc.transpose(1, 2)
+                     + torch.einsum("ni,nj->nij", m - mu, m - mu)) for m, l in zip(c, cl))
+    assert torch.allclose((c[0] + c[1]) / 2, mu, atol=1e-5)
+    assert torch.allclose(mix, cov, rtol=1e-4, atol=5e-7)  # float32 centers up to ~50 units: offsets to ~3e-6
+
+
 def test_budget_never_exceeded_and_highest_gradients_first():
     n = 100
     grads = torch.linspace(3e-4, 1e-2, n)[torch.randperm(n, generator=torch.Generator().manual_seed(1))]

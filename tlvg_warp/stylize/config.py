@@ -63,11 +63,12 @@ class StylizeConfig:
     densify_interval: int = 100  # densify every this many iterations of a phase (3DGS)
     densify_grad_threshold: float = 2e-4  # mean NDC screen-gradient norm for clone/split (3DGS)
     percent_dense: float = 0.01  # clone below this fraction of the extent, split above (3DGS)
+    split_mode: str = "moments"  # split into 2 children keeping the parent's mean/covariance (ours); 3dgs: sampled, /1.6
     min_opacity: float = 0.005  # prune below this opacity (3DGS)
     max_screen_size: float = 20.0  # prune above this 2D radius in pixels (3DGS)
     max_world_size: float = 0.1  # prune above this fraction of the extent (3DGS)
     gaussian_budget: int = 0  # hard cap on the Gaussian count; 0: budget_factor x the starting count
-    budget_factor: float = 1.5  # budget relative to the input scene when gaussian_budget is 0
+    budget_factor: float = 1.2  # budget relative to the input scene when gaussian_budget is 0 (demo: reached either way)
     use_budget: bool = True  # cap the Gaussian count at the budget (ours; ABC-GS has no cap)
     prune_unseen: bool = True  # prune Gaussians that contribute to no view over an epoch (ours; ABC-GS has none)
     # --- output --------------------------------------------------------------------------------------------------
@@ -103,7 +104,8 @@ class StylizeConfig:
             raise InputError(f"config iterations must be >= 1, got {self.iterations}")
         if len(self.phases) != 3 or any(not (x >= 0) for x in self.phases) or sum(self.phases) <= 0:
             raise InputError(f"config phases must be 3 non-negative numbers (pre, stylize, post), got {self.phases}")
-        choices = {"style_loss": ("fast", "nnfm", "gram"), "field_mapping": ("matched", "canvas")}
+        choices = {"style_loss": ("fast", "nnfm", "gram"), "field_mapping": ("matched", "canvas"),
+                   "split_mode": ("moments", "3dgs")}
         for k, opts in choices.items():
             if getattr(self, k) not in opts:
                 raise InputError(f"config {k} must be one of {', '.join(opts)}, got {getattr(self, k)!r}")

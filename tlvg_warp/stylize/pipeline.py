@@ -286,7 +286,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                          min_opacity=cfg.min_opacity, max_screen_size=screen_limit,
                          max_world_size=cfg.max_world_size, interval=cfg.densify_interval, start=0, until=1 << 62,
                          opacity_reset_interval=0, max_gaussians=budget, prune_unseen=cfg.prune_unseen,
-                         contribution_window=2 * n_views - 1)  # any 2n-1 consecutive views hold an epoch
+                         contribution_window=2 * n_views - 1, split_mode=cfg.split_mode)  # any 2n-1 consecutive views hold an epoch
     density = DensityControl(dcfg, params.num, device)
     density.generator = torch.Generator(device=device).manual_seed(cfg.seed + 1)
     start_counts = {"input": g_in.num}

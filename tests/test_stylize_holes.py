@@ -1,0 +1,74 @@
+"""No holes or cracks from density control (issue 14 B). The demo scene, 8 views at 80x60, 60 iterations with
+density control every 10 (it fills the Gaussian budget at its first step: the stylization's gradients pass
+3DGS's threshold nearly everywhere at this size), random VGG. Measured against the un-stylized scene:
+- holes: pixels with stylized alpha < 0.5 where the un-stylized alpha >= 0.5;
+- cracks: stylized alpha < 0.9 where the un-stylized alpha >= 0.9;
+at the training size and at 2x (a camera of twice the resolution, where thin gaps between splats show).
+Measured here: 3DGS splits (children sampled in the parent, scales / 1.6) leave cracks 6.8% (1x) and 13.4% (2x),
+holes 0.3% / 0.9%; the moment-matched split 0.02% / 0.12%, holes 0; no densification 0.01%."""
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from tlvg_warp import render
+from tlvg_warp.io.demo import builtin_painting, demo_dataset
+from tlvg_warp.stylize import StylizeConfig, StylizeInputs, run_stylize
+
+W, H, VIEWS = 80, 60, 8
+HOLES_MAX = 0.01  # the issue's bound, at 1x and 2x
+CRACKS_MAX = 0.01  # ten times under what 3DGS splits leave here
+COUNT_MAX = 1.2  # Gaussians relative to the input (the default budget)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    ds = demo_dataset(n_views=VIEWS, width=W, height=H, spacing=2.0)
+    inp = StylizeInputs(ds.gaussians, list(ds.cameras), list(ds.names), [ds.image(i) for i in range(VIEWS)],
+                        builtin_painting(), tuple(ds.background))
+    return ds, inp
+
+
+def _scaled(cam, k):
+    return dataclasses.replace(cam, width=cam.width * k, height=cam.height * k, fx=cam.fx * k, fy=cam.fy * k,
+                               cx=cam.cx * k, cy=cam.cy * k)
+
+
+def coverage_loss(g0, g1, cams, k) -> tuple[float, float]:
+    """(holes, cracks) of g1 against g0 over the views at k times their resolution."""
+    tot = holes = cracks = base = 0
+    for cam in cams:
+        c = _scaled(cam, k)
+        with torch.no_grad():
+            a0, a1 = render(g0, c, (1, 1, 1)).alpha, render(g1, c, (1, 1, 1)).alpha
+        cov = a0 >= 0.5
+        tot += int(cov.sum())
+        holes += int((cov & (a1 < 0.5)).sum())
+        full = a0 >= 0.9
+        base += int(full.sum())
+        cracks += int((full & (a1 < 0.9)).sum())
+    return holes / tot, cracks / base
+
+
+def _run(inp, **kw):
+    cfg = StylizeConfig(iterations=60, device="cpu", vgg_weights="random", densify_interval=10, log_every=10, **kw)
+    return run_stylize(inp, cfg, None, progress=False, quiet=True)
+
+
+def test_stylized_demo_has_no_holes_or_cracks(demo):
+    ds, inp = demo
+    res = _run(inp)
+    assert any(e["split"] > 0 for e in res.metrics["densify_events"])  # density control did split
+    assert res.gaussians.num <= math.ceil(COUNT_MAX * ds.gaussians.num)
+    for k in (1, 2):
+        holes, cracks = coverage_loss(ds.gaussians, res.gaussians, ds.cameras, k)
+        assert holes <= HOLES_MAX and cracks <= CRACKS_MAX, (k, holes, cracks)
+
+
+def test_3dgs_splits_crack_here(demo):
+    """The same run with graphdeco's split (abcgs.yaml's choice): the measure sees the cracks."""
+    ds, inp = demo
+    res = _run(inp, split_mode="3dgs")
+    _, cracks = coverage_loss(ds.gaussians, res.gaussians, ds.cameras, 2)
+    assert cracks > 3 * CRACKS_MAX, cracks
