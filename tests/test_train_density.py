@@ -132,6 +132,27 @@ def test_moment_matched_split_keeps_mean_and_covariance():
     assert torch.allclose(mix, cov, rtol=1e-4, atol=5e-7)  # float32 centers up to ~50 units: offsets to ~3e-6
 
 
+def test_tracked_tensors_follow_every_keep_and_append():
+    """Registered per-Gaussian tensors (the stylization's anchors) get the same keep / append as the parameters:
+    kept rows keep their values, a new Gaussian's row is its own value of the same-named field (zeros otherwise)."""
+    params, opt, dc = build([(BIG, 0.5, HIGH, 5), (SMALL, 0.5, HIGH, 5), (SMALL, 0.001, LOW, 5), (BIG, 0.5, LOW, 5)])
+    anchor = torch.tensor([10.0, 11.0, 12.0, 13.0])  # distinguishable from the live values
+    dc.tracked = {"opacity_logits": anchor.clone(), "extra": torch.ones(4, 2)}
+    before_new = params.num
+    dc.densify_and_prune(opt, EXTENT, STEP)
+    n = params.num
+    assert all(t.shape[0] == n for t in dc.tracked.values())
+    # survivors: #1 (cloned, kept) and #3 (low gradient, kept); #0 split (replaced), #2 pruned (opacity)
+    assert dc.tracked["opacity_logits"][:2].tolist() == [11.0, 13.0]
+    assert torch.equal(dc.tracked["opacity_logits"][2:], params.opacity_logits.detach()[2:])
+    assert dc.tracked["extra"][:2].eq(1).all() and dc.tracked["extra"][2:].eq(0).all()
+    assert n == before_new - 2 + 1 + 2  # -split parent -pruned +clone +2 children
+    sd = dc.state_dict()
+    dc2 = DensityControl(dc.config, 0)
+    dc2.load_state_dict(sd)
+    assert torch.equal(dc2.tracked["opacity_logits"], dc.tracked["opacity_logits"])
+
+
 def test_budget_never_exceeded_and_highest_gradients_first():
     n = 100
     grads = torch.linspace(3e-4, 1e-2, n)[torch.randperm(n, generator=torch.Generator().manual_seed(1))]

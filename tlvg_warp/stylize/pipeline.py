@@ -26,7 +26,7 @@ Decisions (beyond the spec, documented):
 - The "matched" target field of a view is built from the FAST/NNFM cell match of that view's render at the
   start of stylize and then held fixed (a target that moved with the render would chase itself). The match
   is on luminance features whatever the style term's input, so the RGB-loss ablation keeps the same fields.
-- The opacity / scale anchors follow density control: a clone or split child is anchored at its own
+- The opacity / scale anchors are tensors tracked by density control: a clone or split child is anchored at its own
   value when it is born.
 - lock_xyz locks positions during stylize only (the pre-process is a photometric fit).
 """
@@ -137,27 +137,6 @@ def flow_terms(g, cam, fld, weights):
     return _flow_terms(g, cam, fld, weights)
 
 
-# --- the optimizer that keeps the regularizer anchors aligned with density control ---------------------------
-def _optimizer_class():
-    from ..train.optim import GaussianOptimizer
-
-    class StylizeOptimizer(GaussianOptimizer):
-        """GaussianOptimizer whose ``anchors`` (per-Gaussian snapshots) follow clone / split / prune."""
-
-        anchors: dict | None = None
-
-        def rebuild(self, keep, appended):
-            super().rebuild(keep, appended)
-            if self.anchors:
-                for f, a in list(self.anchors.items()):
-                    parts = [a if keep is None else a[keep]]
-                    if appended:
-                        parts.append(appended[f].to(a))
-                    self.anchors[f] = torch.cat(parts).contiguous()
-
-    return StylizeOptimizer
-
-
 # --- the run ---------------------------------------------------------------------------------------------------
 @dataclass
 class StylizeResult:
@@ -207,7 +186,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     from ..renderer import render
     from ..train.density import DensityConfig, DensityControl
     from ..train.init import scene_extent
-    from ..train.optim import GaussianParams, LearningRates, tangential_hook
+    from ..train.optim import GaussianOptimizer, GaussianParams, LearningRates, tangential_hook
 
     t_start = time.perf_counter()
     cfg = cfg.validate()
@@ -264,7 +243,6 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         g_work = dataclasses.replace(g_work, sh=recolor_sh(g_work.sh, pal_m, pal_t))
     lrs = LearningRates(cfg.lr_means, cfg.lr_means_final, cfg.lr_means_steps, cfg.lr_sh_dc, cfg.lr_sh_rest,
                         cfg.lr_opacity, cfg.lr_scales, cfg.lr_quats)
-    Opt = _optimizer_class()
     budget = cfg.gaussian_budget or max(g_in.num, int(math.ceil(cfg.budget_factor * g_in.num)))
     if not cfg.use_budget:
         budget = 1 << 62
@@ -274,8 +252,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         params = GaussianParams.from_state_dict(ck["params"], device)
     else:
         params = GaussianParams(g_work, g_work.sh_degree)
-    opt = Opt(params, lrs, extent, lrs.means_steps)
-    opt.anchors = None
+    opt = GaussianOptimizer(params, lrs, extent, lrs.means_steps)
     # the tangential hook acts in the Stylize phase only (SPEC §3); the loop installs it per step
     stylize_hooks = [(tangential_hook(cfg.tangential_lambda), ("means",))] if cfg.tangential_lambda > 0 else []
     # 3DGS's screen-size rule was set for ~1000-pixel images; larger renders scale it so that a sharper view
@@ -292,10 +269,10 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     start_counts = {"input": g_in.num}
     if ck is not None:
         opt.load_state_dict(ck["optimizer"])
-        if ck.get("anchors") is not None:
-            opt.anchors = {k: v.to(device) for k, v in ck["anchors"].items()}
         if ck.get("density") is not None:
             density.load_state_dict(ck["density"])
+        if ck.get("anchors") is not None:  # checkpoints before the anchors moved into density control's state
+            density.tracked = {k: v.to(device) for k, v in ck["anchors"].items()}
         if ck.get("split_rng") is not None:
             density.generator.set_state(ck["split_rng"])
         st.step, st.order = int(ck["iteration"]), list(ck["order"])
@@ -317,7 +294,6 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         ckpt = {"format": CHECKPOINT_FORMAT, "iteration": st.step, "params": opt.params.state_dict(),
                 "optimizer": opt.state_dict(), "density": density.state_dict(),
                 "split_rng": density.generator.get_state(),
-                "anchors": ({k: v.detach().cpu() for k, v in opt.anchors.items()} if opt.anchors else None),
                 "order": list(st.order), "rng": gen.get_state(), "torch_rng": torch.get_rng_state(),
                 "fields": [f.cpu() for f in st.fields] if st.fields is not None else None,
                 "post_targets": ([(t.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu() for t in st.post_targets]
@@ -338,9 +314,9 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         return flatten_feats(vgg(img, scale=cfg.vgg_scale))
 
     def ensure_stylize_targets():
-        if opt.anchors is None:
-            opt.anchors = {"opacity_logits": opt.params.opacity_logits.detach().clone(),
-                           "log_scales": opt.params.log_scales.detach().clone()}
+        if not density.tracked:  # the regularizer anchors: density control keeps them aligned
+            density.tracked = {"opacity_logits": opt.params.opacity_logits.detach().clone(),
+                               "log_scales": opt.params.log_scales.detach().clone()}
         if st.fields is not None:
             return
         fl = []
@@ -417,17 +393,15 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
 
     def _snapshot():
         return {"step": st.step, "params": opt.params.state_dict(), "opt": opt.state_dict(),
-                "anchors": {k: v.clone() for k, v in opt.anchors.items()} if opt.anchors else None,
                 "order": list(st.order), "rng": gen.get_state(), "density": density.state_dict(),
                 "log_len": len(st.log)}
 
     def _restore(snap):
         nonlocal opt
         p = GaussianParams.from_state_dict(snap["params"], device)
-        o = Opt(p, lrs, extent, lrs.means_steps)
+        o = GaussianOptimizer(p, lrs, extent, lrs.means_steps)
         o.hooks = opt.hooks
         o.load_state_dict(snap["opt"])
-        o.anchors = snap["anchors"]
         opt = o
         st.step, st.order = snap["step"], list(snap["order"])
         gen.set_state(snap["rng"])
@@ -490,8 +464,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
                     terms["content"] = content_loss(a_rgb, photo_feats[vi])
                     terms["depth"] = ((inverse_depth(rout.depth) - inv_depth[vi]) ** 2).mean()
                     terms["tv"] = tv_loss(img)
-                    terms["opacity_reg"] = anchor_norm(opt.params.opacity_logits, opt.anchors["opacity_logits"])
-                    terms["scale_reg"] = anchor_norm(opt.params.log_scales, opt.anchors["log_scales"])
+                    terms["opacity_reg"] = anchor_norm(opt.params.opacity_logits, density.tracked["opacity_logits"])
+                    terms["scale_reg"] = anchor_norm(opt.params.log_scales, density.tracked["log_scales"])
                     terms["lab"] = lab_chroma_loss(img, recolored[vi])
                     w_lab = cfg.lab_weight(k, n_phase)
                     loss = (cfg.w_style * terms["style"] + cfg.w_content * terms["content"]

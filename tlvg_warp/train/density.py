@@ -77,6 +77,10 @@ class DensityControl:
         self.contrib = torch.zeros(num, dtype=dtype, device=self.device)  # Σ αT since birth / last check
         self.contrib_views = torch.zeros(num, dtype=torch.int32, device=self.device)
         self.generator = None  # torch.Generator for split sampling (None: the global RNG)
+        # the caller's per-Gaussian tensors (e.g. the stylization's regularizer anchors): every keep / append
+        # applies to them as to the parameters, Adam's moments and the statistics; a new row takes the new
+        # Gaussian's value of the parameter field of the same name (zeros when the name is not a field)
+        self.tracked: dict[str, torch.Tensor] = {}
 
     # accumulators ------------------------------------------------------------------------------------
     def reset_stats(self, num: int) -> None:
@@ -182,6 +186,9 @@ class DensityControl:
         opt.rebuild(keep, appended)
         n_new = appended["means"].shape[0]
         self._after_rebuild(keep, n_new)
+        for name, t in list(self.tracked.items()):
+            new = appended[name].to(t) if name in appended else t.new_zeros((n_new, *t.shape[1:]))
+            self.tracked[name] = torch.cat([t[keep], new]).contiguous()
         return {"cloned": int(clone_idx.numel()), "split": int(split_idx.numel()),
                 "pruned": int(prune.sum()), "num": opt.params.num}
 
@@ -233,12 +240,17 @@ class DensityControl:
 
     # checkpoints ------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {k: getattr(self, k).detach().clone()
-                for k in ("grad_accum", "denom", "max_radii", "contrib", "contrib_views")}
+        sd = {k: getattr(self, k).detach().clone()
+              for k in ("grad_accum", "denom", "max_radii", "contrib", "contrib_views")}
+        sd["tracked"] = {k: v.detach().clone() for k, v in self.tracked.items()}
+        return sd
 
     def load_state_dict(self, sd: dict) -> None:
         for k, v in sd.items():
-            setattr(self, k, v.to(self.device))
+            if k == "tracked":
+                self.tracked = {n: t.to(self.device) for n, t in v.items()}
+            else:
+                setattr(self, k, v.to(self.device))
 
 
 __all__ = ["DensityConfig", "DensityControl"]
