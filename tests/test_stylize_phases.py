@@ -69,3 +69,37 @@ def test_post_process_freezes_geometry(inputs):
         assert torch.equal(getattr(r.gaussians, f), getattr(g0, f)), f
     assert r.gaussians.num == g0.num
     assert not torch.equal(r.gaussians.sh, g0.sh) and not torch.equal(r.gaussians.quats, g0.quats)
+
+
+def test_divergence_restores_the_last_good_state_and_resumes(inputs, tmp_path, monkeypatch):
+    """A NaN loss mid-stylize: the run stops with StylizeDiverged, its checkpoint holds the last good state (the
+    run state's one state_dict, restored), and --resume from it finishes."""
+    import math
+
+    from tlvg_warp.stylize import load_checkpoint, pipeline
+
+    calls = []
+    real_tv = pipeline.tv_loss
+
+    def poisoned(img):
+        calls.append(1)
+        v = real_tv(img)
+        return v * float("nan") if len(calls) == 3 else v
+
+    monkeypatch.setattr(pipeline, "tv_loss", poisoned)
+    out = tmp_path / "run"
+    with pytest.raises(pipeline.StylizeDiverged, match="iteration 5"):
+        _run_out(inputs, out)
+    ck = load_checkpoint(out)
+    assert ck["iteration"] == 4 and len(ck["log"]) == 4  # steps 1-2 pre, 3-4 stylize: the last good ones
+    assert all(torch.isfinite(t).all() for t in ck["params"]["tensors"].values())
+    monkeypatch.setattr(pipeline, "tv_loss", real_tv)
+    res = _run_out(inputs, out, resume=out)
+    assert res.metrics["resumed_from"] == 4 and [r["step"] for r in res.log] == list(range(1, 9))
+    assert all(math.isfinite(r["loss"]) for r in res.log)
+
+
+def _run_out(inputs, out, resume=None):
+    cfg = load_config(CONFIGS / "tlvg.yaml", ["device=cpu", "vgg_weights=random", "log_every=1", "iterations=8",
+                                              "phases=[2, 4, 2]"])
+    return run_stylize(inputs, cfg, out, progress=False, quiet=True, vgg=_VGG[0] if _VGG else None, resume=resume)

@@ -248,10 +248,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         budget = 1 << 62
     st = _State()
     gen = torch.Generator().manual_seed(cfg.seed)
-    if ck is not None:
-        params = GaussianParams.from_state_dict(ck["params"], device)
-    else:
-        params = GaussianParams(g_work, g_work.sh_degree)
+    params = GaussianParams(g_work, g_work.sh_degree)  # a resumed run replaces it (load_state_dict below)
     opt = GaussianOptimizer(params, lrs, extent, lrs.means_steps)
     # the tangential hook acts in the Stylize phase only (SPEC §3); the loop installs it per step
     stylize_hooks = [(tangential_hook(cfg.tangential_lambda), ("means",))] if cfg.tangential_lambda > 0 else []
@@ -267,40 +264,56 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     density = DensityControl(dcfg, params.num, device)
     density.generator = torch.Generator(device=device).manual_seed(cfg.seed + 1)
     start_counts = {"input": g_in.num}
+
+    # --- the run state: one state_dict / load_state_dict for the checkpoint, the last-good snapshot and resume ---
+    def state_dict(checkpoint: bool = False) -> dict:
+        sd = {"iteration": st.step, "params": opt.params.state_dict(), "optimizer": opt.state_dict(),
+              "density": density.state_dict(), "split_rng": density.generator.get_state(),
+              "order": list(st.order), "rng": gen.get_state(), "torch_rng": torch.get_rng_state(),
+              "phase_time": dict(st.phase_time), "counts": dict(st.counts),
+              "densify_events": list(st.densify_events), "log_len": len(st.log)}
+        if checkpoint:  # what a new process needs besides (the per-view targets are fixed once made)
+            sd.update({"format": CHECKPOINT_FORMAT, "log": st.log,
+                       "fields": [f.cpu() for f in st.fields] if st.fields is not None else None,
+                       "post_targets": ([(t.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu() for t in st.post_targets]
+                                        if st.post_targets is not None else None),
+                       "config": dataclasses.asdict(cfg), "names": list(inp.names), "sources": inp.sources})
+        return sd
+
+    def load_state_dict(sd: dict) -> None:
+        nonlocal opt
+        o = GaussianOptimizer(GaussianParams.from_state_dict(sd["params"], device), lrs, extent, lrs.means_steps)
+        o.load_state_dict(sd["optimizer"])
+        opt = o
+        if sd.get("density") is not None:
+            density.load_state_dict(sd["density"])
+        if sd.get("anchors") is not None:  # checkpoints before the anchors moved into density control's state
+            density.tracked = {k: v.to(device) for k, v in sd["anchors"].items()}
+        if sd.get("split_rng") is not None:
+            density.generator.set_state(sd["split_rng"])
+        st.step, st.order = int(sd["iteration"]), list(sd["order"])
+        gen.set_state(sd["rng"])
+        torch.set_rng_state(sd["torch_rng"])
+        st.phase_time, st.counts = dict(sd["phase_time"]), dict(sd["counts"])
+        st.densify_events = list(sd.get("densify_events", []))
+        if "log" in sd:
+            st.log = list(sd["log"])
+        else:
+            del st.log[sd["log_len"]:]
+        if sd.get("fields") is not None:
+            st.fields = [f.to(device) for f in sd["fields"]]
+        if sd.get("post_targets") is not None:
+            st.post_targets = [t.to(device=device, dtype=torch.float32) / 255.0 for t in sd["post_targets"]]
+
     if ck is not None:
-        opt.load_state_dict(ck["optimizer"])
-        if ck.get("density") is not None:
-            density.load_state_dict(ck["density"])
-        if ck.get("anchors") is not None:  # checkpoints before the anchors moved into density control's state
-            density.tracked = {k: v.to(device) for k, v in ck["anchors"].items()}
-        if ck.get("split_rng") is not None:
-            density.generator.set_state(ck["split_rng"])
-        st.step, st.order = int(ck["iteration"]), list(ck["order"])
-        gen.set_state(ck["rng"])
-        torch.set_rng_state(ck["torch_rng"])
-        if ck.get("fields") is not None:
-            st.fields = [f.to(device) for f in ck["fields"]]
-        if ck.get("post_targets") is not None:
-            st.post_targets = [t.to(device=device, dtype=torch.float32) / 255.0 for t in ck["post_targets"]]
-        st.phase_time = dict(ck["phase_time"])
-        st.counts = dict(ck["counts"])
-        st.log = list(ck["log"])
-        st.densify_events = list(ck.get("densify_events", []))
+        load_state_dict(ck)
     start_step = st.step
 
     def save_checkpoint(note=""):
         if out is None:
             return
-        ckpt = {"format": CHECKPOINT_FORMAT, "iteration": st.step, "params": opt.params.state_dict(),
-                "optimizer": opt.state_dict(), "density": density.state_dict(),
-                "split_rng": density.generator.get_state(),
-                "order": list(st.order), "rng": gen.get_state(), "torch_rng": torch.get_rng_state(),
-                "fields": [f.cpu() for f in st.fields] if st.fields is not None else None,
-                "post_targets": ([(t.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu() for t in st.post_targets]
-                                 if st.post_targets is not None else None),
-                "phase_time": st.phase_time, "counts": st.counts, "log": st.log,
-                "densify_events": st.densify_events,
-                "config": dataclasses.asdict(cfg), "names": list(inp.names), "sources": inp.sources, "note": note}
+        ckpt = state_dict(checkpoint=True)
+        ckpt["note"] = note
         with atomic_path(out / "checkpoint.pt") as tmp, open(tmp, "wb") as f:
             torch.save(ckpt, f)  # to a file object: a full disk raises OSError (a path gives a RuntimeError)
 
@@ -384,31 +397,14 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         buf = []
         if not ok:
             raise StylizeDiverged(f"non-finite loss or parameters at or before iteration {step} ({phase} phase)")
-        last_good = _snapshot()
+        last_good = state_dict()
         if pbar is not None and st.log:
             post = {"loss": f"{st.log[-1]['loss']:.4f}", "n": opt.params.num}
             if "flow_score" in st.log[-1]:
                 post["flow"] = f"{st.log[-1]['flow_score']:.3f}"
             pbar.set_postfix(post, refresh=True)
 
-    def _snapshot():
-        return {"step": st.step, "params": opt.params.state_dict(), "opt": opt.state_dict(),
-                "order": list(st.order), "rng": gen.get_state(), "density": density.state_dict(),
-                "log_len": len(st.log)}
-
-    def _restore(snap):
-        nonlocal opt
-        p = GaussianParams.from_state_dict(snap["params"], device)
-        o = GaussianOptimizer(p, lrs, extent, lrs.means_steps)
-        o.hooks = opt.hooks
-        o.load_state_dict(snap["opt"])
-        opt = o
-        st.step, st.order = snap["step"], list(snap["order"])
-        gen.set_state(snap["rng"])
-        density.load_state_dict(snap["density"])
-        del st.log[snap["log_len"]:]
-
-    last_good = _snapshot()
+    last_good = state_dict()
     last_ck = [time.perf_counter()]
     if not quiet and announce and vgg.is_random:
         print("WARNING: VGG-16 is RANDOMLY initialized (not pretrained): the style/content losses are not "
@@ -529,7 +525,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         except StylizeDiverged as e:
             close_phase()
             msg = str(e)
-            _restore(last_good)
+            load_state_dict(last_good)
             if out is not None:
                 write_log()
                 save_checkpoint("last good state before divergence")
@@ -541,7 +537,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         ensure_stylize_targets()
     if interrupted:
         if not bool(opt.params.all_finite()):
-            _restore(last_good)
+            load_state_dict(last_good)
         write_log()
         save_checkpoint("interrupted")
         if out is not None and not quiet:
