@@ -79,7 +79,7 @@ def _subsample(g, frac: float):
 
 def run_point(pt: dict, base, vgg, eval_views_cache: dict) -> dict:
     """Stylize with one point's settings, time it, score it on the base cameras."""
-    from . import metrics as M
+    from . import quick as M  # the per-run gauges (the evaluation proper is eval/metrics.py)
     from .stability import _resize, _style_feats, stylize_scene
 
     ov = dict(base.overrides)
