@@ -23,8 +23,8 @@ from ..errors import InputError
 # The no-argument demo's settings (a user's flag or --set wins). On 2 CPU cores: 80x60 views (discs sized to
 # those pixels, so 4,678 of them), the painting at height 128 and the render fed to VGG at full size (at x0.5
 # an 80x60 view leaves 10x7 feature cells, too few for brush texture), SH DC learning rate x4 so that a
-# preview of 120 iterations moves the colours; measured in the README ("The demo").
-DEMO_CPU = {"iterations": 120, "downscale": 2.0, "densify_interval": 20, "orbit_frames": 48,
+# preview of 300 iterations moves the colours: 65 s from an empty kernel cache (README, "The demo").
+DEMO_CPU = {"iterations": 300, "downscale": 2.0, "densify_interval": 20, "orbit_frames": 48,
             "style_height": 128, "vgg_scale": 1.0, "lr_sh_dc": 0.01}
 DEMO_GPU = {"iterations": 600, "downscale": 1.0, "densify_interval": 100, "orbit_frames": 48}
 MIN_STYLE_PX = 64  # a painting smaller than this has no brushstrokes left at VGG's relu3 (1/4 resolution)
