@@ -210,3 +210,12 @@ class StageTimer:
         return {"ms_per_iteration": {s: round(t / n, 4) for s, t in tot.items()}, "samples": n}
 
 
+def run_sources(run) -> dict:
+    """Where a run's inputs came from (checkpoint.pt's ``sources``); {} when there is no checkpoint."""
+    ck = Path(run) / "checkpoint.pt"
+    if not ck.is_file():
+        return {}
+    try:
+        return dict(torch.load(ck, map_location="cpu", weights_only=False, mmap=True).get("sources") or {})
+    except Exception as e:  # noqa: BLE001 - an unreadable checkpoint is one line
+        raise InputError(f"unreadable checkpoint ({type(e).__name__})", ck) from None

@@ -52,21 +52,6 @@ def _read_json(path: Path):
         raise InputError(f"unreadable JSON ({e})", path) from None
 
 
-def cameras_from_json(path: Path):
-    """INRIA cameras.json -> (names, [Camera]) (rotation = camera-to-world, principal point at the center)."""
-    from ..io.datasets import inria_camera_entries
-    from ..types import Camera
-
-    data = _read_json(path)
-    if not isinstance(data, list) or not data:
-        raise InputError("expected a non-empty list of cameras", path)
-    names, cams = [], []
-    for name, w2c, fx, fy, w, h in inria_camera_entries(data, path):
-        cams.append(Camera(torch.from_numpy(w2c), fx, fy, w / 2, h / 2, int(w), int(h), name=name))
-        names.append(name)
-    return names, cams
-
-
 def _image(path: Path, shape=None) -> np.ndarray:
     from ..io.images import read_image
 
@@ -98,16 +83,6 @@ def _yaml(path: Path) -> dict:
     return cfg
 
 
-def _sources(run: Path) -> dict:
-    ck = run / "checkpoint.pt"
-    if not ck.is_file():
-        return {}
-    try:
-        return dict(torch.load(ck, map_location="cpu", weights_only=False, mmap=True).get("sources") or {})
-    except Exception as e:  # noqa: BLE001 - a checkpoint we cannot read only loses the hint
-        raise InputError(f"unreadable checkpoint ({type(e).__name__})", ck) from None
-
-
 def load_run(run, max_views: int = 0) -> dict:
     """What evaluate reads from a run folder; InputError naming the file when something is wrong."""
     from ..io.ply import load_ply
@@ -119,7 +94,9 @@ def load_run(run, max_views: int = 0) -> dict:
     ply = run / "stylized.ply"
     if not ply.is_file():
         raise InputError("missing stylized.ply (not a stylization run folder?)", run)
-    names, cams = cameras_from_json(run / "cameras.json")
+    from ..io.datasets import read_inria_cameras
+
+    names, cams = read_inria_cameras(run / "cameras.json")
     n_total = len(cams)
     if max_views > 0:
         names, cams = names[:max_views], cams[:max_views]
@@ -149,7 +126,9 @@ def resolve_scene(run: dict, scene=None):
 
     if scene is not None:
         return load_ply(Path(scene))
-    src = _sources(run["dir"])
+    from ..runs import run_sources
+
+    src = run_sources(run["dir"])
     for cand in (src.get("scene"), run["dir"] / "reconstruct" / "point_cloud.ply"):
         if cand and Path(cand).is_file():
             return load_ply(Path(cand))

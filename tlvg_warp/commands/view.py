@@ -38,42 +38,10 @@ def add_arguments(p):
 
 
 # --- what a run folder holds ----------------------------------------------------------------------------------
-def read_cameras(path: Path) -> tuple[list, list]:
-    """INRIA cameras.json -> (names, [Camera])."""
-    import json
-
-    from ..io.datasets import inria_camera_entries
-    from ..types import Camera
-
-    try:
-        data = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise InputError("missing file", path) from None
-    except (OSError, ValueError) as e:
-        raise InputError(f"unreadable JSON ({e})", path) from None
-    if not isinstance(data, list) or not data:
-        raise InputError("expected a non-empty list of cameras", path)
-    names, cams = [], []
-    for name, w2c, fx, fy, w, h in inria_camera_entries(data, path):
-        cams.append(Camera(torch.from_numpy(w2c), fx, fy, w / 2, h / 2, int(w), int(h), name=name))
-        names.append(name)
-    return names, cams
-
-
-def run_sources(run: Path) -> dict:
-    """Where the run's inputs came from (checkpoint.pt's ``sources``); {} when there is no checkpoint."""
-    ck = run / "checkpoint.pt"
-    if not ck.is_file():
-        return {}
-    try:
-        return dict(torch.load(ck, map_location="cpu", weights_only=False, mmap=True).get("sources") or {})
-    except Exception as e:  # noqa: BLE001 - an unreadable checkpoint is one line
-        raise InputError(f"unreadable checkpoint ({type(e).__name__})", ck) from None
-
-
 def find_original(run: Path, cams: list):
     """(Gaussians or None, where from / why not)."""
     from ..io.ply import load_ply
+    from ..runs import run_sources
 
     src = run_sources(run)
     for cand in (src.get("scene"), run / "reconstruct" / "point_cloud.ply"):
@@ -101,6 +69,7 @@ def cameras_beside(scene: Path):
 
 def load_view(path, original=None, cameras=None) -> dict:
     """What the viewer shows: {"scenes": {name: Gaussians}, "cameras": [Camera], "notes": [str], "title"}."""
+    from ..io.datasets import read_inria_cameras
     from ..io.ply import load_ply
 
     p = Path(path)
@@ -113,7 +82,7 @@ def load_view(path, original=None, cameras=None) -> dict:
             raise InputError("missing stylized.ply (not a stylization run folder?); pass a scene file instead", p)
         cj = Path(cameras) if cameras else p / "cameras.json"
         if cj.is_file() or cameras:
-            _, cams = read_cameras(cj)
+            _, cams = read_inria_cameras(cj)
         else:
             notes.append("no cameras.json in the run folder: no training cameras to show")
         scenes = {"stylized": load_ply(ply)}
@@ -131,7 +100,7 @@ def load_view(path, original=None, cameras=None) -> dict:
         scenes = {p.name: load_ply(p)}
         cj = Path(cameras) if cameras else cameras_beside(p)
         if cj is not None:
-            _, cams = read_cameras(cj)
+            _, cams = read_inria_cameras(cj)
             notes.append(f"cameras: {cj}")
         title = p.name
     return {"scenes": scenes, "cameras": cams, "notes": notes, "title": title}

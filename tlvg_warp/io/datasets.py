@@ -249,12 +249,29 @@ def _llff_colmap_camera(root, poses):
     return None
 
 
+def read_inria_cameras(path) -> tuple[list, list]:
+    """An INRIA cameras.json (the 3DGS trainer's) -> (names, [Camera]); one-line errors naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("missing file", path)
+    data = _read_json(path)
+    if not isinstance(data, list) or not data:
+        raise InputError("expected a non-empty list of cameras", path)
+    names, cams = [], []
+    for name, w2c, fx, fy, w, h in inria_camera_entries(data, path):
+        cams.append(Camera(torch.from_numpy(w2c), fx, fy, w / 2, h / 2, int(w), int(h), name=name))
+        names.append(name)
+    return names, cams
+
+
 # --- NeRF / Blender transforms ------------------------------------------------------------------------------
 def _read_json(path):
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(Path(path).read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise InputError(f"corrupt JSON ({e.__class__.__name__}: {str(e)[:80]})", path) from None
+    except OSError as e:
+        raise InputError(f"unreadable ({e.__class__.__name__})", path) from None
 
 
 def _blender_intrinsics(get, w, h):

@@ -5,15 +5,12 @@ the un-stylized scene rendered into them stands in for the photos (what the cont
 pre-process fit then preserve is the scene as it is)."""
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..errors import InputError
 from ..types import Camera, Gaussians
 
 ORBIT_VIEWS = 24  # one view every 15 degrees
@@ -66,20 +63,10 @@ def orbit_cameras(g: Gaussians, n: int = ORBIT_VIEWS, width: int = ORBIT_SIZE[0]
 
 def cameras_from_json(path, width: int) -> SceneViews:
     """INRIA cameras.json (the 3DGS trainer's), each camera resized to ``width`` pixels wide."""
-    from .datasets import inria_camera_entries
+    from .datasets import read_inria_cameras
 
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise InputError(f"cannot read cameras.json ({e.__class__.__name__})", path) from None
-    if not isinstance(data, list) or not data:
-        raise InputError("cameras.json must be a non-empty list of cameras", path)
-    cams, names = [], []
-    for name, w2c, fx, fy, W, H in inria_camera_entries(data, path):
-        c = Camera(torch.from_numpy(w2c), fx, fy, W / 2, H / 2, int(W), int(H), name=name)
-        cams.append(c.scaled(max(1e-9, W / width)) if W > width else c)
-        names.append(name)
+    names, cams = read_inria_cameras(path)
+    cams = [c.scaled(max(1e-9, c.width / width)) if c.width > width else c for c in cams]
     return SceneViews(cams, names, str(path))
 
 
