@@ -97,18 +97,25 @@ def _measured(summaries):
                                                                     and s[k].get("mean") is not None for s in summaries)]
 
 
-def bars_chart(names, summaries) -> str:
-    """Bars with 95% intervals, one panel per measured per-view metric."""
+PANEL_COLS = 4
+
+
+def _panels(keys, panel_height: float):
+    """A figure with one panel per metric key, PANEL_COLS to a row: (fig, [(i, key, axes)])."""
     from matplotlib.figure import Figure
 
+    rows = math.ceil(len(keys) / PANEL_COLS)
+    fig = Figure(figsize=(4 * PANEL_COLS, panel_height * rows))
+    return fig, [(i, k, fig.add_subplot(rows, PANEL_COLS, i + 1)) for i, k in enumerate(keys)]
+
+
+def bars_chart(names, summaries) -> str:
+    """Bars with 95% intervals, one panel per measured per-view metric."""
     keys = _measured(summaries)
     if not keys:
         return ""
-    cols = 4
-    rows = math.ceil(len(keys) / cols)
-    fig = Figure(figsize=(4 * cols, 3.0 * rows))
-    for i, k in enumerate(keys):
-        ax = fig.add_subplot(rows, cols, i + 1)
+    fig, panels = _panels(keys, 3.0)
+    for _, k, ax in panels:
         s = [x.get(k) or {} for x in summaries]
         mean = np.array([np.nan if v.get("mean") is None else v["mean"] for v in s])
         err = np.array([[m - (v.get("lo") if v.get("lo") is not None else m) for m, v in zip(mean, s)],
@@ -124,16 +131,11 @@ def bars_chart(names, summaries) -> str:
 
 def per_view_chart(names, per_views) -> str:
     """Per-view values (x: view index) of every measured metric, one series per run."""
-    from matplotlib.figure import Figure
-
     keys = [k for k in _measured([{k: {"mean": 1} for k, v in p.items() if v} for p in per_views])]
     if not keys:
         return ""
-    cols = 4
-    rows = math.ceil(len(keys) / cols)
-    fig = Figure(figsize=(4 * cols, 2.8 * rows))
-    for i, k in enumerate(keys):
-        ax = fig.add_subplot(rows, cols, i + 1)
+    fig, panels = _panels(keys, 2.8)
+    for i, k, ax in panels:
         for j, (n, p) in enumerate(zip(names, per_views)):
             if p.get(k):
                 ax.scatter(range(len(p[k])), p[k], s=12, color=f"C{j}", label=n)
@@ -148,19 +150,14 @@ def per_view_chart(names, per_views) -> str:
 
 def speed_chart(names, times, summaries) -> str:
     """Time on x, each measured metric on y (its interval as error bar), the Pareto front in red."""
-    from matplotlib.figure import Figure
-
     from .pareto import pareto_front
 
     t = np.array([np.nan if x is None else x for x in times], np.float64)
     keys = _measured(summaries)
     if not keys or not np.isfinite(t).any():
         return "<p class=small>speed-quality chart: no run recorded its wall time</p>"
-    cols = 4
-    rows = math.ceil(len(keys) / cols)
-    fig = Figure(figsize=(4 * cols, 3.0 * rows))
-    for i, k in enumerate(keys):
-        ax = fig.add_subplot(rows, cols, i + 1)
+    fig, panels = _panels(keys, 3.0)
+    for i, k, ax in panels:
         m = M.METRICS[k]
         y = np.array([np.nan if not s.get(k) or s[k].get("mean") is None else s[k]["mean"] for s in summaries])
         lo = np.array([np.nan if not s.get(k) or s[k].get("lo") is None else s[k]["lo"] for s in summaries])
