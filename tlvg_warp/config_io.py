@@ -9,6 +9,25 @@ import re
 from .errors import InputError
 
 
+def read_yaml_mapping(path, what: str = "config file") -> dict:
+    """A YAML file holding a mapping, as a dict; one-line InputErrors naming the file (missing, not YAML,
+    not a mapping). Every YAML the project reads (configs, studies, run folders) goes through here."""
+    from pathlib import Path
+
+    import yaml
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{what} does not exist", p)
+    try:
+        d = yaml.safe_load(p.read_text()) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise InputError(f"not valid YAML ({str(e).splitlines()[0]})", p) from None
+    if not isinstance(d, dict):
+        raise InputError("expected a YAML mapping of key: value", p)
+    return d
+
+
 def field_comments(cls) -> dict:
     """{field: its trailing # comment} of a dataclass, from its source."""
     src = inspect.getsource(cls)

@@ -70,17 +70,9 @@ def _view_file(folder: Path, name: str, index: int):
 
 
 def _yaml(path: Path) -> dict:
-    import yaml
+    from ..config_io import read_yaml_mapping
 
-    if not path.is_file():
-        return {}
-    try:
-        cfg = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise InputError(f"unreadable YAML ({str(e).splitlines()[0]})", path) from None
-    if not isinstance(cfg, dict):
-        raise InputError("expected a mapping", path)
-    return cfg
+    return read_yaml_mapping(path) if path.is_file() else {}
 
 
 def load_run(run, max_views: int = 0) -> dict:

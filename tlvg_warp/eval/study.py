@@ -55,17 +55,10 @@ class Study:
 
 
 def load_study(path) -> Study:
-    import yaml
+    from ..config_io import read_yaml_mapping
 
     path = Path(path)
-    if not path.is_file():
-        raise InputError("study file not found", path)
-    try:
-        d = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise InputError(f"unreadable YAML ({str(e).splitlines()[0]})", path) from None
-    if not isinstance(d, dict):
-        raise InputError("expected a mapping", path)
+    d = read_yaml_mapping(path, "study file")
     bad = sorted(set(d) - TOP_KEYS)
     if bad:
         raise InputError(f"unknown key(s) {bad}; known: {sorted(TOP_KEYS)}", path)

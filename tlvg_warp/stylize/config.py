@@ -160,22 +160,15 @@ def config_from_dict(d: dict, base: StylizeConfig | None = None) -> StylizeConfi
 
 def read_yaml_chain(path, _seen=None) -> dict:
     """The merged mapping of ``path`` and its ``base:`` ancestors (the file's own keys win)."""
-    import yaml
+    from ..config_io import read_yaml_mapping
 
     p = Path(path)
     seen = set() if _seen is None else _seen
-    if not p.is_file():
-        raise InputError("config file does not exist", p)
+    d = read_yaml_mapping(p)
     key = p.resolve()
     if key in seen:
         raise InputError("config base: chain loops back to this file", p)
     seen.add(key)
-    try:
-        d = yaml.safe_load(p.read_text()) or {}
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid YAML ({str(e).splitlines()[0]})", p) from None
-    if not isinstance(d, dict):
-        raise InputError("config must be a YAML mapping of key: value", p)
     base = d.pop("base", None)
     if base is None:
         return d

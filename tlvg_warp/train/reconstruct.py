@@ -145,20 +145,11 @@ def config_from_dict(d: dict, base: ReconstructConfig | None = None) -> Reconstr
 
 def load_config(path=None, overrides=(), base: ReconstructConfig | None = None) -> ReconstructConfig:
     """YAML file (optional) then ``key=value`` overrides (values parsed as YAML)."""
-    import yaml
+    from ..config_io import read_yaml_mapping
 
     cfg = base if base is not None else ReconstructConfig()
     if path is not None:
-        p = Path(path)
-        if not p.is_file():
-            raise InputError("config file does not exist", p)
-        try:
-            d = yaml.safe_load(p.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise InputError(f"not valid YAML ({str(e).splitlines()[0]})", p) from None
-        if not isinstance(d, dict):
-            raise InputError("config must be a YAML mapping of key: value", p)
-        cfg = config_from_dict(d, cfg)
+        cfg = config_from_dict(read_yaml_mapping(path), cfg)
     return apply_overrides(cfg, overrides, config_from_dict).validate()
 
 
