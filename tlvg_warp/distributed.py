@@ -15,6 +15,7 @@ group beside NCCL on GPUs), so they need no CUDA tensors and can wait as long as
 """
 from __future__ import annotations
 
+import contextlib
 import datetime
 import os
 from dataclasses import dataclass, field
@@ -24,6 +25,21 @@ import torch
 import torch.distributed as tdist
 
 DEFAULT_TIMEOUT_S = 6 * 3600
+_LOCAL_ONLY = [0]  # > 0 inside local_only(): from_env returns the single-process handle
+
+
+@contextlib.contextmanager
+def local_only():
+    """Inside this block `Dist.from_env` returns the single-process handle even under torchrun.
+
+    The study runs whole stylizations on each rank (one job per rank): the stylize command it calls in-process
+    must not take the launch's ranks for data-parallel partners of its own.
+    """
+    _LOCAL_ONLY[0] += 1
+    try:
+        yield
+    finally:
+        _LOCAL_ONLY[0] -= 1
 
 
 def _env_int(name: str, default: int) -> int:
@@ -69,7 +85,7 @@ class Dist:
         world = _env_int("WORLD_SIZE", 1)
         if tdist.is_available() and tdist.is_initialized():
             world = tdist.get_world_size()
-        if world <= 1:
+        if world <= 1 or _LOCAL_ONLY[0]:
             return cls(rank=0, world=1, local_rank=0, device=requested, backend=None)
 
         rank = _env_int("RANK", 0)
@@ -181,3 +197,32 @@ class Dist:
     def rank_slice(self, items: list) -> list:
         """This rank's share of `items`: items[rank::world] (deterministic round-robin)."""
         return list(items)[self.rank::self.world]
+
+
+def isolate_local_gpu() -> bool:
+    """Under torchrun, make this process see only its own GPU: CUDA_VISIBLE_DEVICES becomes the LOCAL_RANK-th
+    of the GPUs visible to the launch, so code written for one GPU ("cuda", "cuda:0", Warp's current device)
+    runs on it. For launches whose ranks run independent jobs (the study); the data-parallel commands use
+    `Dist.from_env`'s cuda:LOCAL_RANK instead. It must run before CUDA is initialised (torch or Warp): then
+    it returns True; otherwise (too late, or not under torchrun) it changes nothing and returns False.
+    """
+    if _env_int("WORLD_SIZE", 1) <= 1 or "LOCAL_RANK" not in os.environ:
+        return False
+    import sys
+
+    if torch.cuda.is_initialized():
+        return False
+    wp = sys.modules.get("warp")
+    if wp is not None and getattr(getattr(wp, "_src", None), "context", None) is not None \
+            and wp._src.context.runtime is not None:
+        return False
+    local_rank = _env_int("LOCAL_RANK", 0)
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    ids = [v.strip() for v in visible.split(",") if v.strip()] if visible else None
+    if ids is None:
+        os.environ["CUDA_VISIBLE_DEVICES"] = str(local_rank)
+    elif local_rank < len(ids):
+        os.environ["CUDA_VISIBLE_DEVICES"] = ids[local_rank]
+    else:
+        os.environ["CUDA_VISIBLE_DEVICES"] = ""  # more ranks than GPUs: this one has none (an error if cuda asked)
+    return True
