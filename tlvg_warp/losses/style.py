@@ -3,6 +3,11 @@
 FAST (ABC-GS reference code, SPEC §3), NNFM (ARF), Gram, content MSE, and the render->style cell match the
 "matched" stroke-field mapping reuses. Similarity matrices are built in row chunks so a ~100k x 20k match
 never materializes at once.
+
+Per-call cost (issue 15: the stylize loop is bound by the host's kernel launches): nothing here reads a value
+back to the host (no ``.item()``, no data-dependent shapes, no sparse tensors), the painting's side is
+computed once (:class:`StyleFeatures`), and :class:`StyleLoss` adds an optional per-view cache of the FAST
+projection (``key``/``refresh_every``).
 """
 from __future__ import annotations
 
@@ -11,7 +16,15 @@ import torch.nn.functional as F
 
 K_CROSS = 5  # FAST's mutual top-k (reference code)
 RIDGE = 1e-12  # FAST's A + 1e-12*I (reference code)
+# The float32 solve: A scaled to unit diagonal (Jacobi) plus this ridge, then Cholesky. Measured on fern x Starry
+# Night with the pretrained backbone (A: 83 dead channels, the live spectrum spans 12 decades): the target b is
+# within 9e-4 (relative Frobenius) of a float64 solve of the float64 A, the loss within 1e-5, the gradient within
+# 3e-3 -- less than the float64 answer itself moves when its ridge goes from 1e-12 to 1e-8 (1.3e-3 / 5e-3), and
+# less than the float64 LU of the float32 A the loop used before (1.1e-3 / 4e-3). tests/test_losses_style.py.
+RIDGE32 = 1e-7
+EPS_COS = 1e-8  # F.cosine_similarity's eps: a (dead) all-zero row has cosine 0
 SIM_BUDGET = 1 << 25  # elements per similarity chunk: 32M floats = 128 MB in float32
+SOLVES = ("auto", "float32", "float64")
 
 
 def match_dtype(t: torch.Tensor) -> torch.dtype:
@@ -32,12 +45,72 @@ def _chunks(n_rows: int, n_cols: int):
         yield i0, min(n_rows, i0 + step)
 
 
+class StyleFeatures:
+    """The painting's side of the style losses, computed once and reused by every call: the features ``s``
+    [C, Ns], their unit columns in the match dtype (``unit``), ``sT`` [Ns, C] (the FAST union gathers its
+    rows) and the pixel-normalized Gram matrix (``gram``), each built on first use. Any loss here takes
+    either a plain [C, Ns] tensor (everything recomputed per call, as before) or one of these."""
+
+    def __init__(self, feats: torch.Tensor):
+        if feats.dim() != 2:
+            raise ValueError(f"style features must be [C, Ns], got {tuple(feats.shape)}")
+        self.s = feats.detach().contiguous()
+        self._unit: dict = {}
+        self._sT = None
+        self._gram = None
+
+    @property
+    def shape(self):
+        return self.s.shape
+
+    @property
+    def dtype(self):
+        return self.s.dtype
+
+    @property
+    def device(self):
+        return self.s.device
+
+    def unit(self, dtype: torch.dtype) -> torch.Tensor:
+        u = self._unit.get(dtype)
+        if u is None:
+            u = self._unit[dtype] = _unit(self.s).to(dtype).contiguous()
+        return u
+
+    @property
+    def sT(self) -> torch.Tensor:
+        if self._sT is None:
+            self._sT = self.s.T.contiguous()
+        return self._sT
+
+    @property
+    def gram(self) -> torch.Tensor:
+        if self._gram is None:
+            self._gram = gram(self.s)
+        return self._gram
+
+    def like(self, ref: torch.Tensor) -> "StyleFeatures":
+        """This painting on ``ref``'s dtype and device (itself when they already agree)."""
+        if self.s.dtype == ref.dtype and self.s.device == ref.device:
+            return self
+        return StyleFeatures(self.s.to(ref))
+
+
+def as_style(style, ref: torch.Tensor) -> StyleFeatures:
+    """A :class:`StyleFeatures` on ``ref``'s dtype/device from a tensor or a StyleFeatures."""
+    if isinstance(style, StyleFeatures):
+        return style.like(ref)
+    return StyleFeatures(style.detach().to(ref))
+
+
 @torch.no_grad()
-def _topk_both(a: torch.Tensor, s: torch.Tensor, k: int, need_cols: bool = True):
+def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     """Cosine top-k in both directions, one chunked pass over render rows.
     Returns idx_r [Nc,kr] (best style cells per render cell) and idx_c [kc,Ns] (best render cells per
-    style cell, or None)."""
-    an, sn = _unit(a).to(match_dtype(a)), _unit(s).to(match_dtype(a))  # [C,Nc], [C,Ns]
+    style cell, or None). ``s``: [C,Ns] or a StyleFeatures (its unit columns are reused)."""
+    st = as_style(s, a)
+    mdt = match_dtype(a)
+    an, sn = _unit(a).to(mdt), st.unit(mdt)  # [C,Nc], [C,Ns]
     nc, ns = an.shape[1], sn.shape[1]
     kr, kc = min(k, ns), min(k, nc)
     idx_r = torch.empty(nc, kr, dtype=torch.long, device=a.device)
@@ -47,7 +120,8 @@ def _topk_both(a: torch.Tensor, s: torch.Tensor, k: int, need_cols: bool = True)
         idx_r[i0:i1] = sim.topk(kr, dim=1).indices
         if need_cols:
             v, i = sim.topk(min(kc, i1 - i0), dim=0)  # [k', Ns]
-            i = i + i0
+            if i0:
+                i = i + i0
             if best_v is not None:
                 v, i = torch.cat([best_v, v]), torch.cat([best_i, i])
                 v, j = v.topk(min(kc, v.shape[0]), dim=0)
@@ -56,99 +130,235 @@ def _topk_both(a: torch.Tensor, s: torch.Tensor, k: int, need_cols: bool = True)
     return idx_r, best_i
 
 
-DENSE_UNION_MAX = 1 << 28  # flat U entries up to which a byte mask beats sorting (256 MB at most)
+@torch.no_grad()
+def _fast_union(idx_r: torch.Tensor, idx_c: torch.Tensor, nc: int, sT: torch.Tensor):
+    """FAST's U (the union of both top-k passes, each entry once) without building it, and without reading
+    anything back to the host. Returns (n, u1, us): n = |U| (0-dim tensor), u1 [Nc] = row counts of U,
+    us [Nc,C] = U·sᵀ, all unnormalized (divide by n for U /= sum(U)).
+
+    An entry (idx_c[t,j], j) of the column pass is already in the row pass iff j is among idx_r[idx_c[t,j]]
+    (each pass alone has no repeats: top-k indices are distinct), so it counts only when it is not."""
+    ns, c = sT.shape
+    kr, kc = idx_r.shape[1], idx_c.shape[0]
+    cols = torch.arange(ns, device=sT.device)
+    dup = (idx_r[idx_c] == cols[None, :, None]).any(-1)  # [kc,Ns]
+    keep = (~dup).to(sT.dtype)
+    n = keep.sum() + nc * kr
+    u1 = torch.full((nc,), float(kr), dtype=sT.dtype, device=sT.device).index_add_(0, idx_c.reshape(-1),
+                                                                                    keep.reshape(-1))
+    us = torch.zeros(nc + 1, c, dtype=sT.dtype, device=sT.device)  # the last row takes the repeats
+    us.index_add_(0, torch.where(dup, nc, idx_c).reshape(-1), sT.repeat(kc, 1))
+    us = us[:nc] + F.embedding_bag(idx_r, sT, mode="sum")  # + the row pass: Σ_k sᵀ[idx_r[i,k]]
+    return n, u1, us
 
 
-def _union_keys(keys: torch.Tensor, n: int) -> torch.Tensor:
-    """Sorted unique values of ``keys`` in [0, n): a byte mask and its nonzero entries (linear time) when
-    the mask is affordable, else torch.unique (a sort; 0.25 s per call on the CPU demo's 32k keys)."""
-    if n > DENSE_UNION_MAX:
-        return torch.unique(keys)
-    mask = torch.zeros(n, dtype=torch.bool, device=keys.device)
-    mask[keys] = True
-    return mask.nonzero().squeeze(1)
+def _solve_kind(solve: str, a: torch.Tensor) -> str:
+    if solve not in SOLVES:
+        raise ValueError(f"solve must be one of {SOLVES}, got {solve!r}")
+    if solve == "auto":
+        return "float64" if a.dtype == torch.float64 else "float32"
+    return solve
 
 
 @torch.no_grad()
-def fast_target(a: torch.Tensor, s: torch.Tensor, k: int = K_CROSS, idx=None) -> torch.Tensor:
-    """FAST's projected target b = Pᵀa [C,Nc] (no gradient). U = union of the top-k style cells of every
-    render cell and the top-k render cells of every style cell, U /= sum(U); A = a·diag(U1)·aᵀ + 1e-12·I;
-    B = a·U·sᵀ; P = solve(A, B) (in float64: dead ReLU channels make A singular but for the ridge)."""
-    nc, ns = a.shape[1], s.shape[1]
-    idx_r, idx_c = idx if idx is not None else _topk_both(a, s, k)
-    rows = torch.cat([torch.arange(nc, device=a.device).repeat_interleave(idx_r.shape[1]),
-                      idx_c.reshape(-1)])
-    cols = torch.cat([idx_r.reshape(-1), torch.arange(ns, device=a.device).repeat(idx_c.shape[0])])
-    key = _union_keys(rows * ns + cols, nc * ns)  # an entry set by both passes counts once
-    rows, cols = key // ns, key % ns
-    n = float(key.numel())
-    u1 = torch.bincount(rows, minlength=nc).to(a.dtype) / n  # [Nc] row sums of U
-    u = torch.sparse_coo_tensor(torch.stack([rows, cols]), torch.full_like(rows, 1, dtype=a.dtype) / n,
-                                (nc, ns), is_coalesced=True, check_invariants=False)  # keys unique+sorted
-    us = torch.sparse.mm(u, s.T.contiguous())  # U·sᵀ [Nc,C]
+def fast_projection(a: torch.Tensor, s, k: int = K_CROSS, idx=None, solve: str = "auto"):
+    """FAST's map P [C,C] (target b = Pᵀa) and ``ok`` (0-dim bool: the solve succeeded), from render features
+    a [C,Nc] and style features s ([C,Ns] or a StyleFeatures); ``idx`` = (idx_r, idx_c) from ``_topk_both``.
+
+    P = A⁻¹B with A = a·diag(U1)·aᵀ + 1e-12·I and B = a·U·sᵀ. ``solve``: "float64" is the reference code's
+    dense solve (LU of the float64 A), "float32" a Cholesky of the Jacobi-scaled A + 1e-7·I (RIDGE32; ~5x
+    cheaper on the GPU; the scale of U cancels in P, so it is not even divided out), "auto" float64 for
+    float64 input, else float32. With fewer render cells than channels the solve is an Nc x Nc system in
+    float64 either way (push-through identity: P = a·(D·G + εI)⁻¹·U·sᵀ, G = aᵀa, D = diag(U1); (C/Nc)³
+    less work: the CPU demo has 768 channels and 70 cells)."""
+    st = as_style(s, a)
+    nc = a.shape[1]
+    idx_r, idx_c = idx if idx is not None else _topk_both(a, st, k)
+    n, u1, us = _fast_union(idx_r, idx_c, nc, st.sT)
+    kind = _solve_kind(solve, a)
     if nc < a.shape[0]:
-        b, ok = _fast_target_low_rank(a, u1, us)
+        a64 = a.double()
+        u1n = u1.double() / n
+        M = u1n[:, None] * (a64.T @ a64)  # D·G [Nc,Nc]
+        M.diagonal().add_(RIDGE)
+        X, info = torch.linalg.solve_ex(M, us.double() / n)  # [Nc,C]
+        P = a64 @ X
+    elif kind == "float64":
+        A = ((a * (u1 / n)) @ a.T).double()
+        A.diagonal().add_(RIDGE)
+        P, info = torch.linalg.solve_ex(A, (a @ (us / n)).double())  # P = A⁻¹B, B = a·U·sᵀ [C,C]
     else:
-        A = (a * u1) @ a.T  # [C,C]
-        A64 = A.double() + RIDGE * torch.eye(A.shape[0], dtype=torch.float64, device=a.device)
-        P, info = torch.linalg.solve_ex(A64, (a @ us).double())  # P = A⁻¹B, B = a·U·sᵀ [C,C]
-        b, ok = P.to(a.dtype).T @ a, (info == 0) & torch.isfinite(P).all()
+        A = (a * u1) @ a.T  # [C,C]; U's scale 1/n cancels in A⁻¹B
+        d = A.diagonal().clamp_min(1e-30).rsqrt()  # a dead channel: its row of A is 0, so is its row of P
+        As = A * torch.outer(d, d)
+        As.diagonal().add_(RIDGE32)
+        L, info = torch.linalg.cholesky_ex(As)
+        P = torch.cholesky_solve((a @ us) * d[:, None], L) * d[:, None]
+    ok = (info == 0) & torch.isfinite(P).all()
+    return P.to(a.dtype), ok
+
+
+def _apply_projection(P: torch.Tensor, ok: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     # the reference code falls back to the identity map when the solve fails; chosen on the device, since a
     # Python `if` here would stall the stylize loop on a host sync every iteration
-    return torch.where(ok, b, a)  # [C,Nc]
+    return torch.where(ok, P.T @ a, a)  # [C,Nc]
 
 
-def _fast_target_low_rank(a: torch.Tensor, u1: torch.Tensor, us: torch.Tensor):
-    """b = Pᵀa with fewer render cells than channels, from an Nc x Nc system instead of C x C: A = a·D·aᵀ + εI
-    (D = diag(U1)) gives A⁻¹a = a·(D·G + εI)⁻¹ with G = aᵀa (push-through identity), so
-    b = Bᵀ·A⁻¹·a = (U·sᵀ)ᵀ·G·(D·G + εI)⁻¹ = (U·sᵀ)ᵀ·Yᵀ with Y = (G·D + εI)⁻¹·G. Same value in exact
-    arithmetic; (C/Nc)³ less work (the CPU demo: 768 channels, 70 cells)."""
-    a64 = a.double()
-    G = a64.T @ a64  # [Nc,Nc]
-    M = G * u1.double()[None, :] + RIDGE * torch.eye(G.shape[0], dtype=torch.float64, device=a.device)  # G·D + εI
-    Y, info = torch.linalg.solve_ex(M, G)  # [Nc,Nc]
-    b = us.double().T @ Y.T  # [C,Nc]
-    return b.to(a.dtype), (info == 0) & torch.isfinite(b).all()
+@torch.no_grad()
+def fast_target(a: torch.Tensor, s, k: int = K_CROSS, idx=None, solve: str = "auto") -> torch.Tensor:
+    """FAST's projected target b = Pᵀa [C,Nc] (no gradient). U = union of the top-k style cells of every
+    render cell and the top-k render cells of every style cell, U /= sum(U); A = a·diag(U1)·aᵀ + 1e-12·I;
+    B = a·U·sᵀ; P = solve(A, B) (see :func:`fast_projection` for ``solve``)."""
+    P, ok = fast_projection(a, s, k, idx=idx, solve=solve)
+    return _apply_projection(P, ok, a)
 
 
-def fast_loss(render_feats: torch.Tensor, style_feats: torch.Tensor, k: int = K_CROSS,
-              return_match: bool = False):
+class _CosToFixed(torch.autograd.Function):
+    """mean over rows (dim=1 layout [R, N]: cosine along N) of 1 − cos(x_r, y_r) for a constant y given
+    unit-normalized (ŷ = y / max(|y|, eps)), with a closed-form backward (fewer small kernels than autograd
+    through F.cosine_similarity; same values and, for |x_r| > eps, the same gradient):
+    ∂/∂x_r = −(1/R)·(ŷ_r/|x_r| − (x_r·ŷ_r)·x_r/|x_r|³); an all-zero row (a dead ReLU channel) gets ŷ_r/eps, as
+    torch's does (the ReLU's mask zeroes it)."""
+
+    @staticmethod
+    def forward(ctx, x, yhat, dim):
+        nx = torch.linalg.vector_norm(x, dim=dim)
+        dot = torch.linalg.vecdot(x, yhat, dim=dim)
+        inv = nx.clamp_min(EPS_COS).reciprocal()
+        ctx.save_for_backward(x, yhat, nx, dot, inv)
+        ctx.dim = dim
+        return 1.0 - (dot * inv).mean()
+
+    @staticmethod
+    def backward(ctx, g):
+        x, yhat, nx, dot, inv = ctx.saved_tensors
+        scale = g / nx.numel()
+        c1 = -scale * inv
+        c2 = torch.where(nx > EPS_COS, scale * dot * inv * inv * inv, torch.zeros_like(inv))
+        c1, c2 = c1.unsqueeze(ctx.dim), c2.unsqueeze(ctx.dim)
+        return torch.addcmul(yhat * c1, x, c2), None, None
+
+
+def cosine_distance_to_fixed(x: torch.Tensor, y: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """mean of 1 − cos(x, y) along ``dim`` with y held constant (the FAST and NNFM losses' last step);
+    equals ``(1 - F.cosine_similarity(x, y.detach(), dim)).mean()``."""
+    with torch.no_grad():
+        yhat = y / torch.linalg.vector_norm(y, dim=dim, keepdim=True).clamp_min(EPS_COS)
+    return _CosToFixed.apply(x, yhat.to(x.dtype), dim)
+
+
+def fast_loss(render_feats: torch.Tensor, style_feats, k: int = K_CROSS, return_match: bool = False,
+              solve: str = "auto"):
     """FAST style loss: mean over channels of 1 − cos(a[c,:], b[c,:]) (cosine along the pixel axis) with
-    b = fast_target(a, s) held constant; the gradient flows through a only.
+    b = fast_target(a, s) held constant; the gradient flows through a only. ``style_feats``: [C,Ns] or a
+    :class:`StyleFeatures` (precomputed once per painting).
     ``return_match`` also returns idx [Nc,k] (top-k style cells per render cell, for the stroke field)."""
-    a, s = render_feats, style_feats.to(render_feats)
-    idx = _topk_both(a.detach(), s.detach(), k)
-    b = fast_target(a.detach(), s.detach(), k, idx=idx)
-    loss = (1.0 - F.cosine_similarity(a, b, dim=1)).mean()
+    a = render_feats
+    st = as_style(style_feats, a)
+    idx = _topk_both(a.detach(), st, k)
+    b = fast_target(a.detach(), st, k, idx=idx, solve=solve)
+    loss = cosine_distance_to_fixed(a, b, dim=1)
     return (loss, idx[0]) if return_match else loss
 
 
 @torch.no_grad()
-def match_style_cells(render_feats: torch.Tensor, style_feats: torch.Tensor, k: int = K_CROSS):
+def match_style_cells(render_feats: torch.Tensor, style_feats, k: int = K_CROSS):
     """For each render cell its k most cosine-similar style cells: idx [Nc,k] and weights w [Nc,k].
     Weights are uniform (1/k), as FAST's U weighs every match equally."""
-    idx, _ = _topk_both(render_feats, style_feats.to(render_feats), k, need_cols=False)
+    idx, _ = _topk_both(render_feats, style_feats, k, need_cols=False)
     w = torch.full(idx.shape, 1.0 / idx.shape[1], dtype=render_feats.dtype, device=idx.device)
     return idx, w
 
 
-def nnfm_loss(render_feats: torch.Tensor, style_feats: torch.Tensor) -> torch.Tensor:
+def nnfm_loss(render_feats: torch.Tensor, style_feats) -> torch.Tensor:
     """ARF's NNFM: mean over render cells of min over style cells of the cosine distance 1 − cos.
     The nearest neighbour is found without gradient; the distance to it carries the gradient."""
-    a, s = render_feats, style_feats.to(render_feats)
-    nn_idx = match_style_cells(a.detach(), s.detach(), 1)[0][:, 0]  # [Nc]
-    return (1.0 - F.cosine_similarity(a, s[:, nn_idx], dim=0)).mean()
+    a = render_feats
+    st = as_style(style_feats, a)
+    nn_idx = _topk_both(a.detach(), st, 1, need_cols=False)[0][:, 0]  # [Nc]
+    return cosine_distance_to_fixed(a, st.s[:, nn_idx], dim=0)
 
 
 def gram(f: torch.Tensor) -> torch.Tensor:
     return f @ f.T / f.shape[1]  # [C,C], normalized by the pixel count so image sizes compare
 
 
-def gram_loss(render_feats: torch.Tensor, style_feats: torch.Tensor) -> torch.Tensor:
+def gram_loss(render_feats: torch.Tensor, style_feats) -> torch.Tensor:
     """Mean squared difference of pixel-normalized Gram matrices."""
-    return ((gram(render_feats) - gram(style_feats.to(render_feats))) ** 2).mean()
+    a = render_feats
+    gs = as_style(style_feats, a).gram if isinstance(style_feats, StyleFeatures) else gram(style_feats.to(a))
+    return F.mse_loss(torch.mm(a, a.T) * (1.0 / a.shape[1]), gs.to(a))
 
 
 def content_loss(render_feats: torch.Tensor, photo_feats: torch.Tensor) -> torch.Tensor:
     """Mean squared difference of features (any matching shapes)."""
-    return ((render_feats - photo_feats.to(render_feats)) ** 2).mean()
+    return F.mse_loss(render_feats, photo_feats.to(render_feats).detach())
+
+
+class StyleLoss:
+    """A style loss against one painting, built once per stylization; call it once per step.
+
+        style = StyleLoss(style_feats, kind="fast", refresh_every=1)   # [C,Ns] of the painting
+        loss = style(render_feats, key=view_index)                      # [C,Nc] of this step's render
+
+    Everything that depends only on the painting (unit columns, sᵀ, the Gram matrix) is computed once.
+    ``kind``: "fast" | "nnfm" | "gram". ``solve``: FAST's solve (:func:`fast_projection`).
+
+    Match caching (optional; off by default): with ``refresh_every = R > 1`` and a ``key`` per call (the view
+    index), the FAST projection P (the top-k match and the C x C solve, the costly part) is recomputed on the
+    first call of a key and then on every R-th call of that key; the calls between reuse P and take the
+    target b = Pᵀa from the current features (NNFM reuses the nearest-neighbour indices). R = 1, or no key,
+    recomputes every call: exactly :func:`fast_loss`. ``match_of(key)`` returns the last top-k indices of a key
+    (the stroke field's match); ``reset()`` drops the cache (e.g. after the Gaussians or the views change)."""
+
+    KINDS = ("fast", "nnfm", "gram")
+
+    def __init__(self, style_feats, kind: str = "fast", k: int = K_CROSS, refresh_every: int = 1,
+                 solve: str = "auto"):
+        if kind not in self.KINDS:
+            raise ValueError(f"kind must be one of {self.KINDS}, got {kind!r}")
+        if int(refresh_every) != refresh_every or refresh_every < 1:
+            raise ValueError(f"refresh_every must be an integer >= 1, got {refresh_every!r}")
+        _solve_kind(solve, torch.empty(0))
+        self.style = style_feats if isinstance(style_feats, StyleFeatures) else StyleFeatures(style_feats)
+        self.kind, self.k, self.refresh_every, self.solve = kind, int(k), int(refresh_every), solve
+        self._cache: dict = {}  # key -> [calls since refresh, payload]
+        self.refreshes = 0  # matches computed (a count for logs and tests)
+
+    def reset(self) -> None:
+        self._cache.clear()
+
+    def match_of(self, key):
+        hit = self._cache.get(key)
+        return None if hit is None else hit[1][-1]
+
+    def _cached(self, key, compute):
+        hit = self._cache.get(key) if key is not None and self.refresh_every > 1 else None
+        if hit is not None and hit[0] < self.refresh_every:
+            hit[0] += 1
+            return hit[1]
+        payload = compute()
+        self.refreshes += 1
+        if key is not None and self.refresh_every > 1:
+            self._cache[key] = [1, payload]
+        return payload
+
+    def __call__(self, render_feats: torch.Tensor, key=None) -> torch.Tensor:
+        a = render_feats
+        st = self.style.like(a)
+        if self.kind == "gram":
+            return gram_loss(a, st)
+        ad = a.detach()
+        if self.kind == "nnfm":
+            nn_idx, = self._cached(key, lambda: (_topk_both(ad, st, 1, need_cols=False)[0],))
+            return cosine_distance_to_fixed(a, st.s[:, nn_idx[:, 0]], dim=0)
+
+        def compute():
+            idx = _topk_both(ad, st, self.k)
+            P, ok = fast_projection(ad, st, self.k, idx=idx, solve=self.solve)
+            return P, ok, idx[0]
+
+        P, ok, _ = self._cached(key, compute)
+        with torch.no_grad():
+            b = _apply_projection(P, ok, ad)
+        return cosine_distance_to_fixed(a, b, dim=1)
