@@ -66,6 +66,7 @@ _RGB2XYZ = torch.tensor([[0.412453, 0.357580, 0.180423],
 _WHITE = torch.tensor([0.950456, 1.0, 1.088754], dtype=torch.float64)
 _EPS_T = (6.0 / 29.0) ** 3  # CIE switch from the cube root to the linear segment
 _TINY = 1e-10  # keeps pow() bases positive so the unused branch of torch.where has a finite gradient
+LUMA = (0.299, 0.587, 0.114)
 
 
 def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
@@ -80,25 +81,88 @@ def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
     return torch.stack([L, a, b], dim=-1)
 
 
-def lab_chroma_loss(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+_consts: dict = {}  # (name, dtype, device) -> constant tensor: built once, never copied to the device per call
+
+
+def _const(name: str, dtype, device) -> torch.Tensor:
+    key = (name, dtype, str(device))
+    t = _consts.get(key)
+    if t is None:
+        if name == "xyz":  # sRGB -> XYZ / white, transposed for lin @ it
+            v = (_RGB2XYZ / _WHITE[:, None]).T
+        elif name == "ab":  # f(X), f(Y), f(Z) -> (a, b)
+            v = torch.tensor([[500.0, 0.0], [-500.0, 200.0], [0.0, -200.0]], dtype=torch.float64)
+        else:  # "luma"
+            v = torch.tensor(LUMA, dtype=torch.float64)
+        t = _consts[key] = v.to(dtype=dtype, device=device).contiguous()
+    return t
+
+
+_K_LIN = 1.0 / (3 * (6.0 / 29.0) ** 2)  # slope of the CIE f's linear segment
+
+
+class _LabAB(torch.autograd.Function):
+    """sRGB [N,3] -> CIE (a, b) [N,2] with a closed-form backward: the Jacobian factors per pixel
+    (d lin / d c, d f / d xyz) are kept from the forward, so the backward is five kernels instead of autograd's
+    few dozen. Same formulas and branches as :func:`rgb_to_lab` (which the tests compare it with)."""
+
+    @staticmethod
+    def forward(ctx, rgb):
+        c = rgb.clamp_min(0.0)
+        lo = c <= 0.04045
+        cp = c + 0.055
+        p = (cp * (1.0 / 1.055)).clamp_min_(_TINY).pow_(2.4)
+        lin = torch.where(lo, c * (1.0 / 12.92), p)
+        # d lin / d rgb: 1/12.92 on the linear segment, 2.4·p/(c+0.055) on the power one, 0 where clamped
+        dlin = torch.where(lo, 1.0 / 12.92, p.mul_(2.4).div_(cp)).mul_(rgb >= 0)
+        xyz = lin @ _const("xyz", rgb.dtype, rgb.device)
+        hi = xyz > _EPS_T
+        cube = xyz.clamp_min(_TINY).pow_(1.0 / 3.0)
+        f = torch.where(hi, cube, xyz * _K_LIN + 4.0 / 29.0)
+        dfx = torch.where(hi, cube.square_().mul_(3.0).reciprocal_(), _K_LIN)  # f' = 1/(3 f²) on the cube root
+        ctx.save_for_backward(dlin, dfx)
+        return f @ _const("ab", rgb.dtype, rgb.device)
+
+    @staticmethod
+    def backward(ctx, g):
+        dlin, dfx = ctx.saved_tensors
+        gx = (g @ _const("ab", g.dtype, g.device).T).mul_(dfx)  # d/d xyz
+        return (gx @ _const("xyz", g.dtype, g.device).T).mul_(dlin)
+
+
+def lab_ab(rgb: torch.Tensor) -> torch.Tensor:
+    """The a, b channels of :func:`rgb_to_lab` [...,3] -> [...,2] (same values), with a closed-form backward."""
+    return _LabAB.apply(rgb.reshape(-1, 3)).reshape(*rgb.shape[:-1], 2)
+
+
+def lab_chroma_stats(img: torch.Tensor) -> torch.Tensor:
+    """[2, 2]: mean (row 0) and population standard deviation (row 1) of Lab a, b over the pixels of an
+    sRGB image [...,3]. A constant target's statistics are computed once (``lab_chroma_loss(target_stats=)``)."""
+    sd, mu = torch.std_mean(lab_ab(img).reshape(-1, 2), dim=0, correction=0)
+    return torch.stack([mu, sd])
+
+
+def lab_chroma_loss(render: torch.Tensor, target: torch.Tensor | None = None, *,
+                    target_stats: torch.Tensor | None = None) -> torch.Tensor:
     """½(‖Δμ_ab‖₁ + ‖Δσ_ab‖₁): mean and standard deviation of the a, b channels of the render vs the target
     (the recolored photo of the same view), in Lab units; L1 norms sum over the two channels.
-    Inputs [H,W,3] (or any [...,3]) sRGB in [0,1]."""
-    ab_r = rgb_to_lab(render).reshape(-1, 3)[:, 1:]  # [N,2]
-    ab_t = rgb_to_lab(target.to(render)).reshape(-1, 3)[:, 1:].detach()
-    d_mu = (ab_r.mean(0) - ab_t.mean(0)).abs().sum()
-    d_sd = (ab_r.std(0, unbiased=False) - ab_t.std(0, unbiased=False)).abs().sum()
-    return 0.5 * (d_mu + d_sd)
+    Inputs [H,W,3] (or any [...,3]) sRGB in [0,1]. ``target_stats``: :func:`lab_chroma_stats` of the target,
+    computed once per view, instead of ``target``."""
+    if target_stats is None:
+        if target is None:
+            raise ValueError("lab_chroma_loss needs target or target_stats")
+        with torch.no_grad():
+            target_stats = lab_chroma_stats(target.to(render))
+    return 0.5 * (lab_chroma_stats(render) - target_stats.to(render)).abs().sum()
 
 
 def luminance(img: torch.Tensor) -> torch.Tensor:
     """Y = 0.299R + 0.587G + 0.114B replicated to 3 channels (paper §3.3). [...,H,W,3] channel-last, or
     [B,3,H,W] (4-D with 3 channels on axis 1). Same shape out."""
+    w = _const("luma", img.dtype, img.device)
     if img.dim() == 4 and img.shape[1] == 3 and img.shape[-1] != 3:
-        w = torch.tensor([0.299, 0.587, 0.114], dtype=img.dtype, device=img.device).view(1, 3, 1, 1)
-        return (img * w).sum(1, keepdim=True).expand_as(img)
-    w = torch.tensor([0.299, 0.587, 0.114], dtype=img.dtype, device=img.device)
-    return (img * w).sum(-1, keepdim=True).expand_as(img)
+        return (img * w.view(1, 3, 1, 1)).sum(1, keepdim=True).expand_as(img)
+    return (img @ w).unsqueeze(-1).expand_as(img)
 
 
 def recolor_sh(sh: torch.Tensor, m: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
