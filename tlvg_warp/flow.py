@@ -1,9 +1,14 @@
 """Flow guidance on the Gaussians (SPEC §3): the alignment energy of paper eq. 1 and the anisotropy energy,
 weighted by target coherence × each Gaussian's blend weight in the view, normalized.
 
-``flow_terms`` runs the Warp kernel (kernels/flow.py) inside a torch autograd Function; ``flow_terms_reference``
-is its pure-torch twin (same signature) for the tests."""
-from __future__ import annotations
+``flow_terms`` runs two Warp kernels inside one torch autograd Function: the targets (this file: projected center,
+bilinear field sample with border padding, coherence, weight, and their sum; no gradient) and the energies
+(kernels/flow.py, on a Warp tape), then one matrix-vector product for the weighted means: about ten kernel
+launches per call where the torch-side targets and weighting took ~60 (issue 15: the stylize loop is
+launch-bound). ``flow_targets`` and ``flow_terms_reference`` are the pure-torch twins (same signatures) the
+tests compare with.
+(No ``from __future__ import annotations`` here: Warp reads the kernel's annotations as objects.)"""
+import functools
 
 import torch
 import torch.nn.functional as F
@@ -79,9 +84,141 @@ def _combine(align_i, aniso_i, coh, weights, active):
     return (w * align_i).sum(), (w * aniso_i).sum()
 
 
+@functools.lru_cache(maxsize=None)
+def _targets_kernel(scalar_name: str):
+    """The no-gradient half of ``flow_targets`` + ``_combine``'s weights as one Warp kernel (own module)."""
+    scalar = {"float32": wp.float32, "float64": wp.float64}[scalar_name]
+    vec2 = wp.types.vector(2, scalar)
+    vec3 = wp.types.vector(3, scalar)
+    mat33 = wp.types.matrix((3, 3), scalar)
+
+    @wp.kernel(module=f"tlvg_flow_targets_{scalar_name}")
+    def flow_targets_kernel(
+        means: wp.array(dtype=vec3),  # [N]
+        log_scales: wp.array(dtype=vec3),  # [N]
+        weights: wp.array(dtype=scalar),  # [N] Σ αT in this view
+        field: wp.array3d(dtype=scalar),  # [Hf, Wf, >=2] doubled-angle field c·(cos 2θ, sin 2θ)
+        R: mat33,
+        t: vec3,
+        fx: scalar,
+        fy: scalar,
+        cx: scalar,
+        cy: scalar,
+        width: int,
+        height: int,
+        near: scalar,
+        coh_min: scalar,
+        target: wp.array(dtype=vec2),  # [N] out: (cos 2θ, sin 2θ) at the projected center (0 where inactive)
+        active: wp.array(dtype=wp.int32),  # [N] out
+        w: wp.array(dtype=scalar),  # [N] out: coherence x weight, 0 where inactive
+        wsum: wp.array(dtype=scalar),  # [1] out (zeroed by the caller): Σ w
+    ):
+        i = wp.tid()
+        target[i] = vec2(scalar(0.0), scalar(0.0))
+        active[i] = 0
+        w[i] = scalar(0.0)
+        mu = means[i]
+        if not (wp.isfinite(mu) and wp.isfinite(log_scales[i])):
+            return
+        p = R * mu + t
+        z = p[2]
+        if not (z > near):
+            return
+        u = fx * p[0] / z + cx
+        v = fy * p[1] / z + cy
+        if not (u >= scalar(0.0) and u < scalar(width) and v >= scalar(0.0) and v < scalar(height)):
+            return
+        # grid_sample(bilinear, align_corners=False, padding border) of the field at pixel (u, v) of the view
+        hf = field.shape[0]
+        wf = field.shape[1]
+        ix = wp.clamp(u * scalar(wf) / scalar(width) - scalar(0.5), scalar(0.0), scalar(wf - 1))
+        iy = wp.clamp(v * scalar(hf) / scalar(height) - scalar(0.5), scalar(0.0), scalar(hf - 1))
+        x0 = int(wp.floor(ix))
+        y0 = int(wp.floor(iy))
+        ax = ix - scalar(x0)
+        ay = iy - scalar(y0)
+        x1 = wp.min(x0 + 1, wf - 1)  # its weight is 0 when x0 is the last column
+        y1 = wp.min(y0 + 1, hf - 1)
+        w00 = (scalar(1.0) - ax) * (scalar(1.0) - ay)
+        w01 = ax * (scalar(1.0) - ay)
+        w10 = (scalar(1.0) - ax) * ay
+        w11 = ax * ay
+        vx = w00 * field[y0, x0, 0] + w01 * field[y0, x1, 0] + w10 * field[y1, x0, 0] + w11 * field[y1, x1, 0]
+        vy = w00 * field[y0, x0, 1] + w01 * field[y0, x1, 1] + w10 * field[y1, x0, 1] + w11 * field[y1, x1, 1]
+        coh = wp.sqrt(vx * vx + vy * vy)
+        if not (coh > coh_min):
+            return
+        target[i] = vec2(vx / coh, vy / coh)
+        active[i] = 1
+        wi = wp.max(coh * weights[i], scalar(0.0))
+        w[i] = wi
+        wp.atomic_add(wsum, 0, wi)
+
+    return flow_targets_kernel
+
+
+class FlowEnergiesFn(torch.autograd.Function):
+    """(means, quats, log_scales) -> (alignment, anisotropy) energies [2] of one view: Σ w_i e_i / Σ w_i with the
+    targets and weights w_i = coherence x blend weight from the targets kernel (no gradient), e_i from the
+    energies kernel on a Warp tape. Backward: ∂E/∂e_i = g·w_i/Σw written straight into the tape's output
+    gradient, then the tape."""
+
+    @staticmethod
+    def forward(ctx, means, quats, log_scales, weights, field, cam):
+        K = kernels_for(means.dtype)
+        T = _targets_kernel({torch.float32: "float32", torch.float64: "float64"}[means.dtype])
+        n, dt, dev = means.shape[0], means.dtype, means.device
+        flat = torch.zeros(10 * n, dtype=dt, device=dev)  # the three input gradients, one memset
+        grads = [flat[:3 * n].view(n, 3), flat[3 * n:7 * n].view(n, 4), flat[7 * n:].view(n, 3)]
+        e = torch.zeros(4, n, dtype=dt, device=dev)  # align, aniso, and their gradients
+        target = torch.empty(n, 2, dtype=dt, device=dev)
+        active = torch.empty(n, dtype=torch.int32, device=dev)
+        w = torch.empty(n, dtype=dt, device=dev)
+        wsum = torch.zeros(1, dtype=dt, device=dev)
+        fld = field if (field.dtype == dt and field.is_contiguous()) else field.to(dt).contiguous()
+        wts = weights.detach()
+        wts = wts if (wts.dtype == dt and wts.is_contiguous()) else wts.to(dt).contiguous()
+        cargs = camera_args(cam, K)
+        with warp_on(dev) as wdev:
+            if n:
+                wp.launch(T, dim=n, inputs=[to_warp(means, K.vec3), to_warp(log_scales, K.vec3), wp.from_torch(wts),
+                                            wp.from_torch(fld), *cargs[:8], cargs[8], K.scalar(COHERENCE_MIN)],
+                          outputs=[to_warp(target, K.vec2), wp.from_torch(active), wp.from_torch(w),
+                                   wp.from_torch(wsum)], device=wdev)
+            ins = [to_warp(means, K.vec3, grads[0]), to_warp(quats, K.vec4, grads[1]),
+                   to_warp(log_scales, K.vec3, grads[2]), to_warp(target, K.vec2), to_warp(active, wp.int32)]
+            outs = [to_warp(e[0], K.scalar, e[2]), to_warp(e[1], K.scalar, e[3])]
+            tape = wp.Tape()
+            if n:
+                with tape:
+                    wp.launch(K.flow_terms, dim=n, inputs=ins + [cargs[0], cargs[1], cargs[2], cargs[3], cam.width,
+                                                                 cam.height], outputs=outs, device=wdev)
+        inv = wsum.clamp_min(1e-12).reciprocal()
+        ctx.state = (tape, e, w, inv, grads, dev)
+        ctx.save_for_backward(means, quats, log_scales)  # autograd's in-place check on the inputs
+        return torch.mv(e[:2], w) * inv
+
+    @staticmethod
+    def backward(ctx, g):
+        tape, e, w, inv, grads, device = ctx.state
+        ctx.saved_tensors  # noqa: B018 (raises if an input changed in place since the forward)
+        ctx.state = None
+        torch.outer(g * inv, w, out=e[2:])  # ∂E/∂align_i, ∂E/∂aniso_i into the tape's output gradients
+        with warp_on(device):
+            tape.backward()
+        return (*grads, None, None, None)
+
+
 def flow_terms(g: Gaussians, cam: Camera, field: torch.Tensor, weights: torch.Tensor):
     """(alignment energy, anisotropy energy) of ``g`` in view ``cam`` against the view's target ``field``
     [H, W, ≥2]; ``weights`` [N] is Σ αT per Gaussian from ``render(..., return_weights=True)``."""
+    e = FlowEnergiesFn.apply(g.means, g.quats, g.log_scales, weights, field, cam)
+    return e[0], e[1]
+
+
+def flow_terms_unfused(g: Gaussians, cam: Camera, field: torch.Tensor, weights: torch.Tensor):
+    """``flow_terms`` as it was before issue 15: torch targets, per-Gaussian Warp energies, torch weighting
+    (kept for the tests and the loss microbenchmark)."""
     target, coh, active = flow_targets(g, cam, field)
     align_i, aniso_i = FlowTermsFn.apply(g.means, g.quats, g.log_scales, target.contiguous(), active, cam)
     return _combine(align_i, aniso_i, coh, weights, active)
