@@ -68,3 +68,52 @@ def test_study_resume_skips_finished_runs(study, capsys):
     assert set(res["status"].values()) == {"skipped"}
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
     assert capsys.readouterr().out.count("skip demo/starry/") == 2
+
+
+def _same(a, b, path=""):
+    """Equal structure; floats equal to 1e-6 relative. The split study runs the same computation in other
+    processes; torchrun sets OMP_NUM_THREADS=1, and a different thread count may only move the last bits of a
+    float reduction (measured: bit-identical on 2 cores)."""
+    if isinstance(a, dict):
+        assert set(a) == set(b), (path, set(a) ^ set(b))
+        for k in a:
+            if k != "wall_time_s":  # the only field that may differ: time
+                _same(a[k], b[k], f"{path}/{k}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{path}[{i}]")
+    elif isinstance(a, float) and isinstance(b, float):
+        assert b == pytest.approx(a, rel=1e-6, abs=1e-9), path
+    else:
+        assert a == b, path
+
+
+def test_split_study_over_two_ranks_gives_the_one_process_table(study, tmp_path):
+    """`torchrun --nproc-per-node 2 -m tlvg_warp study` (two gloo ranks on the CPU): each rank stylizes one of
+    the two runs, the main rank gathers and writes the table, equal to the one-process study's; a later
+    one-process launch on the same folder skips both runs and writes the same table again."""
+    import os
+    import subprocess
+    import sys
+
+    out1, y = study
+    one = json.loads((out1 / "study.json").read_text())
+    out2 = tmp_path / "split"
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+                        "-m", "tlvg_warp", "study", str(y), "--out", str(out2)],
+                       env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    assert p.stdout.count("wrote ") == 1 and "with 2 ranks" in p.stdout  # the main rank alone reports
+    two = json.loads((out2 / "study.json").read_text())
+    assert two["status"] == {"demo/starry/tlvg": "ran", "demo/starry/abcgs": "ran"}
+    assert two["ranks"]["world"] == 2
+    assert sorted(two["ranks"]["stylized_by"].values()) == [0, 1]  # one job per rank, each run once
+    for key in ("tables", "ablation", "overall"):
+        _same(one[key], two[key], key)
+    assert not list((out2 / ".claims").iterdir())  # the launch's claims are removed at the end
+    assert main(["study", str(y), "--out", str(out2)]) == 0
+    again = json.loads((out2 / "study.json").read_text())
+    assert set(again["status"].values()) == {"skipped"}
+    _same(one["tables"], again["tables"], "tables")

@@ -1,5 +1,10 @@
 """`python -m tlvg_warp study STUDY.yaml`: configs x scenes x paintings, resumable, one ruler for every run,
-the paper's Table 1 per scene, the ablation table, the speed-quality chart (eval/study.py has the format)."""
+the paper's Table 1 per scene, the ablation table, the speed-quality chart (eval/study.py has the format).
+
+Under `torchrun --nproc-per-node N [--nnodes M ...] -m tlvg_warp study STUDY.yaml` the jobs are spread over the
+ranks (eval/study.py: run_study): each rank runs whole jobs on its own GPU (CUDA_VISIBLE_DEVICES narrowed to
+its LOCAL_RANK's GPU), the ranks talk over gloo only (job claims go through files in the study folder, which
+must be on a filesystem every machine shares), and the main rank writes the table."""
 from __future__ import annotations
 
 import os
@@ -21,8 +26,10 @@ def add_arguments(p):
 
 
 def run(args) -> int:
+    from ..distributed import isolate_local_gpu
     from ..eval.study import load_study, run_study
 
+    isolate_local_gpu()  # before anything touches CUDA: this rank sees its own GPU only (under torchrun)
     st = load_study(args.study)
     if args.out:
         st.out = Path(args.out)
@@ -48,8 +55,24 @@ def run(args) -> int:
         key = args.api_key or os.environ.get("OPENAI_API_KEY")
         preflight(url, key)
         jc = {"base_url": url, "models": models, "api_key": key, "max_views": st.judge.get("max_views")}
-    res = run_study(st, jc)
-    print(f"wrote {st.out / 'study.json'}, study.csv and study.html ({res['wall_s']} s)")
+    from ..distributed import Dist
+    from ..eval.study import resolve_device
+
+    dist = Dist.from_env("cpu")  # gloo: the ranks exchange job claims and results, never tensors
+    if dist.world > 1 and resolve_device(st.device).startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise InputError(f"rank {dist.rank}: device {st.device!r} but no GPU for LOCAL_RANK {dist.local_rank} "
+                             "(launch at most one process per GPU: --nproc-per-node <= GPUs)")
+    try:
+        res = run_study(st, jc, dist=dist)
+    finally:
+        dist.shutdown()
+    if res is None:  # not the main rank: the main rank reports
+        return 0
+    print(f"wrote {st.out / 'study.json'}, study.csv and study.html ({res['wall_s']} s)"
+          + (f" with {dist.world} ranks" if dist.world > 1 else ""))
     failed = [k for k, v in res["status"].items() if v.startswith("failed")]
     if failed:
         print(f"failed runs: {', '.join(failed)}")

@@ -101,7 +101,7 @@ def resolve_device(dev: str) -> str:
 
 
 # ---------------------------------------------------------------- running
-def fit_scene_once(st: Study, name: str, log) -> Path | None:
+def fit_scene_once(st: Study, name: str, log, device: str | None = None) -> Path | None:
     """The scene's un-stylized PLY (fitted here once); None for the built-in demo."""
     s = st.scenes[name]
     if s.get("demo"):
@@ -115,7 +115,7 @@ def fit_scene_once(st: Study, name: str, log) -> Path | None:
 
     ds = load_dataset(s["data"], downscale=s.get("downscale"))
     rc = ReconstructConfig(iterations=int(s.get("fit_iterations", 7000)), holdout_every=0,
-                           device=resolve_device(st.device), save_renders=False)
+                           device=device or resolve_device(st.device), save_renders=False)
     log(f"scene {name}: fitting {len(ds.cameras)} photos ({rc.iterations} iterations)")
     fit_scene(ds, rc, ply.parent, progress=False, overwrite=True)
     return ply
@@ -129,7 +129,7 @@ def finished(d: Path) -> bool:
     return (d / "metrics.json").is_file() and (d / "stylized.ply").is_file()
 
 
-def stylize_once(st: Study, scene: str, ply, painting: str, config: str, log) -> str:
+def stylize_once(st: Study, scene: str, ply, painting: str, config: str, log, device: str | None = None) -> str:
     """'skipped' (finished before), 'ran', or 'failed (rc)'."""
     from ..cli import main
 
@@ -139,7 +139,7 @@ def stylize_once(st: Study, scene: str, ply, painting: str, config: str, log) ->
         return "skipped"
     s = st.scenes[scene]
     argv = ["stylize", "--config", st.configs[config], "--out", str(d), "--iterations", str(st.iterations),
-            "--device", resolve_device(st.device), "--quiet"]
+            "--device", device or resolve_device(st.device), "--quiet"]
     if st.paintings[painting] != "builtin":
         argv += ["--style", st.paintings[painting]]
     if ply is not None:
@@ -215,26 +215,80 @@ def csv_text(tables: dict, ablation: list) -> str:
     return buf.getvalue()
 
 
-def run_study(st: Study, judge_cfg: dict | None = None, log=print) -> dict:
+def job_queue(st: Study, dist, launch: str, kind: str, jobs: list):
+    """This rank's share of `jobs`, taken one at a time from a queue shared by every rank of the launch: a job
+    belongs to the rank that first creates its claim file (O_CREAT | O_EXCL, atomic on a local disk and on
+    NFS v3+) in STUDY_OUT/.claims/<launch>/, so a rank that finishes early takes the next unclaimed job.
+    Claims are per launch: a later launch (resume) claims every job anew and skips the finished ones."""
+    import os
+
+    folder = st.out / ".claims" / launch
+    folder.mkdir(parents=True, exist_ok=True)
+    for key in jobs:
+        path = folder / (kind + "__" + key.replace("/", "__"))
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(f"rank {dist.rank} pid {os.getpid()}\n")
+        yield key
+
+
+def new_launch_id(dist) -> str:
+    """One id for the whole launch (the main rank's, broadcast): names this launch's claim folder."""
+    import os
+    import uuid
+
+    mine = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}-{uuid.uuid4().hex[:8]}" if dist.is_main else None
+    return dist.broadcast_object(mine)
+
+
+def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) -> dict | None:
+    """Run the study; under torchrun (`dist.world` > 1) its jobs are spread over the ranks: the scene fits
+    first (a shared queue, then a barrier), then the stylizations (the same queue: one job per rank at a
+    time), then the evaluations (one (scene, painting) per rank at a time); the main rank gathers every
+    rank's results and writes the one table. Returns the result on the main rank, None on the others."""
     import torch
 
-    from ..commands.evaluate import evaluate_runs, report_html, wall_time
+    from ..commands.evaluate import evaluate_runs, report_html
+    from ..distributed import Dist, local_only
     from ..losses.vgg import load_vgg
 
+    dist = dist or Dist()
     t0 = time.perf_counter()
-    device = torch.device(resolve_device(st.device))
-    status, evals = {}, {}
-    plys = {s: fit_scene_once(st, s, log) for s in st.scenes}
-    for s in st.scenes:
-        for p in st.paintings:
-            for c in st.configs:
-                status[f"{s}/{p}/{c}"] = stylize_once(st, s, plys[s], p, c, log)
-    net = load_vgg(st.vgg_weights, device=device)
-    for s in st.scenes:
-        for p in st.paintings:
+    dev_name = resolve_device(st.device)
+    device = torch.device(dev_name)
+    if dist.world > 1:
+        inner = log
+        log = lambda msg: inner(f"[rank {dist.rank}/{dist.world}] {msg}")  # noqa: E731
+    if dist.is_main:
+        st.out.mkdir(parents=True, exist_ok=True)
+    launch = new_launch_id(dist)
+    fit_jobs = [s for s in st.scenes if not st.scenes[s].get("demo")]
+    with local_only():  # every job is a whole single-process run on this rank's device
+        for s in job_queue(st, dist, launch, "fit", fit_jobs):
+            fit_scene_once(st, s, log, device=dev_name)
+        dist.barrier()  # every scene is fitted before any stylization reads it
+        plys = {s: (None if st.scenes[s].get("demo") else st.out / "scenes" / s / "point_cloud.ply")
+                for s in st.scenes}
+        keys = [f"{s}/{p}/{c}" for s in st.scenes for p in st.paintings for c in st.configs]
+        status, ranks = {}, {}
+        for key in job_queue(st, dist, launch, "stylize", keys):
+            s, p, c = key.split("/")
+            status[key] = stylize_once(st, s, plys[s], p, c, log, device=dev_name)
+            ranks[key] = dist.rank
+        dist.barrier()  # every run is finished (or failed) before any evaluation reads them
+        net = None
+        evals = {}
+        groups = [f"{s}/{p}" for s in st.scenes for p in st.paintings]
+        for g in job_queue(st, dist, launch, "evaluate", groups):
+            s, p = g.split("/")
             dirs = [run_dir(st, s, p, c) for c in st.configs if finished(run_dir(st, s, p, c))]
             if not dirs:
                 continue
+            if net is None:
+                net = load_vgg(st.vgg_weights, device=device)
             res, runs, refs = evaluate_runs(dirs, net, device, scene=plys[s], max_views=st.max_views,
                                             eval_height=st.eval_height, log=log,
                                             cache_dir=st.out / "eval_cache")
@@ -242,6 +296,18 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print) -> dict:
             write_json(out / "evaluation.json", res)
             write_text(out / "evaluation.html", report_html(res, runs, refs))
             evals[(s, p)] = {Path(r["run"]).name: r for r in res["runs"]}
+    parts = dist.gather_objects({"status": status, "ranks": ranks, "evals": evals})
+    if not dist.is_main:
+        dist.barrier()  # the main rank's report is written before any rank returns
+        return None
+    status, ranks, evals = {}, {}, {}
+    for part in parts:
+        status |= part["status"]
+        ranks |= part["ranks"]
+        evals |= part["evals"]
+    status = {k: status.get(k, "not run") for k in keys}  # the order of one process
+    if net is None:
+        net = load_vgg(st.vgg_weights, device=device)
     configs = list(st.configs)
     tables, pooled_all = {}, {}
     for s in st.scenes:
@@ -260,14 +326,18 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print) -> dict:
     result = {"study": str(st.path), "out": str(st.out), "device": str(device), "vgg": net.source,
               "vgg_random": bool(net.is_random), "iterations": st.iterations, "status": status,
               "tables": tables, "ablation": ablation_rows(st, pooled_all), "overall": overall,
-              "times": all_times, "ours": st.ours, "baseline": st.baseline}
+              "times": all_times, "ours": st.ours, "baseline": st.baseline,
+              "ranks": {"world": dist.world, "stylized_by": {k: ranks[k] for k in keys if k in ranks}}}
     if judge_cfg:
         result["judge"] = run_panel(st, judge_cfg, log)
     result["wall_s"] = round(time.perf_counter() - t0, 1)
     write_json(st.out / "study.json", result)
     write_text(st.out / "study.csv", csv_text(tables, result["ablation"]))
     write_text(st.out / "study.html", study_html(result))
-    _ = wall_time  # noqa: F841 (re-exported for callers)
+    import shutil
+
+    shutil.rmtree(st.out / ".claims" / launch, ignore_errors=True)
+    dist.barrier()
     return result
 
 
