@@ -3,42 +3,118 @@ then one int32 key per (Gaussian, touched 16x16 tile) = the tile id is emitted i
 radix sorted on the tile bits only, which leaves each tile's list in depth order, and the [start, end) range
 of each tile is found in the sorted list. Sorting N depths plus ~12-bit tile keys moves far fewer bytes than
 sorting (tile << 32 | depth) int64 keys, and the key buffers take 16 instead of 24 bytes per intersection.
-float32 only (the float64 path passes float32 copies), so one module serves both scalar types; nothing here
-is differentiable.
+float32 inputs only (the float64 path passes float32 copies), so one module serves both scalar types; nothing
+here is differentiable.
 
-A Gaussian is binned into the tiles of its 3σ box (SPEC §2) that also hold a pixel center where its α can
-reach 1/255. The tiles left out hold only pixels the blending would skip, so the image is exactly that of
-plain 3σ-box binning (the tests check it against the brute-force reference); far fewer keys are sorted
-and far fewer splats are walked per pixel."""
+Which tiles: a Gaussian is binned into the tiles of its 3σ box (SPEC §2) whose rectangle of pixel centers
+meets its visible ellipse dᵀQd <= k2 (α >= 1/255, with a margin). The tiles left out hold only pixels the
+blending would skip, so the image is exactly that of plain 3σ-box binning (the tests check it against the
+brute-force reference); far fewer keys are sorted and far fewer splats are walked per pixel. The test is done
+one tile row at a time, in closed form: the band of the row's pixel-center rows cuts the ellipse in a convex
+piece whose x-extent [xl, xr] is found from the ellipse's leftmost/rightmost point in the band (float64, from
+the float32 conic: its products are exact there), and the row's tiles are those whose pixel-center columns
+meet [xl, xr]. That is the per-tile test of the exact minimum over the tile's pixel-center rectangle, for a
+whole row at once.
+
+Work layout (load balance): a fitted scene has a few Gaussians covering thousands of tiles among many
+covering one or two. One thread per Gaussian would leave a warp waiting on its largest one, so the work is
+cut into items of one tile row by at most CHUNK tiles: a Gaussian with at most SOLO_ITEMS items is binned by
+its own thread; the larger ones of a warp pool their items and the warp's 32 lanes take them in rounds
+(each lane finds its item's owner by a binary search over the warp's scan of item counts, and an item's
+keys go after those of its owner's earlier items: a segmented scan of the round's key counts). On the CPU a
+"warp" is one lane, so the same code bins every Gaussian by its own thread."""
 import warp as wp
 
 TILE = 16  # tile edge in pixels (graphdeco/gsplat)
+CHUNK = 16  # tiles of one row per work item
+SOLO_ITEMS = 2  # Gaussians with at most this many items are binned by their own thread
+
+# Warp-level primitives as native snippets (full-warp masks: every launch pads its thread count to a
+# multiple of 32 and no thread leaves before the cooperative part); on the CPU a warp has one lane.
+LANES = """
+#if defined(__CUDA_ARCH__)
+    return 32;
+#else
+    return 1;
+#endif
+"""
+LANE = """
+#if defined(__CUDA_ARCH__)
+    return threadIdx.x & 31;
+#else
+    return 0;
+#endif
+"""
+SCAN = """
+#if defined(__CUDA_ARCH__)
+    const int lane = threadIdx.x & 31;
+    for (int o = 1; o < 32; o <<= 1) {
+        const int y = __shfl_up_sync(0xffffffffu, x, o);
+        if (lane >= o) x += y;
+    }
+#endif
+    return x;
+"""
+SHFL = """
+#if defined(__CUDA_ARCH__)
+    return __shfl_sync(0xffffffffu, x, src & 31);
+#else
+    return x;
+#endif
+"""
+SUM = """
+#if defined(__CUDA_ARCH__)
+    for (int o = 16; o > 0; o >>= 1) x += __shfl_xor_sync(0xffffffffu, x, o);
+#endif
+    return x;
+"""
+OWNER = """
+#if defined(__CUDA_ARCH__)
+    int lo = 0;
+    for (int s = 16; s > 0; s >>= 1) {
+        const int v = __shfl_sync(0xffffffffu, incl, lo + s - 1);
+        if (v <= t) lo += s;
+    }
+    return lo;
+#else
+    return 0;
+#endif
+"""
 
 
-@wp.func
-def min_quad_on_segment(qa: float, qb: float, qc: float, fixed: float, lo: float, hi: float, fixed_is_x: int) -> float:
-    # min over t in [lo, hi] of the quadratic form at (fixed, t) (or (t, fixed)): a 1D convex parabola
-    if fixed_is_x != 0:
-        t = wp.clamp(-qb * fixed / wp.max(qc, 1e-30), lo, hi)
-        return qa * fixed * fixed + 2.0 * qb * fixed * t + qc * t * t
-    t = wp.clamp(-qb * fixed / wp.max(qa, 1e-30), lo, hi)
-    return qa * t * t + 2.0 * qb * t * fixed + qc * fixed * fixed
+@wp.func_native(LANES)
+def warp_lanes() -> int: ...
 
 
-@wp.func
-def tile_reachable(u: float, v: float, q: wp.vec3, k2: float, tx: int, ty: int, width: int, height: int) -> bool:
-    """Does any pixel center of tile (tx, ty) have dᵀQd <= k2 (i.e. α >= 1/255)? Exact for the rectangle
-    spanned by the tile's pixel centers: min of a convex quadratic is at the center or on an edge."""
-    x0 = float(tx * TILE) + 0.5 - u
-    x1 = float(wp.min(tx * TILE + TILE, width)) - 0.5 - u
-    y0 = float(ty * TILE) + 0.5 - v
-    y1 = float(wp.min(ty * TILE + TILE, height)) - 0.5 - v
-    if x0 <= 0.0 and x1 >= 0.0 and y0 <= 0.0 and y1 >= 0.0:
-        return True
-    m = wp.min(min_quad_on_segment(q[0], q[1], q[2], x0, y0, y1, 1), min_quad_on_segment(q[0], q[1], q[2], x1, y0, y1, 1))
-    m = wp.min(m, wp.min(min_quad_on_segment(q[0], q[1], q[2], y0, x0, x1, 0),
-                         min_quad_on_segment(q[0], q[1], q[2], y1, x0, x1, 0)))
-    return m <= k2
+@wp.func_native(LANE)
+def warp_lane() -> int: ...
+
+
+@wp.func_native(SCAN)
+def warp_scan(x: int) -> int:
+    """Inclusive prefix sum over the warp's lanes."""
+    ...
+
+
+@wp.func_native(SUM)
+def warp_sum_int(x: int) -> int: ...
+
+
+@wp.func_native(SHFL)
+def warp_shfl(x: int, src: int) -> int: ...
+
+
+@wp.func_native(SHFL)
+def warp_shfl64(x: wp.float64, src: int) -> wp.float64: ...
+
+
+@wp.func_native(OWNER)
+def warp_owner(incl: int, t: int) -> int:
+    """The lane whose items hold the warp's item t: the number of lanes whose inclusive item count is <= t."""
+    ...
+
+
+geo_t = wp.types.vector(9, wp.float64)  # u, v, qb, 1/qa, det (0: no ellipse, whole rows), qa·k2, xmax, ymax, ys
 
 
 @wp.func
@@ -49,17 +125,128 @@ def visible_level(opacity: float) -> float:
 
 
 @wp.func
-def tight_rect(u: float, v: float, r: float, q: wp.vec3, k2: float, tiles_x: int, tiles_y: int) -> wp.vec4i:
-    # the 3σ box, shrunk to the bounding box of the visible ellipse dᵀQd <= k2 (|dx| <= sqrt(k2 Σxx), ...);
-    # Σ = Q⁻¹, so Σxx = Qyy / det Q and Σyy = Qxx / det Q (no Σ2D buffer needed)
-    det = wp.max(q[0] * q[2] - q[1] * q[1], 1e-30)
-    rx = wp.min(r, wp.sqrt(wp.max(k2, 0.0) * q[2] / det))
-    ry = wp.min(r, wp.sqrt(wp.max(k2, 0.0) * q[0] / det))
-    x0 = wp.clamp(int(wp.floor((u - rx) / float(TILE))), 0, tiles_x)
-    x1 = wp.clamp(int(wp.floor((u + rx) / float(TILE))) + 1, 0, tiles_x)
-    y0 = wp.clamp(int(wp.floor((v - ry) / float(TILE))), 0, tiles_y)
-    y1 = wp.clamp(int(wp.floor((v + ry) / float(TILE))) + 1, 0, tiles_y)
-    return wp.vec4i(x0, x1, y0, y1)
+def bin_setup(m: wp.vec2, r: int, q: wp.vec3, o: float, tiles_x: int, tiles_y: int, all_tiles: int):
+    """The binning geometry of one Gaussian, its tile rectangle (x0, x1, y0, y1) and its number of work items
+    (0: not visible). The rectangle is the 3σ box shrunk to the bounding box of the visible ellipse
+    (|dx| <= xmax = sqrt(k2 Σxx), Σ = Q⁻¹: Σxx = Qyy / det Q, no Σ2D buffer needed)."""
+    zero = wp.float64(0.0)
+    u = wp.float64(m[0])
+    v = wp.float64(m[1])
+    qa = wp.float64(q[0])
+    qb = wp.float64(q[1])
+    qc = wp.float64(q[2])
+    k2 = wp.float64(visible_level(wp.max(o, 1.0 / 255.0)))
+    rf = wp.float64(r)
+    det = qa * qc - qb * qb  # exact products of float32 values: one rounding
+    inv_qa = zero
+    xmax = rf
+    ymax = rf
+    ys = zero
+    if det > zero and qa > zero and qc > zero and all_tiles == 0:
+        inv_qa = wp.float64(1.0) / qa
+        xmax = wp.sqrt(k2 * qc / det)
+        ymax = wp.sqrt(k2 * qa / det)
+        ys = -qb * xmax / qc  # y of the ellipse's rightmost point (the leftmost one is at -ys)
+    else:
+        det = zero  # degenerate conic (or brute-force binning): whole rows of the box
+    rx = wp.min(rf, xmax)
+    ry = wp.min(rf, ymax)
+    tsz = wp.float64(16.0)  # TILE (wp.float64(TILE) would retype the TILE constant for later uses)
+    x0 = int(wp.clamp(wp.floor((u - rx) / tsz), zero, wp.float64(tiles_x)))
+    x1 = int(wp.clamp(wp.floor((u + rx) / tsz) + wp.float64(1.0), zero, wp.float64(tiles_x)))
+    y0 = int(wp.clamp(wp.floor((v - ry) / tsz), zero, wp.float64(tiles_y)))
+    y1 = int(wp.clamp(wp.floor((v + ry) / tsz) + wp.float64(1.0), zero, wp.float64(tiles_y)))
+    if all_tiles != 0:
+        x0 = 0
+        x1 = tiles_x
+        y0 = 0
+        y1 = tiles_y
+    items = int(0)
+    if r > 0 and (all_tiles != 0 or o * 255.0 >= 1.0) and x1 > x0 and y1 > y0:
+        items = (y1 - y0) * ((x1 - x0 + CHUNK - 1) // CHUNK)
+    return geo_t(u, v, qb, inv_qa, det, qa * k2, xmax, ymax, ys), wp.vec4i(x0, x1, y0, y1), items
+
+
+@wp.func
+def row_span(geo: geo_t, ty: int, cx0: int, cx1: int, width: int, height: int) -> wp.vec2i:
+    """[a, b): the tiles of [cx0, cx1) in tile row ty whose pixel-center rectangle meets the visible ellipse."""
+    det = geo[4]
+    a = cx0
+    b = cx1
+    if det > wp.float64(0.0):
+        u = geo[0]
+        v = geo[1]
+        half = wp.float64(0.5)
+        tsz = wp.float64(16.0)  # TILE (wp.float64(TILE) would retype the TILE constant for later uses)
+        ylo = wp.float64(ty * TILE) - v + half
+        yhi = wp.float64(wp.min(ty * TILE + TILE, height)) - v - half
+        ymax = geo[7]
+        ya = wp.max(ylo, -ymax)
+        yb = wp.min(yhi, ymax)
+        a = cx1
+        if ya <= yb:
+            # the ellipse's x-extent within the band: its right edge x(y) is concave, the left one convex, so
+            # each extreme is at the clamped y of the ellipse's own rightmost / leftmost point
+            qb = geo[2]
+            ys = geo[8]
+            yr = wp.clamp(ys, ya, yb)
+            yl = wp.clamp(-ys, ya, yb)
+            xr = (-qb * yr + wp.sqrt(wp.max(geo[5] - det * yr * yr, wp.float64(0.0)))) * geo[3]
+            xl = (-qb * yl - wp.sqrt(wp.max(geo[5] - det * yl * yl, wp.float64(0.0)))) * geo[3]
+            # tile tx spans pixel centers [16 tx + 0.5, min(16 tx + 16, width) - 0.5]
+            fa = wp.ceil((xl + u - (tsz - half)) / tsz)
+            a = int(wp.clamp(fa, wp.float64(cx0), wp.float64(cx1)))
+            fb = wp.floor((xr + u - half) / tsz) + wp.float64(1.0)
+            b = int(wp.clamp(fb, wp.float64(a), wp.float64(cx1)))
+            last = (width + TILE - 1) // TILE - 1
+            if a == last and a < b and wp.float64(width) - half - u < xl:  # the narrower last column
+                a = b
+        b = wp.max(a, b)
+    return wp.vec2i(a, b)
+
+
+@wp.func
+def item_span(geo: geo_t, rect: wp.vec4i, chunks: int, li: int, width: int, height: int) -> wp.vec3i:
+    """Item li of a Gaussian (row-major over its rows and CHUNK-tile pieces): (tile row, first tile, end)."""
+    cr = li // chunks
+    ty = rect[2] + cr
+    cx0 = rect[0] + (li - cr * chunks) * CHUNK
+    s = row_span(geo, ty, cx0, wp.min(cx0 + CHUNK, rect[1]), width, height)
+    return wp.vec3i(ty, s[0], s[1])
+
+
+@wp.func
+def owner_geo(geo: geo_t, owner: int) -> geo_t:
+    return geo_t(warp_shfl64(geo[0], owner), warp_shfl64(geo[1], owner), warp_shfl64(geo[2], owner),
+                 warp_shfl64(geo[3], owner), warp_shfl64(geo[4], owner), warp_shfl64(geo[5], owner),
+                 warp_shfl64(geo[6], owner), warp_shfl64(geo[7], owner), warp_shfl64(geo[8], owner))
+
+
+@wp.func
+def owner_rect(rect: wp.vec4i, owner: int) -> wp.vec4i:
+    return wp.vec4i(warp_shfl(rect[0], owner), warp_shfl(rect[1], owner), warp_shfl(rect[2], owner),
+                    warp_shfl(rect[3], owner))
+
+
+@wp.func
+def chunks_of(rect: wp.vec4i) -> int:
+    return wp.max((rect[1] - rect[0] + CHUNK - 1) // CHUNK, 1)
+
+
+@wp.func
+def round_share(c: int, p_incl: int, p_items: int, base: int) -> int:
+    """Warp-collective: this lane's Gaussian's share of the round's per-item values c (its pooled items that
+    fall in round [base, base + lanes))."""
+    lanes = warp_lanes()
+    c_incl = warp_scan(c)
+    f = wp.max(p_incl - p_items, base) - base
+    e = wp.min(p_incl, base + lanes) - base
+    hi = warp_shfl(c_incl, wp.clamp(e - 1, 0, lanes - 1))
+    lo = warp_shfl(c_incl - c, wp.clamp(f, 0, lanes - 1))
+    share = int(0)
+    if f < e:
+        share = hi - lo
+    return share
 
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
@@ -68,33 +255,49 @@ def count_tiles_kernel(
     radii: wp.array(dtype=wp.int32),  # [N]
     conic: wp.array(dtype=wp.vec3),  # [N] Σ2D⁻¹ (a, b, c)
     opacity: wp.array(dtype=float),  # [N]
+    n: int,
     tiles_x: int,
     tiles_y: int,
     width: int,
     height: int,
     all_tiles: int,  # 1: every visible Gaussian touches every tile (brute-force reference binning)
     counts: wp.array(dtype=wp.int32),  # [N] out
+    total: wp.array(dtype=wp.int64),  # [1] out, zero-initialized: the sum of the counts
 ):
+    # launched on N rounded up to a multiple of 32 threads; the ones past N join the warp's collectives only
     i = wp.tid()
-    r = radii[i]
-    counts[i] = 0
-    if r <= 0:
-        return
-    if all_tiles != 0:
-        counts[i] = tiles_x * tiles_y
-        return
-    o = opacity[i]
-    if o * 255.0 < 1.0:  # never reaches α = 1/255 anywhere
-        return
-    m = means2d[i]
-    k2 = visible_level(o)
-    rect = tight_rect(m[0], m[1], float(r), conic[i], k2, tiles_x, tiles_y)
-    n = int(0)
-    for ty in range(rect[2], rect[3]):
-        for tx in range(rect[0], rect[1]):
-            if tile_reachable(m[0], m[1], conic[i], k2, tx, ty, width, height):
-                n += 1
-    counts[i] = n
+    geo = geo_t()
+    rect = wp.vec4i()
+    items = int(0)
+    if i < n:
+        geo, rect, items = bin_setup(means2d[i], radii[i], conic[i], opacity[i], tiles_x, tiles_y, all_tiles)
+    chunks = chunks_of(rect)
+    mine = int(0)
+    if items <= SOLO_ITEMS:
+        for li in range(items):
+            s = item_span(geo, rect, chunks, li, width, height)
+            mine += s[2] - s[1]
+    # the larger Gaussians of the warp pool their items
+    p_items = wp.where(items > SOLO_ITEMS, items, 0)
+    p_incl = warp_scan(p_items)
+    lanes = warp_lanes()
+    p_total = warp_shfl(p_incl, lanes - 1)
+    for base in range(0, p_total, lanes):
+        t = base + warp_lane()
+        owner = warp_owner(p_incl, t)
+        o_geo = owner_geo(geo, owner)
+        o_rect = owner_rect(rect, owner)
+        o_first = warp_shfl(p_incl - p_items, owner)
+        c = int(0)
+        if t < p_total:
+            s = item_span(o_geo, o_rect, chunks_of(o_rect), t - o_first, width, height)
+            c = s[2] - s[1]
+        mine += round_share(c, p_incl, p_items, base)
+    if i < n:
+        counts[i] = mine
+    warp_total = warp_sum_int(mine)
+    if warp_lane() == 0 and warp_total > 0:
+        wp.atomic_add(total, 0, wp.int64(warp_total))
 
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
@@ -106,6 +309,7 @@ def emit_keys_kernel(
     opacity: wp.array(dtype=float),  # [N]
     offsets: wp.array(dtype=wp.int32),  # [N] exclusive prefix sum of the counts in depth order (offsets[j]: order[j])
     counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian (Gaussian order)
+    n: int,
     tiles_x: int,
     tiles_y: int,
     width: int,
@@ -114,32 +318,61 @@ def emit_keys_kernel(
     keys: wp.array(dtype=wp.int32),  # [2M] out tile id (radix sort needs 2x room)
     values: wp.array(dtype=wp.int32),  # [2M] out Gaussian index
 ):
+    # thread j: the Gaussian at depth rank j (threads past N join the warp's collectives only). The same tiles
+    # as count_tiles_kernel; the bound keeps memory safe even if the GPU compiler contracted the two kernels'
+    # arithmetic differently at a borderline tile, and no reserved slot is left unwritten (sentinels below).
     j = wp.tid()
-    i = order[j]
-    r = radii[i]
-    if r <= 0:
-        return
-    m = means2d[i]
-    o = opacity[i]
-    k2 = visible_level(wp.max(o, 1.0 / 255.0))
-    rect = wp.vec4i(0, tiles_x, 0, tiles_y)
-    if all_tiles == 0:
-        if o * 255.0 < 1.0:
-            return
-        rect = tight_rect(m[0], m[1], float(r), conic[i], k2, tiles_x, tiles_y)
-    k = offsets[j]
-    stop = k + counts[i]
-    for ty in range(rect[2], rect[3]):
-        for tx in range(rect[0], rect[1]):
-            # the same test as count_tiles_kernel; the bound keeps memory safe even if the GPU compiler
-            # contracted the two kernels' arithmetic differently at a borderline tile
-            if k < stop and (all_tiles != 0 or tile_reachable(m[0], m[1], conic[i], k2, tx, ty, width, height)):
-                keys[k] = ty * tiles_x + tx
-                values[k] = i
+    g = int(0)
+    geo = geo_t()
+    rect = wp.vec4i()
+    items = int(0)
+    start = int(0)
+    stop = int(0)
+    if j < n:
+        g = order[j]
+        geo, rect, items = bin_setup(means2d[g], radii[g], conic[g], opacity[g], tiles_x, tiles_y, all_tiles)
+        start = offsets[j]
+        stop = start + counts[g]
+    chunks = chunks_of(rect)
+    k = start
+    if items <= SOLO_ITEMS:
+        for li in range(items):
+            s = item_span(geo, rect, chunks, li, width, height)
+            for tx in range(s[1], s[2]):
+                if k < stop:
+                    keys[k] = s[0] * tiles_x + tx
+                    values[k] = g
                 k += 1
+    p_items = wp.where(items > SOLO_ITEMS, items, 0)
+    p_incl = warp_scan(p_items)
+    lanes = warp_lanes()
+    p_total = warp_shfl(p_incl, lanes - 1)
+    for base in range(0, p_total, lanes):
+        t = base + warp_lane()
+        owner = warp_owner(p_incl, t)
+        o_geo = owner_geo(geo, owner)
+        o_rect = owner_rect(rect, owner)
+        o_first = warp_shfl(p_incl - p_items, owner)
+        o_next = warp_shfl(k, owner)  # where the owner's next key goes
+        o_stop = warp_shfl(stop, owner)
+        o_g = warp_shfl(g, owner)
+        s = wp.vec3i(0, 0, 0)
+        if t < p_total:
+            s = item_span(o_geo, o_rect, chunks_of(o_rect), t - o_first, width, height)
+        c = s[2] - s[1]
+        # keys of the owner's earlier items of this round go first: a scan segmented at the owner's first lane
+        c_excl = warp_scan(c) - c
+        seg = c_excl - warp_shfl(c_excl, wp.clamp(wp.max(o_first, base) - base, 0, lanes - 1))
+        kk = o_next + seg
+        for tx in range(s[1], s[2]):
+            if kk < o_stop:
+                keys[kk] = s[0] * tiles_x + tx
+                values[kk] = o_g
+            kk += 1
+        k += round_share(c, p_incl, p_items, base)
     while k < stop:  # ...and never leaves a slot unwritten: a sentinel tile past the grid, sorted last
         keys[k] = tiles_x * tiles_y
-        values[k] = i
+        values[k] = g
         k += 1
 
 

@@ -285,3 +285,138 @@ def test_backward_after_an_in_place_change_is_refused():
         g.means.add_(0.01)
     with pytest.raises(RuntimeError, match="modified by an inplace operation"):
         out.color.sum().backward()
+
+
+# -- binning in the fitted-scene regime: a few huge Gaussians among many small ones -------------------------------
+
+def fitted_like_scene(n_small=1500, seed=0, dtype=torch.float64):
+    """Many small Gaussians and a few huge ones (a needle across the image, rotated disks, one partly off
+    screen, one larger than the view): the per-Gaussian tile counts of a fitted scene, from 1 to every tile."""
+    g = random_scene(n_small, 1, seed=seed, dtype=dtype, spread=0.5, log_scale=-3.6, opacity_shift=0.5)
+    gen = torch.Generator().manual_seed(seed + 1)
+    big_means = torch.tensor([[0.0, 0.0, 0.0], [0.4, 0.3, -0.2], [-0.9, 0.2, 0.5], [1.6, -0.2, 0.1],
+                              [0.0, 1.0, 0.0], [-0.3, -0.5, -0.4]], dtype=dtype)
+    big_scales = torch.tensor([[1.5, 0.004, 0.004], [0.8, 0.6, 0.05], [0.5, 0.1, 0.9], [0.9, 0.9, 0.9],
+                               [4.0, 4.0, 4.0], [0.7, 0.02, 0.3]], dtype=dtype)
+    k = big_means.shape[0]
+    big = Gaussians(big_means, torch.randn(k, 4, generator=gen, dtype=dtype), big_scales.log(),
+                    torch.randn(k, generator=gen, dtype=dtype) - 0.5, torch.randn(k, 4, 3, generator=gen, dtype=dtype) * 0.3)
+    return Gaussians(**{f: torch.cat([getattr(g, f), getattr(big, f)]) for f in FIELDS})
+
+
+def reference_tile_pairs(proj, width, height, tol=1e-9):
+    """The binning criterion by brute force in float64, from the float32 values the binning kernels read:
+    (Gaussian, tile) pairs of each visible Gaussian's 3σ box whose pixel-center rectangle holds a point with
+    dᵀQd <= k2 (the exact minimum of the quadratic over the rectangle). Returns (in [N, tiles] bool, borderline
+    [N, tiles] bool: within tol of the level, either answer is right)."""
+    from tlvg_warp.kernels.binning import TILE
+
+    m = proj.means2d.float().double()
+    q = proj.conic.float().double()
+    o32 = proj.opacity.float()
+    k2 = (2.0 * torch.log(255.0 * o32.clamp_min(1 / 255)) * (1.0 + 1e-4) + 1e-3).double()  # float32, as the kernel
+    r = proj.radii.double()
+    tiles_x, tiles_y = math.ceil(width / TILE), math.ceil(height / TILE)
+    ty, tx = torch.meshgrid(torch.arange(tiles_y, dtype=torch.float64), torch.arange(tiles_x, dtype=torch.float64),
+                            indexing="ij")
+    tx, ty = tx.flatten()[None], ty.flatten()[None]  # [1, tiles]
+    u, v = m[:, 0:1], m[:, 1:2]
+    X0, X1 = tx * TILE + 0.5 - u, torch.clamp(tx * TILE + TILE, max=width) - 0.5 - u
+    Y0, Y1 = ty * TILE + 0.5 - v, torch.clamp(ty * TILE + TILE, max=height) - 0.5 - v
+    qa, qb, qc = q[:, 0:1], q[:, 1:2], q[:, 2:3]
+    quad = lambda x, y: qa * x * x + 2 * qb * x * y + qc * y * y  # noqa: E731
+    cands = [quad(x, torch.clamp(-qb * x / qc, Y0, Y1)) for x in (X0, X1)]
+    cands += [quad(torch.clamp(-qb * y / qa, X0, X1), y) for y in (Y0, Y1)]
+    mins = torch.stack(cands).amin(0)
+    inside = (X0 <= 0) & (X1 >= 0) & (Y0 <= 0) & (Y1 >= 0)
+    mins = torch.where(inside, torch.zeros_like(mins), mins)
+    det = qa * qc - qb * qb
+    ok = (det > 0) & (qa > 0) & (qc > 0)
+    xmax = torch.where(ok, torch.sqrt(k2[:, None] * qc / det.clamp_min(1e-300)), r[:, None])
+    ymax = torch.where(ok, torch.sqrt(k2[:, None] * qa / det.clamp_min(1e-300)), r[:, None])
+    rx, ry = torch.minimum(r[:, None], xmax), torch.minimum(r[:, None], ymax)
+    box = ((tx >= torch.floor((u - rx) / TILE)) & (tx < torch.floor((u + rx) / TILE) + 1)
+           & (ty >= torch.floor((v - ry) / TILE)) & (ty < torch.floor((v + ry) / TILE) + 1))
+    visible = ((proj.radii > 0) & (o32 * 255 >= 1))[:, None]
+    member = visible & box & (~ok | (mins <= k2[:, None]))
+    borderline = visible & box & ok & ((mins - k2[:, None]).abs() <= tol * (1 + k2[:, None]))
+    return member, borderline
+
+
+def binned_pairs(cap):
+    """[N, tiles] bool of the (Gaussian, tile) pairs in a captured binning, and a check of its lists."""
+    ranges, ids = cap["ranges"].cpu(), cap["ids"].cpu().long()
+    n = cap["counts"].shape[0]
+    tiles = ranges.shape[0]
+    lengths = (ranges[:, 1] - ranges[:, 0]).long()
+    assert int(lengths.sum()) == cap["total"] == int(cap["counts"].sum())  # no sentinel left in any list
+    out = torch.zeros(n, tiles, dtype=torch.bool)
+    tile_of = torch.repeat_interleave(torch.arange(tiles), lengths)
+    starts = ranges[:, 0].long()
+    order = torch.cat([torch.arange(s, s + length) for s, length in zip(starts.tolist(), lengths.tolist())]) \
+        if cap["total"] else torch.zeros(0, dtype=torch.long)
+    gid = ids[order]
+    assert not out[gid, tile_of].any()
+    out[gid, tile_of] = True
+    assert int(out.sum()) == cap["total"]  # each Gaussian at most once per tile
+    # each tile's list in depth order (ties by index: the depth sort is stable)
+    depth = cap["proj"].depth.float().cpu()
+    d, same_tile = depth[gid], tile_of[1:] == tile_of[:-1]
+    later = (d[1:] > d[:-1]) | ((d[1:] == d[:-1]) & (gid[1:] > gid[:-1]))
+    assert bool((later | ~same_tile).all()), "a tile's list is out of depth order"
+    return out
+
+
+def check_fitted_binning(device, dtype):
+    from tlvg_warp.ops import capture_binning
+
+    g = fitted_like_scene(dtype=torch.float64).to(device=device, dtype=dtype)
+    cam = camera(200, 152, fov=55.0)  # 13 x 10 tiles, the last row and column narrower
+    with capture_binning() as cap:
+        render(g, cam)
+    proj = cap["proj"]
+    want, borderline = reference_tile_pairs(_cpu(proj), cam.width, cam.height)
+    got = binned_pairs(cap)
+    tiles = want.shape[1]
+    per_gaussian = want.sum(1)
+    assert int((per_gaussian > tiles // 2).sum()) >= 3 and int((per_gaussian == 1).sum()) > 100  # both regimes
+    diff = (got != want) & ~borderline
+    assert not diff.any(), f"{int(diff.sum())} pairs differ from the brute-force criterion, e.g. {diff.nonzero()[:5].tolist()}"
+    assert torch.equal(cap["counts"].cpu().long(), got.sum(1))
+    # and what the criterion is for: every (tile, Gaussian) with alpha >= 1/255 at a pixel center of the tile
+    # (inside its 3σ box: the blending's membership) is binned
+    p = _cpu(proj)
+    m, q, o = p.means2d.float().double(), p.conic.float().double(), p.opacity.float().double()
+    H, W = cam.height, cam.width
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    tile = ((ys // 16) * math.ceil(W / 16) + xs // 16).long().flatten()
+    dx, dy = xs.flatten()[:, None] - m[:, 0], ys.flatten()[:, None] - m[:, 1]
+    power = -0.5 * (q[:, 0] * dx * dx + q[:, 2] * dy * dy) - q[:, 1] * dx * dy
+    seen = (power <= 0) & (o * torch.exp(power.clamp_max(0)) >= 1 / 255) & (p.radii > 0)
+    r = p.radii.double()
+    tx, ty = (xs.flatten() // 16)[:, None], (ys.flatten() // 16)[:, None]
+    inbox = ((tx >= torch.floor((m[:, 0] - r) / 16)) & (tx < torch.floor((m[:, 0] + r) / 16) + 1)
+             & (ty >= torch.floor((m[:, 1] - r) / 16)) & (ty < torch.floor((m[:, 1] + r) / 16) + 1))
+    pix, gau = (seen & inbox).nonzero(as_tuple=True)
+    assert got[gau, tile[pix]].all(), "a tile with a visible pixel of a Gaussian was not binned"
+
+
+def _cpu(proj):
+    from dataclasses import fields, replace
+
+    return replace(proj, **{f.name: getattr(proj, f.name).cpu() for f in fields(proj) if getattr(proj, f.name) is not None})
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_binning_of_huge_and_small_gaussians_is_the_brute_force_set(dtype):
+    """The (tile, Gaussian) pairs binned for a scene of a few huge and many small Gaussians are exactly the brute-force
+    criterion's (float64, per tile), the counts match, no list holds a sentinel, each tile's list is in depth order,
+    and no pixel a Gaussian reaches is missing its tile."""
+    check_fitted_binning("cpu", dtype)
+
+
+def test_huge_and_small_gaussians_match_reference():
+    g = fitted_like_scene(n_small=400, seed=3)
+    out, _ = compare(g, camera(72, 56, fov=55.0), background=[0.2, 0.3, 0.1])
+    assert out.alpha.min() > 0.05  # the largest Gaussian covers everything

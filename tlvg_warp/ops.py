@@ -114,6 +114,23 @@ def to_warp(t: torch.Tensor, dtype, grad: torch.Tensor | None = None):
                          requires_grad=grad is not None)
 
 
+_capture: dict | None = None  # set by capture_binning(): the next renders' binning state lands here
+
+
+@contextlib.contextmanager
+def capture_binning():
+    """Within the block, each forward render stores its binning in the yielded dict (the last render's wins):
+    ``proj`` (Projected), ``counts`` [N] tiles per Gaussian, ``total``, ``ranges`` [tiles, 2] per-tile [start,
+    end) into ``ids`` [total] (Gaussian ids, each tile's list in depth order), ``last`` [H, W] one past each
+    pixel's last contributor in ``ids``, ``tiles`` (tiles_x, tiles_y). For tests and the benchmark's statistics."""
+    global _capture
+    prev, _capture = _capture, {}
+    try:
+        yield _capture
+    finally:
+        _capture = prev
+
+
 _inputs: dict = {}  # id(tensor) -> (weakref, layout key, wp.array): the wrappers of recently rendered inputs
 
 
@@ -238,18 +255,25 @@ def tile_grid(width: int, height: int) -> tuple[int, int]:
     return (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
 
 
+def warp_padded(n: int) -> int:
+    """Thread count for the binning kernels: n rounded up to whole warps (their lanes cooperate)."""
+    return (n + 31) // 32 * 32
+
+
 def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: bool = False):
     """Tiles touched per Gaussian [N] int32, their total, and the binning's inputs: the total is the one host
     sync per render (it sizes the key buffers). Only the projection runs before it."""
     n = proj.depth.shape[0]
-    counts = torch.empty(n, dtype=torch.int32, device=proj.depth.device)
+    device = proj.depth.device
+    counts = torch.empty(n, dtype=torch.int32, device=device)
     geometry = binning_geometry(proj)
     if n == 0:
         return counts, 0, geometry
     tiles_x, tiles_y = tile_grid(width, height)
-    wp.launch(K.count_tiles, dim=n, inputs=[*geometry, tiles_x, tiles_y, width, height, int(all_tiles)],
-              outputs=[ct(counts)], device=wp.device_from_torch(proj.depth.device))
-    total = int(counts.sum())
+    total = torch.zeros(1, dtype=torch.int64, device=device)
+    wp.launch(K.count_tiles, dim=warp_padded(n), inputs=[*geometry, n, tiles_x, tiles_y, width, height, int(all_tiles)],
+              outputs=[ct(counts), ct(total)], device=wp.device_from_torch(device))
+    total = int(total.item())
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
     return counts, total, geometry
@@ -279,8 +303,8 @@ def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, wi
     keys = torch.empty(2 * total, dtype=torch.int32, device=device)
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
     wkeys, wids = wp.from_torch(keys), wp.from_torch(ids)
-    wp.launch(K.emit_keys, dim=n, inputs=[ct(order, wp.int32), *geometry, ct(starts), ct(counts),
-                                          tiles_x, tiles_y, width, height, int(all_tiles)],
+    wp.launch(K.emit_keys, dim=warp_padded(n), inputs=[ct(order, wp.int32), *geometry, ct(starts), ct(counts), n,
+                                                       tiles_x, tiles_y, width, height, int(all_tiles)],
               outputs=[wkeys, wids], device=wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
     wp.utils.radix_sort_pairs(wkeys, wids, total, 0, tile_bits)  # stable: each tile stays in depth order
@@ -307,6 +331,9 @@ def blend(K, proj: Projected, pouts, counts, total: int, geometry, cam: Camera, 
               outputs=[ct(color, K.vec3), ct(alpha), ct(depth), ct(T), ct(last), ct(weights)],
               device=wp.device_from_torch(device), record_tape=False)
     state = {"args": args, "saved": [ct(depth), ct(T), ct(last)], "threads": tiles_x * tiles_y * TILE * TILE}
+    if _capture is not None:
+        _capture.update(proj=proj, counts=counts, total=total, ranges=ranges, ids=ids, last=last,
+                        tiles=(tiles_x, tiles_y))
     return color, alpha, depth, weights, state
 
 
