@@ -142,7 +142,10 @@ class Dist:
                 offset += n
 
     def all_reduce_sum_(self, tensors: list) -> None:
-        """Sum every tensor over the ranks, in place; None entries are skipped. One collective per dtype."""
+        """Sum every tensor over the ranks, in place; None entries are skipped. One collective per dtype.
+
+        Every rank must pass the same list: the same shapes and dtypes, and None at the same places (a
+        parameter without a gradient on one rank must be None, or zeros, on all of them)."""
         self._flat_collective_(tensors, lambda flat: tdist.all_reduce(flat, op=tdist.ReduceOp.SUM))
 
     def all_reduce_mean_(self, tensors: list) -> None:
