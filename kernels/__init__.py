@@ -7,6 +7,21 @@ from types import SimpleNamespace
 import warp as wp
 
 
+def blend_min_blocks() -> tuple[int, int]:
+    """Minimum resident 256-thread blocks per SM asked of the blending (forward, backward) kernels through
+    __launch_bounds__ (0: the compiler's choice), which caps their registers at 65536 / (256 · blocks):
+    ``TLVG_WARP_BLEND_BLOCKS=fwd,bwd`` overrides the default (for A/B runs on the GPU), as
+    ``TLVG_WARP_BLEND_SLAB=scalar`` does the shared-memory layout of the blending batches (default "vector")."""
+    v = os.environ.get("TLVG_WARP_BLEND_BLOCKS", "")
+    if not v:
+        return BLEND_MIN_BLOCKS
+    f, b = (int(x) for x in v.split(","))
+    return f, b
+
+
+BLEND_MIN_BLOCKS = (0, 0)
+
+
 @functools.lru_cache(maxsize=None)
 def raster_kernels(scalar_name: str) -> SimpleNamespace:
     """All differentiable-pipeline kernels for ``"float32"`` or ``"float64"``."""
@@ -24,7 +39,8 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
     project, ewa_cov2d = make_projection(scalar)
     sh_color, sh_backward, sh_coeff_grad = make_sh(scalar, module_name(scalar))
     flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d)
-    forward, backward = make_blend(scalar, module_name(scalar))
+    forward, backward = make_blend(scalar, module_name(scalar), blend_min_blocks(),
+                                   os.environ.get("TLVG_WARP_BLEND_SLAB", "vector"))
     return SimpleNamespace(
         scalar=scalar,
         vec2=wp.types.vector(2, scalar),

@@ -93,7 +93,42 @@ SLAB = """
     if (write) *e = x;
     return *e;
 """
-SLOTS = 10  # per Gaussian: mean (2), conic (3), opacity, color (3), depth
+# float32 vectors staged as CUDA float4/float2: one 128/64-bit shared load per read instead of one per component
+SLAB_VEC_CUDA = """
+#if defined(__CUDA_ARCH__)
+    __shared__ {cuda}{n} slab[{slots} * 256];
+    {cuda}{n}* e = slab + slot * 256 + lane;
+    if (write) *e = make_{cuda}{n}({pack});
+    const {cuda}{n} r = *e;
+    return wp::vec_t<{n}, {ctype}>({unpack});
+#else
+    static {ctype} slab[{slots} * {n}];  // plain scalars: a static of a class type would need a guard
+    {ctype}* e = slab + slot * {n};
+    if (write) for (int c = 0; c < {n}; ++c) e[c] = x[c];
+    return wp::vec_t<{n}, {ctype}>({unpack_e});
+#endif
+"""
+SLAB_VEC_ANY = """
+#if defined(__CUDA_ARCH__)
+    __shared__ {ctype} slab[{slots} * 256 * {n}];
+    {ctype}* e = slab + (slot * 256 + lane) * {n};
+#else
+    static {ctype} slab[{slots} * {n}];
+    {ctype}* e = slab + slot * {n};
+#endif
+    if (write) for (int c = 0; c < {n}; ++c) e[c] = x[c];
+    return wp::vec_t<{n}, {ctype}>({unpack_e});
+"""
+
+
+def slab_vec_source(n: int, ctype: str, slots: int) -> str:
+    unpack_e = ", ".join(f"e[{i}]" for i in range(n))
+    if ctype == "float":
+        comps = "xyzw"[:n]
+        return SLAB_VEC_CUDA.format(cuda="float", n=n, ctype=ctype, slots=slots,
+                                    pack=", ".join(f"x[{i}]" for i in range(n)),
+                                    unpack=", ".join(f"r.{c}" for c in comps), unpack_e=unpack_e)
+    return SLAB_VEC_ANY.format(n=n, ctype=ctype, slots=slots, unpack_e=unpack_e)
 
 
 @wp.func_native(WARP_MAX)
@@ -128,9 +163,15 @@ def slab_id(slot: int, lane: int, x: int, write: int) -> int: ...
 def lead_lane(tid: int) -> int: ...
 
 
-def make_blend(scalar, module: str):
+def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vector"):
+    """(forward, backward) kernels for ``scalar``; ``min_blocks``: CUDA __launch_bounds__ minimum resident blocks
+    per SM of each (0: none), which caps their registers (65536 / (256 · blocks) per thread); ``slab_layout``:
+    how a batch is staged in shared memory ("vector" or "scalar", see below)."""
     vec2 = wp.types.vector(2, scalar)
     vec3 = wp.types.vector(3, scalar)
+    vec4 = wp.types.vector(4, scalar)
+    ctype = "double" if scalar == wp.float64 else "float"
+    bounds = [{"launch_bounds": (TILE * TILE, b)} if b else {} for b in min_blocks]
 
     @wp.func
     def pixel_of(tid: int, tiles_x: int) -> wp.vec3i:
@@ -141,47 +182,86 @@ def make_blend(scalar, module: str):
         return wp.vec3i(tx * TILE + local % TILE, ty * TILE + local // TILE, tile)
 
     @wp.func
-    def splat_power(m: vec2, q: vec3, px: scalar, py: scalar) -> scalar:
-        dx = px - m[0]
-        dy = py - m[1]
-        return scalar(-0.5) * (q[0] * dx * dx + q[2] * dy * dy) - q[1] * dx * dy
+    def splat_power(a: vec4, qc: scalar, px: scalar, py: scalar) -> scalar:
+        # a = (mean x, mean y, conic a, conic b): -½ dᵀQd at the pixel center (the forward's and backward's
+        # one expression, so both make the same skips)
+        dx = px - a[0]
+        dy = py - a[1]
+        return scalar(-0.5) * (a[2] * dx * dx + qc * dy * dy) - a[3] * dx * dy
 
-    @wp.func_native(SLAB.format(ctype="wp::float64" if scalar == wp.float64 else "wp::float32", slots=SLOTS))
-    def slab(slot: int, lane: int, x: scalar, write: int) -> scalar: ...
+    # the staged batch: per Gaussian (mean, conic a, b), (conic c, opacity), (color, depth) and its id, as
+    # vectors (one 128/64/128-bit shared load each; "vector", the default) or one scalar slot per value ("scalar")
+    if slab_layout == "vector":
+        @wp.func_native(slab_vec_source(4, ctype, 2))
+        def slab4(slot: int, lane: int, x: vec4, write: int) -> vec4: ...
+
+        @wp.func_native(slab_vec_source(2, ctype, 1))
+        def slab2(slot: int, lane: int, x: vec2, write: int) -> vec2: ...
+
+        @wp.func
+        def stage_values(lane: int, a: vec4, b: vec2, c: vec4):
+            slab4(0, lane, a, 1)
+            slab2(0, lane, b, 1)
+            slab4(1, lane, c, 1)
+
+        @wp.func
+        def staged_geometry(j: int) -> vec4:
+            return slab4(0, j, vec4(), 0)
+
+        @wp.func
+        def staged_conic_c_opacity(j: int) -> vec2:
+            return slab2(0, j, vec2(), 0)
+
+        @wp.func
+        def staged_color_depth(j: int) -> vec4:
+            return slab4(1, j, vec4(), 0)
+    else:
+        @wp.func_native(SLAB.format(ctype="wp::float64" if scalar == wp.float64 else "wp::float32", slots=10))
+        def slab(slot: int, lane: int, x: scalar, write: int) -> scalar: ...
+
+        @wp.func
+        def stage_values(lane: int, a: vec4, b: vec2, c: vec4):
+            slab(0, lane, a[0], 1)
+            slab(1, lane, a[1], 1)
+            slab(2, lane, a[2], 1)
+            slab(3, lane, a[3], 1)
+            slab(4, lane, b[0], 1)
+            slab(5, lane, b[1], 1)
+            slab(6, lane, c[0], 1)
+            slab(7, lane, c[1], 1)
+            slab(8, lane, c[2], 1)
+            slab(9, lane, c[3], 1)
+
+        @wp.func
+        def staged_geometry(j: int) -> vec4:
+            z = scalar(0.0)
+            return vec4(slab(0, j, z, 0), slab(1, j, z, 0), slab(2, j, z, 0), slab(3, j, z, 0))
+
+        @wp.func
+        def staged_conic_c_opacity(j: int) -> vec2:
+            z = scalar(0.0)
+            return vec2(slab(4, j, z, 0), slab(5, j, z, 0))
+
+        @wp.func
+        def staged_color_depth(j: int) -> vec4:
+            z = scalar(0.0)
+            return vec4(slab(6, j, z, 0), slab(7, j, z, 0), slab(8, j, z, 0), slab(9, j, z, 0))
 
     @wp.func
     def stage_gaussian(k: int, lane: int, ids: wp.array(dtype=wp.int32), means2d: wp.array(dtype=vec2),
                        conic: wp.array(dtype=vec3), opacity: wp.array(dtype=scalar), color: wp.array(dtype=vec3),
-                       depth: wp.array(dtype=scalar)):
+                       depth: wp.array(dtype=scalar), want_depth: int):
         g = ids[k]
         m = means2d[g]
         q = conic[g]
         c = color[g]
+        z = scalar(0.0)
+        if want_depth != 0:
+            z = depth[g]
         slab_id(0, lane, g, 1)
-        slab(0, lane, m[0], 1)
-        slab(1, lane, m[1], 1)
-        slab(2, lane, q[0], 1)
-        slab(3, lane, q[1], 1)
-        slab(4, lane, q[2], 1)
-        slab(5, lane, opacity[g], 1)
-        slab(6, lane, c[0], 1)
-        slab(7, lane, c[1], 1)
-        slab(8, lane, c[2], 1)
-        slab(9, lane, depth[g], 1)
+        stage_values(lane, vec4(m[0], m[1], q[0], q[1]), vec2(q[2], opacity[g]), vec4(c[0], c[1], c[2], z))
 
-    @wp.func
-    def staged_mean(j: int) -> vec2:
-        return vec2(slab(0, j, scalar(0.0), 0), slab(1, j, scalar(0.0), 0))
-
-    @wp.func
-    def staged_conic(j: int) -> vec3:
-        return vec3(slab(2, j, scalar(0.0), 0), slab(3, j, scalar(0.0), 0), slab(4, j, scalar(0.0), 0))
-
-    @wp.func
-    def staged_color(j: int) -> vec3:
-        return vec3(slab(6, j, scalar(0.0), 0), slab(7, j, scalar(0.0), 0), slab(8, j, scalar(0.0), 0))
-
-    @wp.kernel(enable_backward=False, module=module)
+    @wp.kernel(enable_backward=False, module=module, **bounds[0])
     def blend_forward_kernel(
         ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
         ids: wp.array(dtype=wp.int32),  # [M] sorted Gaussian indices
@@ -194,6 +274,7 @@ def make_blend(scalar, module: str):
         width: int,
         height: int,
         tiles_x: int,
+        want_depth: int,  # 0: no expected depth (out_depth is not written)
         want_weights: int,
         out_color: wp.array2d(dtype=vec3),  # [H, W]
         out_alpha: wp.array2d(dtype=scalar),  # [H, W]
@@ -223,23 +304,26 @@ def make_blend(scalar, module: str):
             if block_all(done) != 0:
                 break
             if base + lane < end:
-                stage_gaussian(base + lane, lane, ids, means2d, conic, opacity, color, depth)
+                stage_gaussian(base + lane, lane, ids, means2d, conic, opacity, color, depth, want_depth)
             sync_block(0)
             # no break/continue: Warp writes loop-carried variables back at the end of the body, which a
             # break skips (a `done = 1; break` was lost, and every block walked its whole list)
             for j in range(wp.min(B, end - base)):
                 if done == 0:
-                    power = splat_power(staged_mean(j), staged_conic(j), px, py)
+                    co = staged_conic_c_opacity(j)
+                    power = splat_power(staged_geometry(j), co[0], px, py)
                     if power <= scalar(0.0):
-                        alpha = wp.min(scalar(ALPHA_MAX), slab(5, j, scalar(0.0), 0) * wp.exp(power))
+                        alpha = wp.min(scalar(ALPHA_MAX), co[1] * wp.exp(power))
                         if alpha >= scalar(ALPHA_MIN):
                             T_next = T * (scalar(1.0) - alpha)
                             if T_next < scalar(T_MIN):
                                 done = 1
                             else:
                                 w = alpha * T
-                                C += w * staged_color(j)
-                                S += w * slab(9, j, scalar(0.0), 0)
+                                cz = staged_color_depth(j)
+                                C += w * vec3(cz[0], cz[1], cz[2])
+                                if want_depth != 0:
+                                    S += w * cz[3]
                                 if want_weights != 0:
                                     wp.atomic_add(weights, slab_id(0, j, 0, 0), w)
                                 T = T_next
@@ -249,10 +333,11 @@ def make_blend(scalar, module: str):
             A = scalar(1.0) - T
             out_color[p[1], p[0]] = C + T * background
             out_alpha[p[1], p[0]] = A
-            D = scalar(0.0)
-            if A > scalar(0.0):
-                D = S / A
-            out_depth[p[1], p[0]] = D
+            if want_depth != 0:
+                D = scalar(0.0)
+                if A > scalar(0.0):
+                    D = S / A
+                out_depth[p[1], p[0]] = D
             out_T[p[1], p[0]] = T
             out_last[p[1], p[0]] = last
 
@@ -267,7 +352,7 @@ def make_blend(scalar, module: str):
     def warp_sum3(v: vec3) -> vec3:
         return vec3(warp_sum(v[0]), warp_sum(v[1]), warp_sum(v[2]))
 
-    @wp.kernel(enable_backward=False, module=module)
+    @wp.kernel(enable_backward=False, module=module, **bounds[1])
     def blend_backward_kernel(
         ranges: wp.array2d(dtype=wp.int32),
         ids: wp.array(dtype=wp.int32),
@@ -280,17 +365,18 @@ def make_blend(scalar, module: str):
         width: int,
         height: int,
         tiles_x: int,
+        want_depth: int,
         out_depth: wp.array2d(dtype=scalar),
         out_T: wp.array2d(dtype=scalar),
         out_last: wp.array2d(dtype=wp.int32),
         g_color: wp.array2d(dtype=vec3),  # [H, W] upstream dL/dcolor
         g_alpha: wp.array2d(dtype=scalar),  # [H, W] upstream dL/dalpha
-        g_depth: wp.array2d(dtype=scalar),  # [H, W] upstream dL/ddepth
+        g_depth: wp.array2d(dtype=scalar),  # [H, W] upstream dL/ddepth (read only if want_depth)
         d_means2d: wp.array(dtype=vec2),  # [N] accumulated dL/d(screen mean)
         d_conic: wp.array(dtype=vec3),  # [N]
         d_opacity: wp.array(dtype=scalar),  # [N]
         d_color: wp.array(dtype=vec3),  # [N]
-        d_depth: wp.array(dtype=scalar),  # [N]
+        d_depth: wp.array(dtype=scalar),  # [N] (written only if want_depth)
     ):
         # On the GPU all lanes of a block walk the same Gaussians in lockstep (the loop runs from the block's
         # furthest last contributor; lanes past their own skip), so each Gaussian's gradient is summed over
@@ -313,7 +399,7 @@ def make_blend(scalar, module: str):
             gC = g_color[p[1], p[0]]
             gA = g_alpha[p[1], p[0]]
             A = scalar(1.0) - T
-            if A > zero:
+            if want_depth != 0 and A > zero:
                 # depth = S / A: route its gradient to S = Σ zαT and to A
                 gD = g_depth[p[1], p[0]]
                 gS = gD / A
@@ -328,17 +414,17 @@ def make_blend(scalar, module: str):
             hi = top - b * B
             lo = wp.max(start, hi - B)
             if hi - 1 - lane >= lo:  # slot i holds list entry hi - 1 - i: the walk order
-                stage_gaussian(hi - 1 - lane, lane, ids, means2d, conic, opacity, color, depth)
+                stage_gaussian(hi - 1 - lane, lane, ids, means2d, conic, opacity, color, depth, want_depth)
             sync_block(0)
             for j in range(hi - lo):
                 k = hi - 1 - j
-                m = staged_mean(j)
-                q = staged_conic(j)
-                dx = px - m[0]
-                dy = py - m[1]
-                power = splat_power(m, q, px, py)  # the forward's exact expression: same skips, same α
+                a4 = staged_geometry(j)
+                co = staged_conic_c_opacity(j)
+                dx = px - a4[0]
+                dy = py - a4[1]
+                power = splat_power(a4, co[0], px, py)  # the forward's exact expression: same skips, same α
                 G = wp.exp(wp.min(power, zero))
-                raw = slab(5, j, zero, 0) * G
+                raw = co[1] * G
                 alpha = wp.min(scalar(ALPHA_MAX), raw)
                 d_m = vec2(zero, zero)
                 d_q = vec3(zero, zero, zero)
@@ -350,7 +436,8 @@ def make_blend(scalar, module: str):
                     one_minus = scalar(1.0) - alpha
                     T = T / one_minus
                     w = alpha * T
-                    shade = wp.dot(staged_color(j), gC) + slab(9, j, zero, 0) * gS
+                    cz = staged_color_depth(j)
+                    shade = cz[0] * gC[0] + cz[1] * gC[1] + cz[2] * gC[2] + cz[3] * gS
                     d_c = w * gC
                     d_z = w * gS
                     g_alpha_k = T * shade - behind / one_minus
@@ -359,20 +446,22 @@ def make_blend(scalar, module: str):
                         d_o = g_alpha_k * G
                         gp = g_alpha_k * raw
                         d_q = vec3(scalar(-0.5) * dx * dx * gp, -dx * dy * gp, scalar(-0.5) * dy * dy * gp)
-                        d_m = vec2(gp * (q[0] * dx + q[1] * dy), gp * (q[1] * dx + q[2] * dy))
+                        d_m = vec2(gp * (a4[2] * dx + a4[3] * dy), gp * (a4[3] * dx + co[0] * dy))
                 if warp_max(wp.where(valid, 1, 0)) > 0:
                     d_m = warp_sum2(d_m)
                     d_q = warp_sum3(d_q)
                     d_o = warp_sum(d_o)
                     d_c = warp_sum3(d_c)
-                    d_z = warp_sum(d_z)
+                    if want_depth != 0:
+                        d_z = warp_sum(d_z)
                     if lead_lane(tid) != 0:
                         g = slab_id(0, j, 0, 0)
                         wp.atomic_add(d_means2d, g, d_m)
                         wp.atomic_add(d_conic, g, d_q)
                         wp.atomic_add(d_opacity, g, d_o)
                         wp.atomic_add(d_color, g, d_c)
-                        wp.atomic_add(d_depth, g, d_z)
+                        if want_depth != 0:
+                            wp.atomic_add(d_depth, g, d_z)
             sync_block(0)  # the next batch overwrites the slab
 
     return blend_forward_kernel, blend_backward_kernel

@@ -420,3 +420,18 @@ def test_huge_and_small_gaussians_match_reference():
     g = fitted_like_scene(n_small=400, seed=3)
     out, _ = compare(g, camera(72, 56, fov=55.0), background=[0.2, 0.3, 0.1])
     assert out.alpha.min() > 0.05  # the largest Gaussian covers everything
+
+
+def test_without_depth_same_image_and_gradients():
+    """depth=False skips the expected depth: color, alpha and their gradients are those of the full render."""
+    g = random_scene(200, 2, seed=12)
+    g1, g2 = leafs(g), leafs(g)
+    full, lean = render(g1, camera(), background=[0.1, 0.2, 0.3]), render(g2, camera(), background=[0.1, 0.2, 0.3], depth=False)
+    assert lean.depth is None and render_reference(g, camera(), depth=False).depth is None
+    for k in ("color", "alpha"):
+        assert torch.equal(getattr(full, k), getattr(lean, k)), k
+    ups = upstream(full)[:2]
+    ga = torch.autograd.grad(sum((o * u).sum() for o, u in zip((full.color, full.alpha), ups)), [getattr(g1, f) for f in FIELDS])
+    gb = torch.autograd.grad(sum((o * u).sum() for o, u in zip((lean.color, lean.alpha), ups)), [getattr(g2, f) for f in FIELDS])
+    for name, a, b in zip(FIELDS, ga, gb):
+        assert torch.equal(a, b), name

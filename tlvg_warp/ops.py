@@ -319,13 +319,14 @@ def blend(K, proj: Projected, pouts, counts, total: int, geometry, cam: Camera, 
     ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, counts, total, geometry, W, H, settings["all_tiles"])
     color = torch.empty(H, W, 3, dtype=dtype, device=device)
     alpha = torch.empty(H, W, dtype=dtype, device=device)
-    depth = torch.empty(H, W, dtype=dtype, device=device)
+    want_depth = settings.get("depth", True)
+    depth = torch.empty((H, W) if want_depth else (1, 1), dtype=dtype, device=device)  # (1, 1): never written
     T = torch.empty(H, W, dtype=dtype, device=device)
     last = torch.empty(H, W, dtype=torch.int32, device=device)
     weights = torch.zeros(n if settings["weights"] else 1, dtype=dtype, device=device)
     bg = K.vec3(*map(K.scalar, settings["background"]))
     w_means2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pouts
-    args = [ct(ranges), ct(ids), w_means2d, w_conic, w_opacity, w_color, w_depth, bg, W, H, tiles_x]
+    args = [ct(ranges), ct(ids), w_means2d, w_conic, w_opacity, w_color, w_depth, bg, W, H, tiles_x, int(want_depth)]
     wp.launch(K.blend_forward, dim=tiles_x * tiles_y * TILE * TILE, block_dim=TILE * TILE,
               inputs=args + [int(settings["weights"])],
               outputs=[ct(color, K.vec3), ct(alpha), ct(depth), ct(T), ct(last), ct(weights)],
@@ -334,7 +335,7 @@ def blend(K, proj: Projected, pouts, counts, total: int, geometry, cam: Camera, 
     if _capture is not None:
         _capture.update(proj=proj, counts=counts, total=total, ranges=ranges, ids=ids, last=last,
                         tiles=(tiles_x, tiles_y))
-    return color, alpha, depth, weights, state
+    return color, alpha, depth if want_depth else None, weights, state
 
 
 class RasterizeFn(torch.autograd.Function):
@@ -387,7 +388,7 @@ class RasterizeFn(torch.autograd.Function):
         ctx.save_for_backward(means, quats, log_scales, opacity_logits, sh)
         ctx.image_size = (cam.height, cam.width)
         ctx.mark_non_differentiable(proj.radii, weights)
-        return color, alpha, depth, proj.radii, weights if settings["weights"] else None
+        return color, alpha, depth, proj.radii, weights if settings["weights"] else None  # depth None if not asked
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):

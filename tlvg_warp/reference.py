@@ -96,7 +96,8 @@ def project_reference(g: Gaussians, cam: Camera, sh_degree: int | None = None) -
 
 
 def render_reference(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None = None,
-                     return_weights: bool = False, all_tiles: bool = False, chunk: int = 2048) -> RenderOutput:
+                     return_weights: bool = False, all_tiles: bool = False, depth: bool = True,
+                     chunk: int = 2048) -> RenderOutput:
     bg = torch.tensor(check_inputs(g, cam, background), dtype=g.dtype, device=g.device)
     proj = project_reference(g, cam, sh_degree)
     vis = proj.radii > 0
@@ -141,5 +142,6 @@ def render_reference(g: Gaussians, cam: Camera, background=None, *, sh_degree: i
         if return_weights:
             weights = weights.index_add(0, order, w.sum(0))
     color = torch.cat(colors).reshape(H, W, 3)
-    return RenderOutput(color, torch.cat(alphas).reshape(H, W), torch.cat(depths).reshape(H, W), proj.radii, probe,
+    return RenderOutput(color, torch.cat(alphas).reshape(H, W), torch.cat(depths).reshape(H, W) if depth else None,
+                        proj.radii, probe,
                         weights if return_weights else None)

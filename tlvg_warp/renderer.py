@@ -14,7 +14,7 @@ from .types import Camera, Gaussians
 class RenderOutput:
     color: torch.Tensor  # [H, W, 3]
     alpha: torch.Tensor  # [H, W]
-    depth: torch.Tensor  # [H, W] expected depth Σ zαT / alpha, 0 where alpha is 0
+    depth: torch.Tensor | None  # [H, W] expected depth Σ zαT / alpha, 0 where alpha is 0 (None: depth=False)
     radii: torch.Tensor  # [N] int32 screen radius in pixels, 0 = culled
     means2d: torch.Tensor  # [N, 2] zero probe (read-only broadcast); after backward its .grad is dL/d(screen mean)
     weights: torch.Tensor | None = None  # [N] Σ_pixels αT per Gaussian (when asked for)
@@ -43,12 +43,14 @@ def check_inputs(g: Gaussians, cam: Camera, background) -> tuple:
 
 
 def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None = None,
-           return_weights: bool = False, all_tiles: bool = False) -> RenderOutput:
+           return_weights: bool = False, all_tiles: bool = False, depth: bool = True) -> RenderOutput:
     """Rasterize ``g`` into ``cam`` on the device of ``g``'s tensors, differentiably.
 
     sh_degree: evaluate SH only up to this degree (default: all stored coefficients).
     return_weights: also return Σ αT per Gaussian (costs one atomic add per contribution).
-    all_tiles: bin every visible Gaussian into every tile (the brute-force check of the binning)."""
+    all_tiles: bin every visible Gaussian into every tile (the brute-force check of the binning).
+    depth: also blend the expected depth (default); False skips it (``RenderOutput.depth`` is None), which
+    saves a little blending time when a caller reads only color and alpha."""
     from .ops import RasterizeFn
 
     bg = check_inputs(g, cam, background)
@@ -57,7 +59,8 @@ def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None 
         raise InputError(f"sh_degree {degree} is outside 0..{g.sh_degree} (the stored degree)")
     # a stride-0 broadcast zero: an [N, 2] leaf that owns 2 scalars; its .grad is the [N, 2] gradient
     probe = torch.zeros(1, 2, dtype=g.dtype, device=g.device).expand(g.num, 2).detach().requires_grad_(True)
-    settings = {"sh_degree": degree, "background": bg, "weights": bool(return_weights), "all_tiles": bool(all_tiles)}
+    settings = {"sh_degree": degree, "background": bg, "weights": bool(return_weights), "all_tiles": bool(all_tiles),
+                "depth": bool(depth)}
     color, alpha, depth, radii, weights = RasterizeFn.apply(
         g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, probe, cam, settings)
     return RenderOutput(color, alpha, depth, radii, probe, weights)
