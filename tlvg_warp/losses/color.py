@@ -81,85 +81,50 @@ def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
     return torch.stack([L, a, b], dim=-1)
 
 
-_consts: dict = {}  # (name, dtype, device) -> constant tensor: built once, never copied to the device per call
+_lumas: dict = {}  # (dtype, device) -> the luma weights: built once, never copied to the device per call
 
 
-def _const(name: str, dtype, device) -> torch.Tensor:
-    key = (name, dtype, str(device))
-    t = _consts.get(key)
+def _luma(dtype, device) -> torch.Tensor:
+    key = (dtype, str(device))
+    t = _lumas.get(key)
     if t is None:
-        if name == "xyz":  # sRGB -> XYZ / white, transposed for lin @ it
-            v = (_RGB2XYZ / _WHITE[:, None]).T
-        elif name == "ab":  # f(X), f(Y), f(Z) -> (a, b)
-            v = torch.tensor([[500.0, 0.0], [-500.0, 200.0], [0.0, -200.0]], dtype=torch.float64)
-        else:  # "luma"
-            v = torch.tensor(LUMA, dtype=torch.float64)
-        t = _consts[key] = v.to(dtype=dtype, device=device).contiguous()
+        t = _lumas[key] = torch.tensor(LUMA, dtype=dtype, device=device)
     return t
 
 
-_K_LIN = 1.0 / (3 * (6.0 / 29.0) ** 2)  # slope of the CIE f's linear segment
-
-
-class _LabAB(torch.autograd.Function):
-    """sRGB [N,3] -> CIE (a, b) [N,2] with a closed-form backward: the Jacobian factors per pixel
-    (d lin / d c, d f / d xyz) are kept from the forward, so the backward is five kernels instead of autograd's
-    few dozen. Same formulas and branches as :func:`rgb_to_lab` (which the tests compare it with)."""
-
-    @staticmethod
-    def forward(ctx, rgb):
-        c = rgb.clamp_min(0.0)
-        lo = c <= 0.04045
-        cp = c + 0.055
-        p = (cp * (1.0 / 1.055)).clamp_min_(_TINY).pow_(2.4)
-        lin = torch.where(lo, c * (1.0 / 12.92), p)
-        # d lin / d rgb: 1/12.92 on the linear segment, 2.4·p/(c+0.055) on the power one, 0 where clamped
-        dlin = torch.where(lo, 1.0 / 12.92, p.mul_(2.4).div_(cp)).mul_(rgb >= 0)
-        xyz = lin @ _const("xyz", rgb.dtype, rgb.device)
-        hi = xyz > _EPS_T
-        cube = xyz.clamp_min(_TINY).pow_(1.0 / 3.0)
-        f = torch.where(hi, cube, xyz * _K_LIN + 4.0 / 29.0)
-        dfx = torch.where(hi, cube.square_().mul_(3.0).reciprocal_(), _K_LIN)  # f' = 1/(3 f²) on the cube root
-        ctx.save_for_backward(dlin, dfx)
-        return f @ _const("ab", rgb.dtype, rgb.device)
-
-    @staticmethod
-    def backward(ctx, g):
-        dlin, dfx = ctx.saved_tensors
-        gx = (g @ _const("ab", g.dtype, g.device).T).mul_(dfx)  # d/d xyz
-        return (gx @ _const("xyz", g.dtype, g.device).T).mul_(dlin)
-
-
-def lab_ab(rgb: torch.Tensor) -> torch.Tensor:
-    """The a, b channels of :func:`rgb_to_lab` [...,3] -> [...,2] (same values), with a closed-form backward."""
-    return _LabAB.apply(rgb.reshape(-1, 3)).reshape(*rgb.shape[:-1], 2)
-
-
 def lab_chroma_stats(img: torch.Tensor) -> torch.Tensor:
-    """[2, 2]: mean (row 0) and population standard deviation (row 1) of Lab a, b over the pixels of an
-    sRGB image [...,3]. A constant target's statistics are computed once (``lab_chroma_loss(target_stats=)``)."""
-    sd, mu = torch.std_mean(lab_ab(img).reshape(-1, 2), dim=0, correction=0)
-    return torch.stack([mu, sd])
+    """[4] = (μ_a, μ_b, σ_a, σ_b): mean and population standard deviation of Lab a, b over the pixels of an sRGB
+    image [...,3] (no gradient). A view's constant target is summarized once: ``lab_chroma_loss(render,
+    target_stats=lab_chroma_stats(target))``."""
+    from .lab_warp import chroma_stats_of, lab_ab_jacobian
+
+    with torch.no_grad():
+        return chroma_stats_of(lab_ab_jacobian(img))
 
 
 def lab_chroma_loss(render: torch.Tensor, target: torch.Tensor | None = None, *,
                     target_stats: torch.Tensor | None = None) -> torch.Tensor:
     """½(‖Δμ_ab‖₁ + ‖Δσ_ab‖₁): mean and standard deviation of the a, b channels of the render vs the target
     (the recolored photo of the same view), in Lab units; L1 norms sum over the two channels.
-    Inputs [H,W,3] (or any [...,3]) sRGB in [0,1]. ``target_stats``: :func:`lab_chroma_stats` of the target,
-    computed once per view, instead of ``target``."""
+    Inputs [H,W,3] (or any [...,3]) sRGB in [0,1], float32 or float64. ``target_stats``: :func:`lab_chroma_stats`
+    of the target, computed once per view, instead of ``target``.
+
+    Two Warp kernels (losses/lab_warp.py: per-pixel Lab (a, b) with its Jacobian, and the backward through the
+    statistics) and five small torch reductions: ~8 kernel launches per step where autograd through
+    :func:`rgb_to_lab` took ~50 (the formulas are the same; tests/test_losses_color.py compares them)."""
+    from .lab_warp import LabChromaLossFn
+
     if target_stats is None:
         if target is None:
             raise ValueError("lab_chroma_loss needs target or target_stats")
-        with torch.no_grad():
-            target_stats = lab_chroma_stats(target.to(render))
-    return 0.5 * (lab_chroma_stats(render) - target_stats.to(render)).abs().sum()
+        target_stats = lab_chroma_stats(target.to(render))
+    return LabChromaLossFn.apply(render, target_stats)
 
 
 def luminance(img: torch.Tensor) -> torch.Tensor:
     """Y = 0.299R + 0.587G + 0.114B replicated to 3 channels (paper §3.3). [...,H,W,3] channel-last, or
     [B,3,H,W] (4-D with 3 channels on axis 1). Same shape out."""
-    w = _const("luma", img.dtype, img.device)
+    w = _luma(img.dtype, img.device)
     if img.dim() == 4 and img.shape[1] == 3 and img.shape[-1] != 3:
         return (img * w.view(1, 3, 1, 1)).sum(1, keepdim=True).expand_as(img)
     return (img @ w).unsqueeze(-1).expand_as(img)
