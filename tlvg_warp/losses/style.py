@@ -16,15 +16,19 @@ import torch.nn.functional as F
 
 K_CROSS = 5  # FAST's mutual top-k (reference code)
 RIDGE = 1e-12  # FAST's A + 1e-12*I (reference code)
-# The float32 solve: A scaled to unit diagonal (Jacobi) plus this ridge, then Cholesky. Measured on fern x Starry
-# Night with the pretrained backbone (A: 83 dead channels, the live spectrum spans 12 decades): the target b is
-# within 9e-4 (relative Frobenius) of a float64 solve of the float64 A, the loss within 1e-5, the gradient within
-# 3e-3 -- less than the float64 answer itself moves when its ridge goes from 1e-12 to 1e-8 (1.3e-3 / 5e-3), and
-# less than the float64 LU of the float32 A the loop used before (1.1e-3 / 4e-3). tests/test_losses_style.py.
-RIDGE32 = 1e-7
+# FAST's solve (issue 15). A = a·diag(U1)·aᵀ is a Gram matrix of highly correlated relu3 channels: on fern x Starry
+# Night with the pretrained backbone 83 channels are dead and the live spectrum spans 12 decades. Measured against
+# a float64 LU of the float64 A (rel. error of the target b / of the loss's gradient):
+#   lu64 of the float32 A (the reference code, the loop before):  4e-5 / 1.4e-4,   2.30 ms on the H200
+#   cholesky64: A in float64, scaled to unit diagonal (Jacobi) + RIDGE64·I, Cholesky:  ~1e-5 / 1e-4, 1.2 ms
+#   cholesky32: the same in float32: fails (info > 0: rounding exceeds a 1e-7 ridge) on bf16 features of the
+#     same view; a ridge that always holds (1e-5) moves the gradient by 2-3%:       0.9 ms -> opt-in only.
+# RIDGE64 covers the worst-case Cholesky rounding n·eps·λmax (768 x 1.1e-16 x 768 = 6.5e-11 on a unit diagonal).
+RIDGE64 = 1e-10
+RIDGE32 = 1e-5
 EPS_COS = 1e-8  # F.cosine_similarity's eps: a (dead) all-zero row has cosine 0
 SIM_BUDGET = 1 << 25  # elements per similarity chunk: 32M floats = 128 MB in float32
-SOLVES = ("auto", "float32", "float64")
+SOLVES = ("auto", "cholesky64", "lu64", "cholesky32")
 
 
 def match_dtype(t: torch.Tensor) -> torch.dtype:
@@ -182,7 +186,7 @@ def _solve_kind(solve: str, a: torch.Tensor) -> str:
     if solve not in SOLVES:
         raise ValueError(f"solve must be one of {SOLVES}, got {solve!r}")
     if solve == "auto":
-        return "float64" if a.dtype == torch.float64 else "float32"
+        return "lu64" if a.dtype == torch.float64 else "cholesky64"
     return solve
 
 
@@ -191,18 +195,21 @@ def fast_projection(a: torch.Tensor, s, k: int = K_CROSS, idx=None, solve: str =
     """FAST's map P [C,C] (target b = Pᵀa) and ``ok`` (0-dim bool: the solve succeeded), from render features
     a [C,Nc] and style features s ([C,Ns] or a StyleFeatures); ``idx`` = (idx_r, idx_c) from ``_topk_both``.
 
-    P = A⁻¹B with A = a·diag(U1)·aᵀ + 1e-12·I and B = a·U·sᵀ. ``solve``: "float64" is the reference code's
-    dense solve (LU of the float64 A), "float32" a Cholesky of the Jacobi-scaled A + 1e-7·I (RIDGE32; ~5x
-    cheaper on the GPU; the scale of U cancels in P, so it is not even divided out), "auto" float64 for
-    float64 input, else float32. With fewer render cells than channels the solve is an Nc x Nc system in
-    float64 either way (push-through identity: P = a·(D·G + εI)⁻¹·U·sᵀ, G = aᵀa, D = diag(U1); (C/Nc)³
-    less work: the CPU demo has 768 channels and 70 cells)."""
+    P = A⁻¹B with A = a·diag(U1)·aᵀ + ridge and B = a·U·sᵀ. ``solve`` (see RIDGE64 for the measurements):
+    "lu64" is the reference code's dense solve (LU of A + 1e-12·I in float64, A formed in a's dtype);
+    "cholesky64" forms A in float64, scales it to unit diagonal and factors A + 1e-10·I by Cholesky (half the
+    LU's time on the GPU, as accurate); "cholesky32" the same in float32 with a 1e-5 ridge (faster still, but
+    the gradient moves by a few percent); "auto": lu64 for float64 input (the tests' oracle), else cholesky64.
+    In the Cholesky solves the scale of U cancels (it is not even divided out). With fewer render cells than
+    channels the solve is an Nc x Nc system in float64 whatever ``solve`` says (push-through identity:
+    P = a·(D·G + εI)⁻¹·U·sᵀ, G = aᵀa, D = diag(U1); (C/Nc)³ less work: the CPU demo has 768 channels and
+    70 cells)."""
     st = as_style(s, a)
     nc = a.shape[1]
     idx_r, idx_c = idx if idx is not None else _topk_both(a, st, k)
     keep, u1, us = _fast_union(idx_r, idx_c, nc, st)
     kind = _solve_kind(solve, a)
-    if nc < a.shape[0] or kind == "float64":
+    if nc < a.shape[0] or kind == "lu64":
         n = keep.sum() + nc * idx_r.shape[1]  # |U|: U /= sum(U) matters here through the absolute ridge
         if nc < a.shape[0]:
             a64 = a.double()
@@ -215,12 +222,14 @@ def fast_projection(a: torch.Tensor, s, k: int = K_CROSS, idx=None, solve: str =
             A.diagonal().add_(RIDGE)
             P, info = torch.linalg.solve_ex(A, (a @ (us / n)).double())  # P = A⁻¹B, B = a·U·sᵀ [C,C]
     else:
-        A = (a * u1) @ a.T  # [C,C]; U's scale 1/n cancels in A⁻¹B
+        dt, ridge = (torch.float64, RIDGE64) if kind == "cholesky64" else (torch.float32, RIDGE32)
+        ad = a.to(dt)
+        A = (ad * u1.to(dt)) @ ad.T  # [C,C]; U's scale 1/n cancels in A⁻¹B
         d = A.diagonal().clamp_min(1e-30).rsqrt()  # a dead channel: its row of A is 0, so is its row of P
         As = A * torch.outer(d, d)
-        As.diagonal().add_(RIDGE32)
+        As.diagonal().add_(ridge)
         L, info = torch.linalg.cholesky_ex(As)
-        P = torch.cholesky_solve((a @ us) * d[:, None], L) * d[:, None]
+        P = torch.cholesky_solve((a @ us).to(dt) * d[:, None], L) * d[:, None]
     ok = (info == 0) & torch.isfinite(P.sum())  # a NaN or inf anywhere in P makes its sum non-finite
     return P.to(a.dtype), ok
 
