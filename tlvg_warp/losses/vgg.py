@@ -68,6 +68,36 @@ class VGG16Features(nn.Module):
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.is_random = False
         self.source = "uninitialized"
+        self.lowp_dtype: torch.dtype | None = None  # set_precision: dtype of the convolutions (None: float32)
+        self.channels_last = False
+        self._lowp: dict = {}  # conv index -> names of its (weight, bias) buffers in lowp_dtype
+
+    def set_precision(self, dtype: torch.dtype | None = None, channels_last: bool = False) -> "VGG16Features":
+        """Speed options for the loss features (off by default; issue 15). ``dtype`` (torch.bfloat16 or
+        torch.float16) runs the convolutions in that precision from low-precision copies of the weights made
+        here (no per-call weight casts, unlike autocast; the modules keep their float32 weights, so ``hed`` and
+        evaluation are unaffected); the input is cast once and the outputs come back in the input's dtype.
+        ``channels_last`` keeps weights and activations NHWC (cuDNN's native layout for tensor-core
+        convolutions; fewer layout kernels). None / False restores float32 NCHW. Measured (README, issue 15):
+        channels_last is float32 arithmetic (same losses up to summation order); bf16 moves the FAST loss's
+        gradient by ~2-4% on the pretrained backbone and was not faster on the H200 at fern size, so it stays off."""
+        if dtype not in (None, torch.float32, torch.bfloat16, torch.float16):
+            raise ValueError(f"dtype must be None, float32, bfloat16 or float16, got {dtype}")
+        self.lowp_dtype = None if dtype in (None, torch.float32) else dtype
+        self.channels_last = bool(channels_last)
+        fmt = torch.channels_last if self.channels_last else torch.contiguous_format
+        self._lowp = {}
+        for i, m in enumerate(self.features):
+            if isinstance(m, nn.Conv2d):
+                m.weight.data = m.weight.data.contiguous(memory_format=fmt)
+                w = b = None
+                if self.lowp_dtype is not None:  # buffers: they follow .to(device); not in the state dict
+                    w = m.weight.detach().to(self.lowp_dtype).contiguous(memory_format=fmt)
+                    b = m.bias.detach().to(self.lowp_dtype)
+                    self._lowp[i] = (f"lowp_w{i}", f"lowp_b{i}")
+                self.register_buffer(f"lowp_w{i}", w, persistent=False)
+                self.register_buffer(f"lowp_b{i}", b, persistent=False)
+        return self
 
     def _prepare(self, img: torch.Tensor, scale: float) -> torch.Tensor:
         """[H,W,3] or [B,3,H,W] in [0,1] -> normalized [B,3,h,w], resized by ``scale`` (antialiased when
@@ -86,16 +116,32 @@ class VGG16Features(nn.Module):
         """The named relu outputs (``LAYERS`` keys) of ``img``, running only as deep as the deepest one."""
         want = {LAYERS[n]: n for n in names}
         x, out = self._prepare(img, scale), {}
+        dtype = x.dtype
+        if self.lowp_dtype is not None:
+            x = x.to(self.lowp_dtype)
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
         for i, layer in enumerate(self.features[:max(want) + 1]):
-            x = layer(x)
+            lp = self._lowp.get(i)
+            x = layer(x) if lp is None else F.conv2d(x, getattr(self, lp[0]), getattr(self, lp[1]), padding=1)
             if i in want:
                 out[want[i]] = x
+        if x.dtype != dtype:
+            out = {k: v.to(dtype) for k, v in out.items()}
         return out
 
     def forward(self, img: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
         """relu3_1|relu3_2|relu3_3 concatenated [B,768,h/4,w/4] (the style and content losses' features)."""
         f = self.layers(img, ("relu3_1", "relu3_2", "relu3_3"), scale)
         return torch.cat([f["relu3_1"], f["relu3_2"], f["relu3_3"]], dim=1)
+
+    def features_of(self, images, scale: float = 1.0) -> list[torch.Tensor]:
+        """Loss features [768, h*w] of several same-size images in ONE pass (a batch): the stylize step's
+        luminance render (style term) and RGB render (content term) cost one VGG forward and backward
+        instead of two. ``images``: a list of [H,W,3] (or [1,3,H,W]) tensors; returns a list in that order."""
+        xs = [im.permute(2, 0, 1).unsqueeze(0) if im.dim() == 3 else im for im in images]
+        f = self(torch.cat(xs, 0), scale)  # [B,768,h,w]
+        return [fi.reshape(fi.shape[0], -1) for fi in f]
 
 
 
