@@ -23,7 +23,8 @@ def fast_numpy(a, s, k=5):
     A = a @ np.diag(U.sum(1)) @ a.T + 1e-12 * np.eye(a.shape[0])
     B = a @ U @ s.T
     b = np.linalg.solve(A, B).T @ a
-    cos = (a * b).sum(1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+    den = np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
+    cos = (a * b).sum(1) / np.maximum(den, 1e-300)  # a dead (all-zero) channel has cosine 0, as torch's
     return float(np.mean(1 - cos)), b, U
 
 
@@ -100,3 +101,162 @@ def test_gram_and_content_vs_brute_force():
     assert abs(gram_loss(torch.from_numpy(a), torch.from_numpy(s)).item() - ((ga - gs) ** 2).mean()) < ORACLE_TOL
     b = feats(11, 5, 12)
     assert abs(content_loss(torch.from_numpy(a), torch.from_numpy(b)).item() - ((a - b) ** 2).mean()) < ORACLE_TOL
+
+
+# ----------------------------------------------------------------------------- issue 15: the cheaper FAST
+def ill_conditioned(seed=11, c=40, nc=120, ns=90):
+    """ReLU-like features with what relu3 features have: dead channels (all zero), an exact duplicate, an exact
+    linear combination and a near-collinear pair (A's live spectrum then spans ~10 decades)."""
+    rng = np.random.default_rng(seed)
+    f = np.abs(rng.standard_normal((c, nc + ns)))
+    f[3] = f[17] = 0
+    f[5] = f[4]
+    f[9] = 0.5 * f[10] + 0.5 * f[11]
+    f[8] = f[7] + 1e-4 * np.abs(rng.standard_normal(nc + ns))
+    return f[:, :nc], f[:, nc:]
+
+
+def rel(x, y):
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    return np.linalg.norm(x - y) / np.linalg.norm(y)
+
+
+# cholesky64 (the default for float32 features) against the float64 LU oracle. Well-conditioned: round-off only.
+# Ill-conditioned: its Jacobi ridge (1e-10 of each channel's diagonal, there for a safe float64 Cholesky) shifts
+# the eigen-directions near 1e-9 by a few percent of their share; measured 2.4e-3 (float64 in) and 3.8e-3
+# (float32 in), where the reference code's LU of the float32-formed A (the loop before issue 15) is off by 4e-2.
+CHOL64_TOL_WELL = 1e-7
+CHOL64_TOL_ILL = 1e-2
+
+
+def test_fast_solves_against_float64_oracle():
+    a, s = feats(20, 30, 200), feats(21, 30, 150)
+    _, b_np, _ = fast_numpy(a, s)
+    at, st = torch.from_numpy(a), torch.from_numpy(s)
+    assert rel(fast_target(at, st, solve="cholesky64").numpy(), b_np) < CHOL64_TOL_WELL
+    assert rel(fast_target(at, st, solve="lu64").numpy(), b_np) < ORACLE_TOL * 10
+    assert rel(fast_target(at, st).numpy(), b_np) < ORACLE_TOL * 10  # auto: float64 in -> the oracle's LU
+    a, s = ill_conditioned()
+    _, b_np, _ = fast_numpy(a, s)
+    errs = {}
+    for dt in (torch.float64, torch.float32):
+        at, st = torch.from_numpy(a).to(dt), torch.from_numpy(s).to(dt)
+        for solve in ("cholesky64", "lu64", "cholesky32"):
+            errs[solve, dt] = rel(fast_target(at, st, solve=solve).double().numpy(), b_np)
+    assert errs["cholesky64", torch.float64] < CHOL64_TOL_ILL and errs["cholesky64", torch.float32] < CHOL64_TOL_ILL
+    # on float32 features the new default is closer to the float64 answer than the old float64 LU was
+    assert errs["cholesky64", torch.float32] < errs["lu64", torch.float32]
+    assert errs["cholesky32", torch.float32] < 0.1  # opt-in: a larger ridge, a few percent
+    # the loss's gradient (b fixed) follows b: cholesky64 with float32 features vs the oracle's b
+    x = torch.from_numpy(a).float().requires_grad_(True)
+    fast_loss(x, torch.from_numpy(s).float()).backward()
+    y = torch.from_numpy(a).float().requires_grad_(True)
+    (1 - torch.nn.functional.cosine_similarity(y, torch.from_numpy(b_np).float(), dim=1)).mean().backward()
+    assert rel(x.grad.numpy(), y.grad.numpy()) < 2 * CHOL64_TOL_ILL
+
+
+def test_fast_solve_fallback_is_identity_and_bad_solve_name():
+    a, s = torch.from_numpy(feats(22, 6, 30)), torch.from_numpy(feats(23, 6, 20))
+    P, ok = style_mod.fast_projection(a, s)
+    assert bool(ok) and P.shape == (6, 6)
+    a_nan = a.clone()
+    a_nan[0, 0] = float("nan")
+    P, ok = style_mod.fast_projection(a_nan, s, solve="cholesky64")
+    assert not bool(ok)  # decided on the device; fast_target then returns a itself (the reference code's fallback)
+    b = fast_target(a_nan, s, solve="cholesky64")
+    assert torch.equal(torch.isnan(b), torch.isnan(a_nan)) and torch.equal(b[1:], a_nan[1:])
+    with pytest.raises(ValueError, match="solve"):
+        fast_loss(a, s, solve="float16")
+
+
+def test_topk_both_and_union_against_dense_brute_force(monkeypatch):
+    a, s = feats(24, 7, 29), feats(25, 7, 41)  # 29 render cells: padded to 32 in the column product
+    an, sn = a / np.linalg.norm(a, axis=0), s / np.linalg.norm(s, axis=0)
+    sim = an.T @ sn
+    for budget in (1 << 25, 50):  # one product, and row chunks of both
+        monkeypatch.setattr(style_mod, "SIM_BUDGET", budget)
+        st = style_mod.StyleFeatures(torch.from_numpy(s))
+        idx_r, idx_c = style_mod._topk_both(torch.from_numpy(a), st, 5)
+        assert np.array_equal(np.sort(idx_r.numpy(), 1), np.sort(np.argsort(-sim, 1)[:, :5], 1))
+        assert np.array_equal(np.sort(idx_c.numpy(), 1), np.sort(np.argsort(-sim.T, 1)[:, :5], 1))
+        keep, u1, us = style_mod._fast_union(idx_r, idx_c, a.shape[1], st)
+        U = np.zeros_like(sim)
+        U[np.arange(29)[:, None], idx_r.numpy()] = 1
+        U[idx_c.numpy(), np.arange(41)[:, None]] = 1
+        assert float(keep.sum()) + 29 * 5 == U.sum()
+        assert np.allclose(u1.numpy(), U.sum(1), atol=1e-12) and np.allclose(us.numpy(), U @ s.T, atol=1e-12)
+
+
+def test_cosine_distance_backward_matches_autograd_and_dead_rows():
+    gen = torch.Generator().manual_seed(0)
+    x0 = torch.rand(6, 9, generator=gen, dtype=torch.float64)
+    y = torch.rand(6, 9, generator=gen, dtype=torch.float64)
+    x0[2] = 0  # a dead channel: cosine 0, gradient ŷ/eps as torch's (the ReLU's mask zeroes it upstream)
+    for dim in (0, 1):
+        x1, x2 = x0.clone().requires_grad_(True), x0.clone().requires_grad_(True)
+        l1 = style_mod.cosine_distance_to_fixed(x1, y, dim=dim)
+        l2 = (1 - torch.nn.functional.cosine_similarity(x2, y, dim=dim)).mean()
+        l1.backward()
+        l2.backward()
+        assert abs(l1.item() - l2.item()) < 1e-14
+        assert torch.allclose(x1.grad, x2.grad, rtol=1e-12, atol=1e-12)
+    # finite differences of the hand-written backward away from the dead row
+    x = torch.rand(4, 7, generator=gen, dtype=torch.float64).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: style_mod.cosine_distance_to_fixed(t, y[:4, :7], dim=1), (x,))
+
+
+def test_style_features_precomputed_give_the_same_losses():
+    a, s = torch.from_numpy(feats(26, 8, 40)), torch.from_numpy(feats(27, 8, 33))
+    st = style_mod.StyleFeatures(s)
+    assert abs(fast_loss(a, st).item() - fast_loss(a, s).item()) < 1e-14
+    assert abs(nnfm_loss(a, st).item() - nnfm_loss(a, s).item()) < 1e-14
+    assert abs(gram_loss(a, st).item() - gram_loss(a, s).item()) < 1e-14
+    for kind, fn in (("fast", fast_loss), ("nnfm", nnfm_loss), ("gram", gram_loss)):
+        assert abs(style_mod.StyleLoss(st, kind)(a).item() - fn(a, s).item()) < 1e-14
+    assert st.like(a.float()).dtype == torch.float32 and st.like(a) is st
+
+
+def test_style_loss_cache_refresh_every_one_equals_no_cache():
+    s = torch.from_numpy(feats(28, 8, 33))
+    plain, cached = style_mod.StyleLoss(s), style_mod.StyleLoss(s, refresh_every=1)
+    for step in range(6):
+        a0 = torch.from_numpy(feats(100 + step, 8, 40))
+        x1, x2 = a0.clone().requires_grad_(True), a0.clone().requires_grad_(True)
+        l1, l2 = plain(x1), cached(x2, key=step % 2)
+        l1.backward()
+        l2.backward()
+        assert l1.item() == l2.item() and torch.equal(x1.grad, x2.grad)
+        assert l1.item() == fast_loss(a0, s).item()
+    assert cached.refreshes == 6 and not cached._cache
+
+
+def test_style_loss_cache_reuses_the_projection_per_key():
+    s = torch.from_numpy(feats(29, 8, 33))
+    loss = style_mod.StyleLoss(s, refresh_every=3)
+    seen = {}
+    for call in range(7):
+        for key in ("v0", "v1"):
+            a = torch.from_numpy(feats(200 + 10 * call + (key == "v1"), 8, 40))
+            if call % 3 == 0:  # refresh: the match and the solve of these features
+                seen[key] = style_mod.fast_projection(a, s)
+                assert loss(a, key=key).item() == fast_loss(a, s).item()
+            else:  # the key's last projection applied to the current features
+                P, ok = seen[key]
+                want = style_mod.cosine_distance_to_fixed(a, torch.where(ok, P.T @ a, a), dim=1)
+                got = loss(a, key=key)
+                assert got.item() == want.item() and got.item() != fast_loss(a, s).item()
+    assert loss.refreshes == 2 * 3  # calls 0, 3, 6 of each key
+    assert loss.match_of("v0").shape == (40, 5)
+    # no key: nothing cached; reset() drops the cache
+    a = torch.from_numpy(feats(300, 8, 40))
+    assert loss(a).item() == fast_loss(a, s).item() and loss.refreshes == 7
+    loss.reset()
+    assert loss.match_of("v0") is None
+    nn = style_mod.StyleLoss(s, "nnfm", refresh_every=2)
+    assert nn(a, key=0).item() == nnfm_loss(a, s).item()
+    b = torch.from_numpy(feats(301, 8, 40))
+    nn_a = match_style_cells(a, s, 1)[0][:, 0]  # the second call of key 0 keeps the first call's neighbours
+    assert nn(b, key=0).item() == style_mod.cosine_distance_to_fixed(b, s[:, nn_a], dim=0).item()
+    assert nn.refreshes == 1
+    with pytest.raises(ValueError):
+        style_mod.StyleLoss(s, refresh_every=0)
