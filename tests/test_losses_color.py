@@ -3,7 +3,8 @@ import cv2
 import numpy as np
 import torch
 
-from tlvg_warp.losses import apply_color_transform, color_transfer, lab_chroma_loss, luminance, rgb_to_lab
+from tlvg_warp.losses import (apply_color_transform, color_transfer, lab_chroma_loss, lab_chroma_stats, luminance,
+                              rgb_to_lab)
 from tlvg_warp.losses.style import fast_loss
 
 MOMENT_TOL = 1e-9  # float64 throughout; the map is exact up to round-off when nothing is clamped
@@ -113,3 +114,50 @@ def test_recolored_gaussians_render_the_recolored_image():
     got = render_reference(g2, cam, background=tuple((m @ bg + t).tolist())).color
     assert torch.allclose(got, want, atol=1e-10)
     assert (got - render_reference(g, cam, background=tuple(bg.tolist())).color).abs().max() > 0.05
+
+
+def _lab_chroma_autograd(render, target):
+    """The loss through autograd of the torch sRGB->Lab (the formula before the Warp kernels): the oracle."""
+    ab_r = rgb_to_lab(render).reshape(-1, 3)[:, 1:]
+    ab_t = rgb_to_lab(target).reshape(-1, 3)[:, 1:].detach()
+    return 0.5 * ((ab_r.mean(0) - ab_t.mean(0)).abs().sum()
+                  + (ab_r.std(0, unbiased=False) - ab_t.std(0, unbiased=False)).abs().sum())
+
+
+def test_lab_chroma_kernels_match_autograd_of_rgb_to_lab():
+    rng = np.random.default_rng(5)
+    x = rng.random((24, 30, 3)) * 1.1 - 0.05  # some negatives (clamped) and overshoots
+    x[0, :4] = [[0.01, 0.02, 0.03], [0.03, 0.0401, 0.02], [0.001, 0.002, 0.0005], [0.3, 0.3, 0.3]]  # both segments
+    tgt = torch.from_numpy(rng.random((24, 30, 3)))
+    want = _lab_chroma_autograd(torch.from_numpy(x).requires_grad_(True), tgt)
+    r1 = torch.from_numpy(x).requires_grad_(True)
+    r2 = torch.from_numpy(x).requires_grad_(True)
+    got = lab_chroma_loss(r1, tgt)
+    want = _lab_chroma_autograd(r2, tgt)
+    got.backward()
+    want.backward()
+    assert abs(got.item() - want.item()) < 1e-10  # float64 on both sides: operation order only
+    assert torch.allclose(r1.grad, r2.grad, rtol=1e-9, atol=1e-12)
+    # statistics once per view give the same loss; float32 stays within its round-off
+    st = lab_chroma_stats(tgt)
+    ab = rgb_to_lab(tgt).reshape(-1, 3)[:, 1:]
+    assert torch.allclose(st, torch.cat([ab.mean(0), ab.std(0, unbiased=False)]), atol=1e-10)
+    assert lab_chroma_loss(torch.from_numpy(x), target_stats=st).item() == got.item()
+    r3 = torch.from_numpy(x).float().requires_grad_(True)
+    l3 = lab_chroma_loss(r3, tgt.float())
+    l3.backward()
+    assert abs(l3.item() - want.item()) < 1e-4 and torch.allclose(r3.grad.double(), r2.grad, atol=1e-5)
+
+
+def test_lab_chroma_backward_finite_differences_and_gray():
+    rng = np.random.default_rng(6)
+    x = torch.from_numpy(rng.random((5, 6, 3)) * 0.8 + 0.1).requires_grad_(True)  # away from the kinks
+    tgt = torch.from_numpy(rng.random((5, 6, 3)))
+    st = lab_chroma_stats(tgt)
+    assert torch.autograd.gradcheck(lambda t: lab_chroma_loss(t, target_stats=st), (x,))
+    # a gray render has σ_ab = 0: the σ term's gradient is 0 there (as torch's std backward), never NaN
+    g = torch.full((4, 4, 3), 0.5, dtype=torch.float64, requires_grad=True)
+    g2 = torch.full((4, 4, 3), 0.5, dtype=torch.float64, requires_grad=True)
+    lab_chroma_loss(g, target_stats=st).backward()
+    _lab_chroma_autograd(g2, tgt).backward()
+    assert torch.isfinite(g.grad).all() and torch.allclose(g.grad, torch.nan_to_num(g2.grad), atol=1e-9)

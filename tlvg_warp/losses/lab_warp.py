@@ -27,6 +27,9 @@ M10, M11, M12 = _M[1]
 M20, M21, M22 = _M[2]
 EPS_T, K_LIN, TINY = _EPS_T, _K_LIN, _TINY
 FOUR_29 = 4.0 / 29.0
+# constant expressions are computed here: Warp evaluates `1.0 / 3.0` inside a kernel in float32 even for float64
+INV_12_92 = 1.0 / 12.92
+THIRD = 1.0 / 3.0
 
 
 @functools.lru_cache(maxsize=None)
@@ -42,7 +45,7 @@ def lab_kernels(scalar_name: str):
         # (linear value, its derivative in x); x < 0 is clamped to 0 (derivative 0 there, as clamp_min's)
         c = wp.max(x, scalar(0.0))
         lin = c / scalar(12.92)
-        d = scalar(1.0 / 12.92)
+        d = scalar(INV_12_92)
         if c > scalar(0.04045):
             cp = c + scalar(0.055)
             p = wp.pow(wp.max(cp / scalar(1.055), scalar(TINY)), scalar(2.4))
@@ -58,7 +61,7 @@ def lab_kernels(scalar_name: str):
         f = t * scalar(K_LIN) + scalar(FOUR_29)
         d = scalar(K_LIN)
         if t > scalar(EPS_T):
-            f = wp.pow(wp.max(t, scalar(TINY)), scalar(1.0 / 3.0))
+            f = wp.pow(wp.max(t, scalar(TINY)), scalar(THIRD))
             d = scalar(1.0) / (scalar(3.0) * f * f)
         return f, d
 
