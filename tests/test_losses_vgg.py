@@ -131,3 +131,33 @@ def test_named_layers_down_to_relu5_3_match_functional_oracle(tmp_path):
     assert set(got) == set(ref)
     for k in ref:
         assert got[k].shape == ref[k].shape and torch.allclose(got[k], ref[k], atol=1e-5), k
+
+
+def test_batched_features_and_precision_options(tmp_path):
+    """features_of (one batched pass) equals separate calls; channels_last is float32 arithmetic; bf16 stays
+    within its rounding of float32 and leaves the modules (HED side outputs, evaluation) in float32."""
+    sd = torchvision_like_state_dict(2)
+    p = tmp_path / "vgg.pth"
+    torch.save(sd, p)
+    net = load_vgg(str(p))
+    img = torch.rand(40, 56, 3)
+    lum = img.mean(-1, keepdim=True).expand_as(img)
+    f_lum, f_rgb = net.features_of([lum, img], scale=0.5)
+    assert f_lum.shape == (768, 5 * 7)
+    assert torch.allclose(f_lum, net(lum, scale=0.5).reshape(768, -1), atol=1e-5)
+    assert torch.allclose(f_rgb, net(img, scale=0.5).reshape(768, -1), atol=1e-5)
+    ref = net(img)
+    net.set_precision(channels_last=True)
+    assert torch.allclose(net(img), ref, atol=1e-5)
+    net.set_precision(torch.bfloat16)
+    x = img.clone().requires_grad_(True)
+    low = net(x)
+    low.sum().backward()
+    assert low.dtype == torch.float32 and x.grad is not None
+    assert (low - ref).norm() / ref.norm() < 3e-2  # bf16 keeps 8 bits of mantissa through seven convolutions
+    assert all(m.weight.dtype == torch.float32 for m in net.features if isinstance(m, torch.nn.Conv2d))
+    assert not any(k.startswith("lowp") for k in net.state_dict())
+    net.set_precision()
+    assert torch.allclose(net(img), ref, atol=1e-6) and not net._lowp
+    with pytest.raises(ValueError):
+        net.set_precision(torch.int8)
