@@ -5,7 +5,7 @@ import math
 import torch
 
 from tlvg_warp import Camera, Gaussians
-from tlvg_warp.flow import flow_terms, flow_terms_reference
+from tlvg_warp.flow import flow_terms, flow_terms_reference, flow_terms_unfused
 
 from test_raster import assert_close, camera, leafs, random_scene
 
@@ -88,3 +88,31 @@ def test_empty_scene_gives_zero_energy_and_empty_gradients():
     a, b = flow_terms(g, cam, constant_field(0.3, cam), torch.zeros(0, dtype=torch.float64))
     (a + b).backward()
     assert a.item() == 0.0 and b.item() == 0.0 and g.means.grad.shape == (0, 3)
+
+
+def test_fused_targets_match_the_torch_targets_in_hard_cases():
+    """flow_terms (targets, weights and their sum in one Warp kernel) against flow_terms_unfused (the torch
+    targets of flow_targets, grid_sample with border padding): a field of another size than the view, Gaussians
+    behind the camera, off screen, with NaN scales, on low-coherence spots and with zero blend weight."""
+    g = random_scene(300, 0, seed=32, spread=1.5, log_scale=-2.0)
+    g.log_scales.data[:, 0] += 1.0
+    g.log_scales.data[7] = float("nan")
+    cam = camera(60, 40)
+    field = swirl_field(camera(45, 31))  # resampled onto the 60 x 40 view
+    field[5:12, 3:20] *= 1e-4  # below COHERENCE_MIN
+    weights = torch.rand(300, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    weights[::9] = 0
+    g1, g2 = leafs(g), leafs(g)
+    a1, b1 = flow_terms(g1, cam, field, weights)
+    a2, b2 = flow_terms_unfused(g2, cam, field, weights)
+    assert_close(a1, a2, 1e-12, "alignment energy")
+    assert_close(b1, b2, 1e-12, "anisotropy energy")
+    names = ("means", "quats", "log_scales")
+    grads1 = torch.autograd.grad(a1 + 0.3 * b1, [getattr(g1, f) for f in names])
+    grads2 = torch.autograd.grad(a2 + 0.3 * b2, [getattr(g2, f) for f in names])
+    for f, ga, gb in zip(names, grads1, grads2):
+        assert_close(ga, gb, 1e-12, f"d/d{f}")
+    # float32 (the loop's dtype) against the float64 energies
+    g3 = leafs(g.to(dtype=torch.float32))
+    a3, b3 = flow_terms(g3, cam, field.float(), weights.float())
+    assert abs(a3.item() - a1.item()) < 1e-5 and abs(b3.item() - b1.item()) < 1e-4 * max(1.0, abs(b1.item()))
