@@ -255,6 +255,7 @@ def count_tiles_kernel(
     radii: wp.array(dtype=wp.int32),  # [N]
     conic: wp.array(dtype=wp.vec3),  # [N] Σ2D⁻¹ (a, b, c)
     opacity: wp.array(dtype=float),  # [N]
+    depth: wp.array(dtype=float),  # [N] float32 view depths
     n: int,
     tiles_x: int,
     tiles_y: int,
@@ -263,6 +264,8 @@ def count_tiles_kernel(
     all_tiles: int,  # 1: every visible Gaussian touches every tile (brute-force reference binning)
     counts: wp.array(dtype=wp.int32),  # [N] out
     total: wp.array(dtype=wp.int64),  # [1] out, zero-initialized: the sum of the counts
+    depth_keys: wp.array(dtype=float),  # [2N] out: [:N] the depths, the depth sort's keys
+    order: wp.array(dtype=wp.int32),  # [2N] out: [:N] the Gaussian ids, its values
 ):
     # launched on N rounded up to a multiple of 32 threads; the ones past N join the warp's collectives only
     i = wp.tid()
@@ -295,6 +298,8 @@ def count_tiles_kernel(
         mine += round_share(c, p_incl, p_items, base)
     if i < n:
         counts[i] = mine
+        depth_keys[i] = depth[i]
+        order[i] = i
     warp_total = warp_sum_int(mine)
     if warp_lane() == 0 and warp_total > 0:
         wp.atomic_add(total, 0, wp.int64(warp_total))

@@ -435,3 +435,47 @@ def test_without_depth_same_image_and_gradients():
     gb = torch.autograd.grad(sum((o * u).sum() for o, u in zip((lean.color, lean.alpha), ups)), [getattr(g2, f) for f in FIELDS])
     for name, a, b in zip(FIELDS, ga, gb):
         assert torch.equal(a, b), name
+
+
+def test_fast_launch_reuses_its_launch_and_keeps_no_tensor_alive():
+    """ops.fast_launch records one wp.Launch per kernel and resets its parameters per call (no per-call packing):
+    each call must see its own arguments, and the recorded launch must not keep the last call's tensors alive."""
+    import gc
+    import weakref
+
+    import warp as wp
+
+    from tlvg_warp.kernels.binning import tile_ranges_kernel
+    from tlvg_warp.ops import ct, fast_launch
+
+    wp.init()
+    for keys in ([0, 0, 2, 2, 2], [1, 1, 1]):  # sorted tile ids of two "renders"
+        k = torch.tensor(keys, dtype=torch.int32)
+        ranges = torch.zeros(3, 2, dtype=torch.int32)
+        fast_launch(tile_ranges_kernel, len(keys), [ct(k), len(keys), ct(ranges)], wp.get_device("cpu"))
+        want = torch.zeros(3, 2, dtype=torch.int32)
+        for t in set(keys):
+            want[t] = torch.tensor([keys.index(t), len(keys) - keys[::-1].index(t)])
+        assert torch.equal(ranges, want)
+    gone = weakref.ref(k)
+    del k
+    gc.collect()
+    assert gone() is None
+
+
+def test_runtime_radix_sort_matches_warp_utils():
+    """ops.sort_pairs calls Warp's runtime sort directly (private API, checked here by name against wp.utils)."""
+    import warp as wp
+
+    from tlvg_warp.ops import _runtime_sort, sort_pairs
+
+    assert _runtime_sort("float", "host") is not None and _runtime_sort("int", "host") is not None
+    gen = torch.Generator().manual_seed(0)
+    for keys in (torch.randn(300, generator=gen), torch.randint(0, 9, (300,), generator=gen, dtype=torch.int32)):
+        a = torch.cat([keys, torch.zeros_like(keys)])
+        va = torch.cat([torch.arange(300, dtype=torch.int32), torch.zeros(300, dtype=torch.int32)])
+        b, vb = a.clone(), va.clone()
+        sort_pairs(a, va, 300, 0, 32 if keys.dtype == torch.float32 else 4)
+        wp.utils.radix_sort_pairs(wp.from_torch(b), wp.from_torch(vb), 300, 0, 32 if keys.dtype == torch.float32 else 4)
+        assert torch.equal(a[:300], b[:300]) and torch.equal(va[:300], vb[:300])
+        assert torch.equal(va[:300].long(), torch.sort(keys, stable=True).indices)

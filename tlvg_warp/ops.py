@@ -93,6 +93,69 @@ def ct(t: torch.Tensor, dtype=None):
     return a
 
 
+_launches: dict = {}  # (kernel, device, block_dim) -> a recorded wp.Launch, its parameters reset per call
+
+
+def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None) -> None:
+    """``wp.launch(kernel, dim, inputs=args, device=device, block_dim=block_dim, record_tape=False)`` for the
+    per-render launches off the tape, with less host time: the first call per (kernel, device, block_dim) records
+    a ``wp.Launch``; later calls only overwrite its parameters (array descriptors from ``ct``, ``wp.array``s,
+    scalars, vectors) and launch it, skipping ``wp.launch``'s per-argument checks and packing (a render's host time
+    bounds small steps). The Launch keeps no tensor alive between renders: it stores bare copies of the
+    descriptors; the caller's own references cover the enqueue (the allocator is stream-ordered)."""
+    if dim <= 0:
+        return
+    bare = [_bare(a) for a in args]  # `args` (and the tensors its descriptors hold) stays alive through the launch
+    key = (kernel, device.alias, block_dim)
+    launch = _launches.get(key)
+    if launch is None:
+        launch = wp.launch(kernel, dim=dim, inputs=bare, device=device, block_dim=block_dim, record_tape=False,
+                           record_cmd=True)
+        _launches[key] = launch
+    else:
+        for i, a in enumerate(bare):
+            launch.set_param_at_index_from_ctype(i, a)
+        launch.set_dim(dim)
+    launch.launch()
+    del args
+
+
+def _bare(a):
+    if isinstance(a, wp.array):
+        return a.__ctype__()
+    if isinstance(a, _ARRAY_T or warp_array_ctype()):
+        return type(a).from_buffer_copy(a)  # the same descriptor without its tensor reference
+    return a
+
+
+_SORT_KERNELS = {torch.float32: "float", torch.int32: "int"}
+_sort_fns: dict = {}
+
+
+def _runtime_sort(kind: str, side: str):
+    key = (kind, side)
+    if key not in _sort_fns:
+        try:
+            from warp._src.context import runtime
+        except ImportError:  # Warp before 1.10
+            from warp.context import runtime
+        _sort_fns[key] = getattr(runtime.core, f"wp_radix_sort_pairs_{kind}_{side}", None)
+    return _sort_fns[key]
+
+
+def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, begin_bit: int = 0, end_bit: int = 32) -> None:
+    """``wp.utils.radix_sort_pairs`` on torch buffers (keys float32 or int32, values int32, each with room for
+    2 * count) on the current Warp stream, called straight into Warp's runtime: no wp.array wrappers, no checks
+    (a render sorts twice). Falls back to wp.utils where the runtime entry is missing."""
+    if count == 0:
+        return
+    fn = _runtime_sort(_SORT_KERNELS[keys.dtype], "device" if keys.is_cuda else "host")
+    if fn is None:
+        wp.utils.radix_sort_pairs(wp.from_torch(keys), wp.from_torch(values), count, begin_bit, end_bit)
+    else:
+        fn(keys.data_ptr(), values.data_ptr(), count, begin_bit, end_bit, 4)
+
+
 def canonical(t: torch.Tensor) -> torch.Tensor:
     """``t.contiguous()`` with the row-major strides spelled out. Torch calls a tensor contiguous whatever the
     stride of a size-1 dimension (a [1, 3] column slice of a [1, 26] PLY table keeps stride 26), but Warp
@@ -217,9 +280,9 @@ def project(K, wargs, cam: Camera, cam_values, n: int, dtype, device, tape: wp.T
     proj = Projected(means2d, None, conic, depth, opacity, color, torch.zeros(n, dtype=torch.int32, device=device))
     outs = [to_warp(proj.means2d, K.vec2), to_warp(proj.conic, K.vec3), to_warp(proj.depth, K.scalar),
             to_warp(proj.opacity, K.scalar), to_warp(proj.color, K.vec3), wp.from_torch(proj.radii, dtype=wp.int32)]
-    with tape:
-        wp.launch(K.project, dim=n, inputs=wargs[:4] + camera_args(cam, K, cam_values), outputs=outs[:4] + outs[5:],
-                  device=wp.device_from_torch(device))
+    inputs, outputs, wdev = wargs[:4] + camera_args(cam, K, cam_values), outs[:4] + outs[5:], wp.device_from_torch(device)
+    fast_launch(K.project, n, inputs + outputs, wdev)
+    tape.record_launch(K.project, n, 0, inputs, outputs, wdev)  # its adjoint: Warp-generated, run by the tape
     return proj, outs
 
 
@@ -232,15 +295,13 @@ def shade(K, wargs, pouts, center, sh_degree: int, n: int, device, tape: wp.Tape
     n_coeffs = (sh_degree + 1) ** 2
     sh_args = [w_means, w_sh, w_radii, center, sh_degree]
     if n:
-        wp.launch(K.sh_color, dim=n, inputs=sh_args, outputs=[w_color], device=wdev, record_tape=False)
+        fast_launch(K.sh_color, n, sh_args + [w_color], wdev)
 
     def sh_backward():
         if n:
             g_rgb = w_color.grad  # dL/d(SH sum) overwrites dL/dcolor in place (each thread its own element)
-            wp.launch(K.sh_backward, dim=n, inputs=sh_args + [w_color.grad], outputs=[g_rgb, w_means.grad],
-                      device=wdev)
-            wp.launch(K.sh_coeff_grad, dim=n * n_coeffs,
-                      inputs=[w_means, w_radii, center, n_coeffs, g_rgb], outputs=[w_sh.grad], device=wdev)
+            fast_launch(K.sh_backward, n, sh_args + [w_color.grad, g_rgb, w_means.grad], wdev)
+            fast_launch(K.sh_coeff_grad, n * n_coeffs, [w_means, w_radii, center, n_coeffs, g_rgb, w_sh.grad], wdev)
 
     tape.record_func(backward=sh_backward, arrays=[])
 
@@ -261,25 +322,29 @@ def warp_padded(n: int) -> int:
 
 
 def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: bool = False):
-    """Tiles touched per Gaussian [N] int32, their total, and the binning's inputs: the total is the one host
-    sync per render (it sizes the key buffers). Only the projection runs before it."""
+    """Tiles touched per Gaussian [N] int32, their total, the binning's inputs, and the depth sort's buffers
+    (float32 depths and Gaussian ids, each with the radix sort's 2x room, filled by the same kernel): the total
+    is the one host sync per render (it sizes the key buffers). Only the projection runs before it."""
     n = proj.depth.shape[0]
     device = proj.depth.device
     counts = torch.empty(n, dtype=torch.int32, device=device)
     geometry = binning_geometry(proj)
     if n == 0:
-        return counts, 0, geometry
+        return counts, 0, geometry, None
     tiles_x, tiles_y = tile_grid(width, height)
     total = torch.zeros(1, dtype=torch.int64, device=device)
-    wp.launch(K.count_tiles, dim=warp_padded(n), inputs=[*geometry, n, tiles_x, tiles_y, width, height, int(all_tiles)],
-              outputs=[ct(counts), ct(total)], device=wp.device_from_torch(device))
+    depth_keys = torch.empty(2 * n, dtype=torch.float32, device=device)
+    order = torch.empty(2 * n, dtype=torch.int32, device=device)
+    fast_launch(K.count_tiles, warp_padded(n), [*geometry, ct(proj.depth.float()), n, tiles_x, tiles_y, width, height,
+                                                int(all_tiles), ct(counts), ct(total), ct(depth_keys), ct(order)],
+                wp.device_from_torch(device))
     total = int(total.item())
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
-    return counts, total, geometry
+    return counts, total, geometry, (depth_keys, order)
 
 
-def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, width: int, height: int,
+def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, sort_buffers, width: int, height: int,
               all_tiles: bool = False):
     """Depth order, then stably tile-sorted keys -> per-tile [start, end) ranges [tiles, 2] and the sorted
     Gaussian ids [total]."""
@@ -290,33 +355,29 @@ def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, wi
     ranges = torch.zeros(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)
     if total == 0:
         return ranges, torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
-    # depth order: radix sort needs 2x room; culled Gaussians sort anywhere (they emit no keys)
-    depth_keys = torch.empty(2 * n, dtype=torch.float32, device=device)
-    depth_keys[:n] = proj.depth
-    order = torch.empty(2 * n, dtype=torch.int32, device=device)
-    torch.arange(n, dtype=torch.int32, device=device, out=order[:n])
-    wp.utils.radix_sort_pairs(wp.from_torch(depth_keys), wp.from_torch(order), n)
+    # depth order (culled Gaussians sort anywhere: they emit no keys)
+    depth_keys, order = sort_buffers
+    sort_pairs(depth_keys, order, n)
     del depth_keys
     order = order[:n]
     sorted_counts = counts[order]  # [N] in depth order
     starts = (torch.cumsum(sorted_counts, 0, dtype=torch.int32) - sorted_counts)  # exclusive, < 2**31 (checked)
     keys = torch.empty(2 * total, dtype=torch.int32, device=device)
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
-    wkeys, wids = wp.from_torch(keys), wp.from_torch(ids)
-    wp.launch(K.emit_keys, dim=warp_padded(n), inputs=[ct(order, wp.int32), *geometry, ct(starts), ct(counts), n,
-                                                       tiles_x, tiles_y, width, height, int(all_tiles)],
-              outputs=[wkeys, wids], device=wdev)
+    fast_launch(K.emit_keys, warp_padded(n), [ct(order), *geometry, ct(starts), ct(counts), n, tiles_x, tiles_y, width,
+                                              height, int(all_tiles), ct(keys), ct(ids)], wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
-    wp.utils.radix_sort_pairs(wkeys, wids, total, 0, tile_bits)  # stable: each tile stays in depth order
-    wp.launch(K.tile_ranges, dim=total, inputs=[wkeys, total], outputs=[ct(ranges)], device=wdev)
+    sort_pairs(keys, ids, total, 0, tile_bits)  # stable: each tile stays in depth order
+    fast_launch(K.tile_ranges, total, [ct(keys), total, ct(ranges)], wdev)
     return ranges, ids[:total].clone(), tiles_x, tiles_y  # the copy frees the sort's second half
 
 
-def blend(K, proj: Projected, pouts, counts, total: int, geometry, cam: Camera, settings: dict):
+def blend(K, proj: Projected, pouts, counts, total: int, geometry, sort_buffers, cam: Camera, settings: dict):
     """Bin, then blend front to back: the images, and the per-pixel state the blending backward reads."""
     device, dtype, n = proj.depth.device, proj.depth.dtype, proj.depth.shape[0]
     H, W = cam.height, cam.width
-    ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, counts, total, geometry, W, H, settings["all_tiles"])
+    ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, counts, total, geometry, sort_buffers, W, H,
+                                              settings["all_tiles"])
     color = torch.empty(H, W, 3, dtype=dtype, device=device)
     alpha = torch.empty(H, W, dtype=dtype, device=device)
     want_depth = settings.get("depth", True)
@@ -327,10 +388,9 @@ def blend(K, proj: Projected, pouts, counts, total: int, geometry, cam: Camera, 
     bg = K.vec3(*map(K.scalar, settings["background"]))
     w_means2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pouts
     args = [ct(ranges), ct(ids), w_means2d, w_conic, w_opacity, w_color, w_depth, bg, W, H, tiles_x, int(want_depth)]
-    wp.launch(K.blend_forward, dim=tiles_x * tiles_y * TILE * TILE, block_dim=TILE * TILE,
-              inputs=args + [int(settings["weights"])],
-              outputs=[ct(color, K.vec3), ct(alpha), ct(depth), ct(T), ct(last), ct(weights)],
-              device=wp.device_from_torch(device), record_tape=False)
+    fast_launch(K.blend_forward, tiles_x * tiles_y * TILE * TILE,
+                args + [int(settings["weights"]), ct(color, K.vec3), ct(alpha), ct(depth), ct(T), ct(last), ct(weights)],
+                wp.device_from_torch(device), block_dim=TILE * TILE)
     state = {"args": args, "saved": [ct(depth), ct(T), ct(last)], "threads": tiles_x * tiles_y * TILE * TILE}
     if _capture is not None:
         _capture.update(proj=proj, counts=counts, total=total, ranges=ranges, ids=ids, last=last,
@@ -376,9 +436,9 @@ class RasterizeFn(torch.autograd.Function):
                 st = kept.pop("blend", None) or blend(
                     K, proj, pouts, *count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"]),
                     cam, settings)[4]
-                wp.launch(K.blend_backward, dim=st["threads"], block_dim=TILE * TILE,
-                          inputs=st["args"] + st["saved"] + io["upstream"],
-                          outputs=[a.grad for a in st["args"][2:7]], device=wdev)
+                fast_launch(K.blend_backward, st["threads"],
+                            st["args"] + st["saved"] + io["upstream"] + [a.grad for a in st["args"][2:7]], wdev,
+                            block_dim=TILE * TILE)
 
             tape.record_func(backward=attach_input_grads, arrays=[])
             tape.record_func(backward=blend_backward, arrays=[])
