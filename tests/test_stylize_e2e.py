@@ -16,7 +16,8 @@ from tlvg_warp.cli import main
 from tlvg_warp.io.demo import builtin_painting, demo_dataset
 from tlvg_warp.io.images import read_image
 from tlvg_warp.losses import flow_alignment_score
-from tlvg_warp.stylize import StylizeConfig, StylizeInputs, load_checkpoint, load_config, run_stylize, write_outputs
+from tlvg_warp.stylize import StylizeInputs, load_checkpoint, load_config, run_stylize, write_outputs
+from tlvg_warp.stylize.config import config_from_dict
 from tlvg_warp.stylize.pipeline import LOG_TERMS
 
 ITERS = 30  # 5 pre / 20 stylize / 5 post
@@ -30,10 +31,10 @@ METRIC_KEYS = ["flow_alignment", "time_per_phase_s", "gaussians_input", "gaussia
 
 
 def _cfg(**kw):
-    base = dict(iterations=ITERS, device="cpu", vgg_weights="random", log_every=10, orbit_frames=6,
-                densify_interval=5, comparison_views=2)
+    base = {"iterations": ITERS, "device": "cpu", "vgg_weights": "random", "log_every": 10, "orbit_frames": 6,
+            "density.interval": 5, "comparison_views": 2}
     base.update(kw)
-    return StylizeConfig(**base)
+    return config_from_dict(base)
 
 
 @pytest.fixture(scope="module")
@@ -125,7 +126,7 @@ def test_resume_continues_from_checkpoint(inputs, tmp_path, run_dir):
     with pytest.raises(KeyboardInterrupt):
         run_stylize(inputs, _cfg(), out, progress=False, interrupt_at=12, quiet=True)
     ck = load_checkpoint(out)
-    assert ck["iteration"] == 12 and ck["fields"] is not None  # mid-stylize: the target fields travel along
+    assert ck["iteration"] == 12 and ck["phases"]["stylize"]["fields"] is not None  # mid-stylize: the fields travel along
     res = run_stylize(inputs, _cfg(), out, resume=out, progress=False, quiet=True)
     assert res.metrics["resumed_from"] == 12 and res.metrics["iterations"] == ITERS
     rows = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
@@ -173,7 +174,7 @@ PAIR_W, PAIR_H, PAIR_VIEWS = 64, 48, 6
 PAIR_SPACING = 3.0  # demo discs 3x wider (2,074 Gaussians): ~1.3 px on screen instead of ~0.67 px
 PAIR_SEED = 0
 # extra overrides for the tlvg run, to check that the test fails without what it credits: e.g.
-#   TLVG_E2E_TLVG_SET="w_align=0 w_aniso=0" python -m pytest tests/test_stylize_e2e.py -k flow   (must fail)
+#   TLVG_E2E_TLVG_SET="loss.w_align=0 loss.w_aniso=0" python -m pytest tests/test_stylize_e2e.py -k flow   (must fail)
 TLVG_EXTRA = os.environ.get("TLVG_E2E_TLVG_SET", "").split()
 # Measured at these settings (seed 0): footprint elongation along the target strokes tlvg 0.243, abcgs 0.162,
 # tlvg with w_align = w_aniso = 0 0.173, the input scene 0.181. Render flow score tlvg 0.501, abcgs 0.476,

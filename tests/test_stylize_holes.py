@@ -14,7 +14,8 @@ import torch
 
 from tlvg_warp import render
 from tlvg_warp.io.demo import builtin_painting, demo_dataset
-from tlvg_warp.stylize import StylizeConfig, StylizeInputs, run_stylize
+from tlvg_warp.stylize import StylizeInputs, run_stylize
+from tlvg_warp.stylize.config import config_from_dict
 
 W, H, VIEWS = 80, 60, 8
 HOLES_MAX = 0.01  # the issue's bound, at 1x and 2x
@@ -52,7 +53,8 @@ def coverage_loss(g0, g1, cams, k) -> tuple[float, float]:
 
 
 def _run(inp, **kw):
-    cfg = StylizeConfig(iterations=60, device="cpu", vgg_weights="random", densify_interval=10, log_every=10, **kw)
+    cfg = config_from_dict({"iterations": 60, "device": "cpu", "vgg_weights": "random", "density.interval": 10,
+                            "log_every": 10, **kw})
     return run_stylize(inp, cfg, None, progress=False, quiet=True)
 
 
@@ -69,6 +71,6 @@ def test_stylized_demo_has_no_holes_or_cracks(demo):
 def test_3dgs_splits_crack_here(demo):
     """The same run with graphdeco's split (abcgs.yaml's choice): the measure sees the cracks."""
     ds, inp = demo
-    res = _run(inp, split_mode="3dgs")
+    res = _run(inp, **{"density.split_mode": "3dgs"})
     _, cracks = coverage_loss(ds.gaussians, res.gaussians, ds.cameras, 2)
     assert cracks > 3 * CRACKS_MAX, cracks

@@ -38,8 +38,8 @@ def _run(inputs, name="tlvg.yaml", *over):
 
 @pytest.mark.parametrize("phases, hook_acts", [("[4, 0, 0]", False), ("[0, 0, 4]", False), ("[0, 4, 0]", True)])
 def test_tangential_hook_acts_in_stylize_only(inputs, phases, hook_acts):
-    on = _run(inputs, "tlvg.yaml", "iterations=4", f"phases={phases}", "tangential_lambda=1.0")
-    off = _run(inputs, "tlvg.yaml", "iterations=4", f"phases={phases}", "tangential_lambda=0.0")
+    on = _run(inputs, "tlvg.yaml", "iterations=4", f"phases={phases}", "geometry.tangential_lambda=1.0")
+    off = _run(inputs, "tlvg.yaml", "iterations=4", f"phases={phases}", "geometry.tangential_lambda=0.0")
     same = torch.equal(on.gaussians.means, off.gaussians.means)
     assert same != hook_acts
     if phases == "[4, 0, 0]":  # positions did move in the pre-process, as plain Adam moves them

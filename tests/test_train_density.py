@@ -228,7 +228,7 @@ def test_accumulate_from_a_real_render():
 def test_unseen_gaussians_are_pruned_after_a_window():
     n = 6
     params, opt, dc = build([(SMALL, 0.5, LOW, 5)] * n)
-    dc.config.prune_unseen, dc.config.contribution_window, dc.config.min_contribution = True, 3, 0.5
+    dc.config.prune_unseen, dc.window, dc.config.min_contribution = True, 3, 0.5
     w = torch.tensor([1.0, 0.0, 0.3, 0.0, 2.0, 0.1])  # per view; over 3 views: 3, 0, 0.9, 0, 6, 0.3
     probe = torch.zeros(n, 2)
     probe.grad = torch.zeros(n, 2)
@@ -260,10 +260,37 @@ def test_schedule(step, expect):
 
 
 def test_weights_requested_only_before_checks():
-    dc = DensityControl(DensityConfig(start=500, interval=100, until=1000, contribution_window=33))
-    asked = [s for s in range(1, 1200) if dc.wants_weights_at(s)]
+    dc = DensityControl(DensityConfig(start=500, interval=100, until=1000), window=33)
+    asked = [s for s in range(1, 1200) if dc.wants_weights(s)]
     # steps 468..500, 568..600, ..., 968..999: the 33 steps before each densify step (and none after `until`)
     want = [s for k in range(500, 1000, 100) for s in range(k - 32, k + 1)] + list(range(968, 1000))
     assert asked == want
+    dc.views_per_step = 2  # two views per step: a 33-view window is held by the last 17 steps
+    assert [s for s in range(1, 601) if dc.wants_weights(s)] == [*range(484, 501), *range(584, 601)]
     dc.config.prune_unseen = False
-    assert not any(dc.wants_weights_at(s) for s in range(1, 1200))
+    assert not any(dc.wants_weights(s) for s in range(1, 1200))
+
+
+@pytest.mark.parametrize("s, n, densify", [(100, 300, True), (300, 300, False), (200, 200, False), (50, 300, False)])
+def test_no_structural_change_at_a_phases_last_step(s, n, densify):
+    """Within a phase of n steps density control never changes the set at step n (what a phase hands on is
+    what it trained); until=0 means no end."""
+    dc = DensityControl(DensityConfig(start=0, until=0, interval=100))
+    assert dc.is_densify_step(s, n) is densify
+    assert dc.accumulating(10 ** 9)
+
+
+def test_step_densifies_on_schedule_and_records_events():
+    params, opt, dc = build([(SMALL, 0.5, HIGH, 5), (BIG, 0.5, LOW, 5)])
+    dc.config.start, dc.config.interval, dc.config.opacity_reset_interval = 0, 2, 0
+    assert dc.step(opt, 1, 10, {"phase": "x"}) is None and params.num == 2  # not a densify step
+    ev = dc.step(opt, 2, 10, {"phase": "x"})
+    assert ev == {"cloned": 1, "split": 0, "pruned": 0, "num": 3, "phase": "x"} and dc.events == [ev]
+    assert dc.step(opt, 10, 10) is None  # the phase's last step
+
+
+def test_budget_from_the_starting_count():
+    c = DensityConfig(max_gaussians=0, budget_factor=1.5)
+    assert DensityControl(c, 100).budget == 150 and DensityConfig(max_gaussians=7).budget(100) == 7
+    c.use_budget = False
+    assert DensityControl(c, 100).budget is None

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tlvg_warp.train.reconstruct import ReconstructConfig, fit_scene, split_views
+from tlvg_warp.train.reconstruct import config_from_dict, fit_scene, split_views
 
 FERN = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes" / "fern_llff"
 EXPORT_TOL_DB = 0.5  # exported vs the model one Adam step earlier, at the training views (observed < 0.1)
@@ -39,11 +39,11 @@ def _mean_psnr(g, ds, idx):
 
 
 def _cfg(**kw):
-    base = dict(iterations=150, sh_degree=0, densify_from=50, densify_interval=50, opacity_reset_interval=0,
-                max_init_points=2000, max_gaussians=6000, device="cpu", progress_every=25, timing_every=25,
-                save_renders=False, final_checkpoint=False)
+    base = {"iterations": 150, "sh_degree": 0, "density.start": 50, "density.interval": 50,
+            "density.opacity_reset_interval": 0, "max_init_points": 2000, "density.max_gaussians": 6000,
+            "device": "cpu", "log_every": 25, "timing_every": 25, "save_renders": False, "final_checkpoint": False}
     base.update(kw)
-    return ReconstructConfig(**base)
+    return config_from_dict(base).validate()
 
 
 def test_exported_gaussians_are_the_trained_ones(tmp_path):
@@ -73,7 +73,7 @@ def test_exported_gaussians_are_the_trained_ones(tmp_path):
 def test_opacity_reset_recovers():
     """A reset (opacities capped at 0.01) at step 100 of 200: held-out PSNR comes back."""
     ds = _fern()
-    cfg = _cfg(iterations=200, opacity_reset_interval=100)
+    cfg = _cfg(**{"iterations": 200, "density.opacity_reset_interval": 100})
     _, test_idx = split_views(len(ds.cameras), cfg.holdout_every)
     seen = {}
 

@@ -14,7 +14,7 @@ import yaml
 
 from tlvg_warp import Camera, Gaussians, InputError, render
 from tlvg_warp.cli import main
-from tlvg_warp.train.reconstruct import FitDiverged, ReconstructConfig, fit_scene, load_checkpoint
+from tlvg_warp.train.reconstruct import FitDiverged, config_from_dict, fit_scene, load_checkpoint
 
 FERN = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes" / "fern_llff"
 PSNR_GAIN_SYNTH = 6.0  # dB over the init, held-out views of random blobs (observed 7.5 dB in 300 iterations)
@@ -45,11 +45,11 @@ class SyntheticDataset:
 
 
 def small_config(**kw):
-    base = dict(iterations=300, sh_degree=0, densify_from=50, densify_interval=50, opacity_reset_interval=0,
-                max_gaussians=2000, device="cpu", progress_every=10, timing_every=10, holdout_every=4,
-                lr_means=1.6e-3)
+    base = {"iterations": 300, "sh_degree": 0, "density.start": 50, "density.interval": 50,
+            "density.opacity_reset_interval": 0, "density.max_gaussians": 2000, "device": "cpu", "log_every": 10,
+            "timing_every": 10, "holdout_every": 4, "lr.means": 1.6e-3}
     base.update(kw)
-    return ReconstructConfig(**base)
+    return config_from_dict(base).validate()
 
 
 @pytest.fixture(scope="module")
@@ -81,12 +81,16 @@ def test_fit_synthetic_psnr_rises_and_writes_a_run(synth, tmp_path):
         assert np.allclose(c["position"], cam.center.numpy(), atol=CENTER_TOL)
         assert np.allclose(np.array(c["rotation"]), cam.R.numpy().T, atol=CENTER_TOL)  # camera-to-world
     cfg = yaml.safe_load((out / "config.yaml").read_text())
-    assert cfg["iterations"] == 300 and cfg["max_gaussians"] == 2000 and "# optimizer steps" in (out / "config.yaml").read_text()
+    assert cfg["iterations"] == 300 and cfg["density"]["max_gaussians"] == 2000
+    assert "# optimizer steps" in (out / "config.yaml").read_text()
+    rows = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == list(range(1, 301)) and all(math.isfinite(r["loss"]) for r in rows)
+    assert m["loss_history"] == [[r["step"], round(r["loss"], 6)] for r in rows if r["step"] % 10 == 0]
     assert sorted(p.name for p in (out / "test").iterdir()) == ["v00.png", "v04.png", "v08.png", "v12.png"]
 
 
 def test_interrupt_then_resume_continues_the_same_run(synth, tmp_path):
-    cfg = small_config(iterations=60, densify_from=20, densify_interval=20, progress_every=7)
+    cfg = small_config(**{"iterations": 60, "density.start": 20, "density.interval": 20, "log_every": 7})
     g_ref, _ = fit_scene(synth, cfg, tmp_path / "a", progress=False)
 
     seen = []
@@ -111,6 +115,8 @@ def test_interrupt_then_resume_continues_the_same_run(synth, tmp_path):
     assert g_res.num == g_ref.num
     for f in Gaussians.FIELDS:
         assert torch.allclose(getattr(g_res, f), getattr(g_ref, f), atol=RESUME_TOL), f
+    rows = [json.loads(line) for line in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == list(range(1, 61))  # the interrupted part's rows are kept
 
 
 def test_nan_stops_with_message_and_keeps_last_good(synth, tmp_path):
@@ -203,9 +209,9 @@ def test_fern_small_cpu_integration(tmp_path):
         pytest.skip(f"tlvg_warp.io unavailable: {e}")
     ds = load_dataset(FERN, images="images_8", downscale=8)
     assert ds.cameras[0].width <= 126
-    cfg = ReconstructConfig(iterations=200, sh_degree=1, sh_increase_every=150, densify_from=100,
-                            densify_interval=50, max_init_points=2000, max_gaussians=4000, device="cpu",
-                            progress_every=25, timing_every=25)
+    cfg = config_from_dict({"iterations": 200, "sh_degree": 1, "sh_increase_every": 150, "density.start": 100,
+                            "density.interval": 50, "max_init_points": 2000, "density.max_gaussians": 4000,
+                            "device": "cpu", "log_every": 25, "timing_every": 25})
     t0 = time.perf_counter()
     g, m = fit_scene(ds, cfg, tmp_path / "fern", progress=False)
     wall = time.perf_counter() - t0

@@ -21,7 +21,8 @@ def add_arguments(p):
     p.add_argument("--downscale", type=float, default=None, help="image downscale factor (config: downscale)")
     p.add_argument("--images", default=None, help="image sub-folder, e.g. images_8 (config: images)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override any config key (repeatable), e.g. --set max_gaussians=300000")
+                   help="override any config key (repeatable), dotted for sections, e.g. --set density.max_gaussians=300000 "
+                        "--set lr.means=0.0016 (configs/reconstruct.yaml lists every key)")
     p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR (its checkpoint.pt)")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
     p.add_argument("--device", default=None, choices=["cuda", "cpu", "auto"], help="(config: device)")
@@ -29,7 +30,10 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from ..runs import run_folder
+    import contextlib
+
+    from ..distributed import Dist
+    from ..runs import resolve_device, run_folder
     from ..train.reconstruct import (RUN_FILES, FitDiverged, ReconstructConfig, config_from_dict, fit_scene,
                                      load_checkpoint, load_config)
 
@@ -46,12 +50,19 @@ def run(args) -> int:
             overrides.append(f"{key}={val}")
     cfg = load_config(args.config, overrides, base)
     dataset = _load(args.data, cfg)
-    with run_folder(out, args.overwrite, args.resume is not None, RUN_FILES):  # locked; bad input leaves nothing
+    dist = Dist.from_env(str(resolve_device(cfg.device)))  # torchrun: one rank per GPU, views of a step split
+    # the main rank owns the folder (locked; bad input leaves nothing behind); the others only read
+    folder = run_folder(out, args.overwrite, args.resume is not None, RUN_FILES) if dist.is_main else contextlib.nullcontext()
+    with folder:
         try:
-            _, m = fit_scene(dataset, cfg, out, progress=not args.quiet, resume=args.resume, overwrite=args.overwrite)
+            _, m = fit_scene(dataset, cfg, out, progress=not args.quiet and dist.is_main, resume=args.resume,
+                             overwrite=args.overwrite, dist=dist)
         except FitDiverged as e:
-            print(f"error: {e}", file=sys.stderr)
+            if dist.is_main:
+                print(f"error: {e}", file=sys.stderr)
             return 1
+    if not dist.is_main:
+        return 0
     print(f"{out}: held-out PSNR {m['psnr']:.2f} dB (init {m['psnr_init'] if m['psnr_init'] is None else round(m['psnr_init'], 2)}), "
           f"SSIM {m['ssim']:.4f}, {m['num_gaussians']} Gaussians, {m['ply_bytes'] / 1e6:.1f} MB, "
           f"{m['iterations']} iterations in {m['train_time_s']:.1f} s")

@@ -24,9 +24,9 @@ from ..errors import InputError
 # those pixels, so 4,678 of them), the painting at height 128 and the render fed to VGG at full size (at x0.5
 # an 80x60 view leaves 10x7 feature cells, too few for brush texture), SH DC learning rate x4 so that a
 # preview of 300 iterations moves the colours: 65 s from an empty kernel cache (README, "The demo").
-DEMO_CPU = {"iterations": 300, "downscale": 2.0, "densify_interval": 20, "orbit_frames": 48,
-            "style_height": 128, "vgg_scale": 1.0, "lr_sh_dc": 0.01}
-DEMO_GPU = {"iterations": 600, "downscale": 1.0, "densify_interval": 100, "orbit_frames": 48}
+DEMO_CPU = {"iterations": 300, "downscale": 2.0, "density.interval": 20, "orbit_frames": 48,
+            "style_height": 128, "vgg_scale": 1.0, "lr.sh_dc": 0.01}
+DEMO_GPU = {"iterations": 600, "downscale": 1.0, "density.interval": 100, "orbit_frames": 48}
 MIN_STYLE_PX = 64  # a painting smaller than this has no brushstrokes left at VGG's relu3 (1/4 resolution)
 MAX_STYLE_PX = 8192  # larger paintings are resized (with a warning): the style loss sees height 256 anyway
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
@@ -48,7 +48,8 @@ def add_arguments(p):
                         "when present, else the built-in defaults it mirrors)")
     p.add_argument("--out", default=None, metavar="DIR", help="run folder (default: runs/stylize_<time>)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override any config key (repeatable), e.g. --set w_align=0.1")
+                   help="override any config key (repeatable), dotted for sections, e.g. --set loss.w_align=0.1 "
+                        "--set density.interval=50 --set log_every=10 (a run's config.yaml lists every key)")
     p.add_argument("--iterations", type=int, default=None, help="total steps, split over the phases")
     p.add_argument("--downscale", type=float, default=None, help="render resolution divisor")
     p.add_argument("--vgg-weights", default=None, metavar="PATH|random",
@@ -134,7 +135,7 @@ def _load_dataset(data: str, cfg):
     return load_dataset(data, downscale=cfg.downscale if cfg.downscale != 1 else None)
 
 
-def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool):
+def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool, dist=None):
     """(StylizeInputs, input bytes) from the demo, --scene + --data, or --data alone (fitted first)."""
     from ..io import load_ply
     from ..io.demo import builtin_painting, demo_dataset
@@ -160,7 +161,7 @@ def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool):
             check_scene_matches(sp, g, ds)
             in_bytes = sp.stat().st_size
         else:
-            g, in_bytes = _fit_first(ds, cfg, out, quiet)
+            g, in_bytes = _fit_first(ds, cfg, out, quiet, dist)
             sources["scene"] = str(out / "reconstruct" / "point_cloud.ply")
     photos = [ds.image(i) for i in range(len(ds.cameras))]
     return StylizeInputs(g, list(ds.cameras), list(ds.names), photos, style, bg, dict(sources)), in_bytes
@@ -179,28 +180,31 @@ def _scene_only_inputs(sp: Path, cfg, style, sources: dict):
     return StylizeInputs(g, views.cameras, views.names, photos, style, bg, dict(sources)), sp.stat().st_size
 
 
-def _fit_first(ds, cfg, out: Path, quiet: bool):
+def _fit_first(ds, cfg, out: Path, quiet: bool, dist=None):
     from ..train.reconstruct import ReconstructConfig, fit_scene
 
     rc = ReconstructConfig(iterations=cfg.fit_iterations, holdout_every=0, device=cfg.device, seed=cfg.seed,
-                           save_renders=False, sh_degree=3 if cfg.keep_sh else 0)
-    if not quiet:
+                           save_renders=False, sh_degree=3 if cfg.keep_sh else 0, views_per_step=cfg.views_per_step)
+    main = dist is None or dist.is_main
+    if not quiet and main:
         print(f"fitting the scene to {len(ds.cameras)} photos first ({cfg.fit_iterations} iterations) ...")
-    g, m = fit_scene(ds, rc, out / "reconstruct", progress=not quiet, overwrite=True)
-    if not quiet:
+    g, m = fit_scene(ds, rc, out / "reconstruct", progress=not quiet and main, overwrite=True, dist=dist)
+    if not quiet and main:
         print(f"fitted: PSNR {m['psnr']:.2f} dB, {g.num} Gaussians")
     return g, m["ply_bytes"]
 
 
 # --- the command -----------------------------------------------------------------------------------------------
 def _user_set(args, key: str) -> bool:
-    return any(s.split("=", 1)[0].strip() == key for s in args.set)
+    from ..config_io import canonical
+    from ..stylize import StylizeConfig
+
+    return any(canonical(StylizeConfig, s.split("=", 1)[0].strip()) == key for s in args.set)
 
 
 def run(args) -> int:
-    from ..stylize import StylizeDiverged, load_checkpoint, load_config, run_stylize
+    from ..stylize import load_checkpoint, load_config
     from ..stylize.config import config_from_dict
-    from ..stylize.outputs import RANDOM_VGG_NOTE, write_outputs
 
     wall0 = time.perf_counter()
     ck = load_checkpoint(args.resume) if args.resume is not None else None
@@ -218,8 +222,6 @@ def run(args) -> int:
         demo = args.scene is None and args.data is None
         base_over = []
         if demo:  # the demo's size, unless the user chose one
-            import torch
-
             gpu = torch.cuda.is_available() and args.device != "cpu"
             size = DEMO_GPU if gpu else DEMO_CPU
             flags = {"iterations": args.iterations, "downscale": args.downscale}
@@ -243,32 +245,42 @@ def run(args) -> int:
         out = Path(args.resume)
     else:
         out = Path("runs") / time.strftime("stylize_%Y%m%d_%H%M%S")
+    import contextlib
+
+    from ..distributed import Dist
     from ..losses import load_vgg
-    from ..runs import run_folder
-    from ..stylize.pipeline import RUN_FILES, resolve_device
+    from ..runs import resolve_device, run_folder
+    from ..stylize.pipeline import RUN_FILES
 
     device = resolve_device(cfg.device)
+    dist = Dist.from_env(str(device))  # torchrun: one rank per GPU, data-parallel over the views of a step
+    if dist.world > 1:
+        device = torch.device(dist.device)
     vgg = load_vgg(cfg.vgg_weights, device)  # InputError (how to get the weights) before anything is written
-    with run_folder(out, args.overwrite, ck is not None, RUN_FILES):  # locked; bad input leaves nothing behind
-        return _run(args, cfg, sources, out, ck, device, vgg, wall0)
+    # the main rank owns the folder (locked; bad input leaves nothing behind); the others only read
+    folder = run_folder(out, args.overwrite, ck is not None, RUN_FILES) if dist.is_main else contextlib.nullcontext()
+    with folder:
+        return _run(args, cfg, sources, out, device, vgg, wall0, dist)
 
 
-def _run(args, cfg, sources, out, ck, device, vgg, wall0) -> int:
+def _run(args, cfg, sources, out, device, vgg, wall0, dist) -> int:
     from ..stylize import StylizeDiverged, run_stylize
     from ..stylize.outputs import RANDOM_VGG_NOTE, write_outputs
 
-    inp, in_bytes = build_inputs(args, cfg, sources, out, args.quiet)
-    if not args.quiet:
+    inp, in_bytes = build_inputs(args, cfg, sources, out, args.quiet, dist)
+    quiet = args.quiet or not dist.is_main
+    if not quiet:
         c = inp.cameras[0]
         print(f"stylize: {inp.gaussians.num} Gaussians, {len(inp.cameras)} views at {c.width}x{c.height}, "
               f"{cfg.iterations} iterations {cfg.phase_steps()} on {device}; VGG: "
               + (RANDOM_VGG_NOTE if vgg.is_random else vgg.source) + f"; out: {out}")
-    viewer = _live_viewer(inp, cfg, args) if getattr(args, "view", False) else None
+    viewer = _live_viewer(inp, cfg, args) if getattr(args, "view", False) and dist.is_main else None
     try:
-        res = run_stylize(inp, cfg, out, resume=args.resume, overwrite=True, progress=not args.quiet,
-                          vgg=vgg, quiet=args.quiet, on_progress=viewer.on_progress if viewer else None)
+        res = run_stylize(inp, cfg, out, resume=args.resume, overwrite=True, progress=not quiet,
+                          vgg=vgg, quiet=quiet, on_progress=viewer.on_progress if viewer else None, dist=dist)
     except StylizeDiverged as e:
-        print(f"error: {e}", file=sys.stderr)
+        if dist.is_main:
+            print(f"error: {e}", file=sys.stderr)
         if viewer is not None:
             viewer.stop()
         return 1
@@ -276,6 +288,8 @@ def _run(args, cfg, sources, out, ck, device, vgg, wall0) -> int:
         if viewer is not None:
             viewer.stop()
         raise
+    if not dist.is_main:
+        return 0  # every rank holds the same result; the main rank writes it
     m = write_outputs(out, res, input_bytes=in_bytes, wall_start=wall0)
     tp = m["time_per_phase_s"]
     print(f"{out}: flow alignment {m['flow_alignment']:.3f} (original {m['flow_alignment_original']:.3f}), "

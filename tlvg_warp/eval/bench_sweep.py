@@ -90,10 +90,10 @@ def run_point(pt: dict, base, vgg, eval_views_cache: dict) -> dict:
     g = b.gaussians
     if "budget" in pt:
         g = _subsample(g, pt["budget"])
-        ov["gaussian_budget"] = g.num  # density control may not grow past the budget
-    for k in ("iterations", "vgg_scale", "style_loss"):
+        ov["density.max_gaussians"] = g.num  # density control may not grow past the budget
+    for k, key in (("iterations", "iterations"), ("vgg_scale", "vgg_scale"), ("style_loss", "loss.style_loss")):
         if k in pt:
-            ov[k] = pt[k]
+            ov[key] = pt[k]
     row = {"label": pt["label"], **{k: v for k, v in pt.items() if k != "label"}, "gaussians_in": g.num}
     t0 = time.perf_counter()
     try:

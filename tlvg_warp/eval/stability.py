@@ -24,9 +24,10 @@ HOLE_ALPHA = 0.5  # a pixel is covered at alpha >= 0.5 (same threshold as the co
 def stylize_scene(gaussians, cameras, names, photos, style, background, overrides: dict, vgg=None):
     """Run the stylization pipeline in memory. Returns (stylized Gaussians, per-view target doubled fields
     [H,W,2] or None, the pipeline's metrics dict)."""
-    from ..stylize import StylizeConfig, StylizeInputs, run_stylize
+    from ..stylize import StylizeInputs, run_stylize
+    from ..stylize.config import config_from_dict
 
-    cfg = StylizeConfig(**overrides)
+    cfg = config_from_dict(overrides)  # dotted keys for sections (e.g. "lr.means")
     inp = StylizeInputs(gaussians, list(cameras), list(names), list(photos), style, tuple(background))
     res = run_stylize(inp, cfg, None, progress=False, vgg=vgg, quiet=True)
     fields = [f[..., :2].cpu() for f in res.fields] if res.fields else None
@@ -168,7 +169,7 @@ def scenarios(quick_iters: int, long_iters: int = 10000) -> list[Scenario]:
     return [
         Scenario("baseline", "the demo as is (reference row)", lambda b: b),
         Scenario("advection_x10", "xyz lr x10, tangential λ = 0 (aggressive advection)",
-                 lambda b: _cfg(b, lr_means=1.6e-3, lr_means_final=1.6e-5, tangential_lambda=0.0)),
+                 lambda b: _cfg(b, **{"lr.means": 1.6e-3, "lr.means_final": 1.6e-5, "geometry.tangential_lambda": 0.0})),
         Scenario("paint_flat", "flat-color painting (no strokes at all)", lambda b: _with(b, style=_painting("flat"))),
         Scenario("paint_noise", "white-noise painting (no coherent strokes)",
                  lambda b: _with(b, style=_painting("noise"))),

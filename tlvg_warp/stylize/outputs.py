@@ -162,7 +162,6 @@ def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
 
     from .pipeline import LOG_TERMS
 
-    steps = np.array([r["step"] for r in log])
     shown = [t for t in LOG_TERMS if any(r.get(t, 0) != 0 for r in log)]
     extra = ["flow_score"] if any("flow_score" in r for r in log) else []
     n = max(1, len(shown) + len(extra))
@@ -191,7 +190,6 @@ def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)
-    del steps
 
 
 def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start: float | None = None,
@@ -212,7 +210,7 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
     g_cpu = g.to(device="cpu", dtype=torch.float32)
     save_ply(g_cpu, out / "stylized.ply")
     web = {}
-    if getattr(cfg, "web_formats", True):  # the same scene for browser viewers (SuperSplat, PlayCanvas, SPZ)
+    if cfg.web_formats:  # the same scene for browser viewers (SuperSplat, PlayCanvas, SPZ)
         from ..io.splat_formats import save_compressed_ply, save_spz
 
         save_compressed_ply(g_cpu, out / "stylized.compressed.ply")
@@ -247,8 +245,9 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
     s_theta, s_coh, _ = res.style_field
     write_image(out / "stroke_field.png", field_picture(res.style_work.numpy(), s_theta, s_coh))
     fa = float(np.mean(scores)) if scores else 0.0
-    caption = (f"config: style={cfg.style_loss}, luminance_only={cfg.luminance_only}, lock_xyz={cfg.lock_xyz}, "
-               f"w_align={cfg.w_align}, field={cfg.field_mapping}; {res.metrics['iterations']} iterations; "
+    caption = (f"config: style={cfg.loss.style_loss}, luminance_only={cfg.loss.luminance_only}, "
+               f"lock_xyz={cfg.geometry.lock_xyz}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
+               f"{res.metrics['iterations']} iterations; "
                f"flow alignment {fa:.3f}; "
                + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {res.vgg_source}"))
     write_image(out / "comparison.png", comparison_grid(rows, style_np, caption).astype(np.float32) / 255.0)
@@ -277,7 +276,7 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         "flow_alignment": fa,
         "flow_alignment_per_view": [round(s, 5) for s in scores],
         "flow_alignment_original": float(np.mean(scores_orig)) if scores_orig else 0.0,
-        "field_mapping": cfg.field_mapping,
+        "field_mapping": cfg.loss.field_mapping,
         "bytes_in": int(input_bytes) if input_bytes is not None else int(g_in.nbytes()),
         "bytes_out": int(out_bytes),
         **web,

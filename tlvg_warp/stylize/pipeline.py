@@ -1,21 +1,20 @@
-"""The stylization loop (SPEC §3): pre-process, stylize, post-process with one Adam across the phases.
+"""The stylization (SPEC §3): three phases of the one training loop (train/loop.py), one Adam across them.
 
     inp = StylizeInputs(gaussians, cameras, names, photos, style, background)
     result = run_stylize(inp, StylizeConfig(), out_dir)
 
-Every iteration renders ONE training view, drawn at random without replacement per epoch.
-1. pre-process: the photos recolored to the painting's palette (ARF color transfer, once), fit with
-   0.8·L1 + 0.2·(1−SSIM), density control on (``density_in_pre``).
-2. stylize: style (FAST on luminance by default) + content + inverse depth + TV + opacity/scale anchors
+Every step renders ONE training view (``views_per_step``), drawn at random without replacement per epoch.
+1. ``Fit("pre")``: the photos recolored to the painting's palette (ARF color transfer, once), fit with
+   0.8·L1 + 0.2·(1−SSIM), density control on (``density.phases``).
+2. ``Stylize``: style (FAST on luminance by default) + content + inverse depth + TV + opacity/scale anchors
    + Lab chroma (0.2 → 0.05) + flow alignment + anisotropy; xyz unlocked with its exponential decay, the
    tangential hook after every Adam step of this phase (and of no other), density control under the budget.
-3. post-process: every view rendered and recolored once more; colors and rotations fit to them
-   (xyz, scales, opacities keep their values: their gradients are dropped, Adam skips them).
+3. ``Fit("post")``: every view rendered and recolored once more; colors and rotations fit to them (positions,
+   scales and opacities get no gradient, so they keep their values).
 
-Per-view targets are computed once: recolored photos, VGG features of the photos, the un-stylized scene's
-inverse depth (at the start), the target stroke fields (at the start of stylize, from the "matched" or
-"canvas" mapping), the post-process targets (at the start of post). The host reads values only every
-``log_every`` iterations (log flush, progress bar, NaN check, last-good snapshot) and at densify steps.
+Per-view targets are computed once (``prepare``): recolored photos, VGG features of the photos, the
+un-stylized scene's inverse depth; each phase makes its own at its start (the stroke fields of Stylize, the
+post targets) and keeps them in its state, so a resumed run continues with the same ones.
 
 Decisions (beyond the spec, documented):
 - keep_sh False (default): the whole run works at SH degree 0 (the input's view-dependent bands are
@@ -26,14 +25,15 @@ Decisions (beyond the spec, documented):
 - The "matched" target field of a view is built from the FAST/NNFM cell match of that view's render at the
   start of stylize and then held fixed (a target that moved with the render would chase itself). The match
   is on luminance features whatever the style term's input, so the RGB-loss ablation keeps the same fields.
-- The opacity / scale anchors are tensors tracked by density control: a clone or split child is anchored at its own
-  value when it is born.
-- lock_xyz locks positions during stylize only (the pre-process is a photometric fit).
+- The opacity / scale anchors are tensors tracked by density control: a clone or split child is anchored at
+  its own value when it is born.
+- A term whose weight is 0 over the whole phase is not computed (it logs 0): abcgs.yaml runs no Lab or
+  flow terms at all.
+- geometry.lock_xyz locks positions during stylize only (the pre-process is a photometric fit).
 """
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -44,24 +44,22 @@ import torch
 
 from .. import runs
 from ..errors import InputError
-from ..runs import Interrupt as _Interrupt, StageTimer, resolve_device
-from ..fileio import atomic_path, write_text
-from ..types import Camera, Gaussians
-from .config import StylizeConfig, config_yaml
+from ..fileio import write_text
+from ..runs import resolve_device
+from ..train.loop import Diverged, Fit, LoopSettings, Phase, Run, View, train
+from ..train.optim import FIELDS
+from ..types import Gaussians
+from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-PHASES = ("pre", "stylize", "post")
-LOG_TERMS = ("loss", "fit", "style", "content", "depth", "tv", "opacity_reg", "scale_reg", "lab", "align", "aniso")
-STAGES = ("render", "vgg", "style", "losses", "flow", "backward", "optimizer", "density")
+STYLIZE_TERMS = ("style", "content", "depth", "tv", "opacity_reg", "scale_reg", "lab", "align", "aniso")
+LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
-POST_FROZEN = ("means", "log_scales", "opacity_logits")  # the post-process fits colors and rotations only
+POST_TRAINABLE = ("quats", "sh_dc", "sh_rest")  # the post-process fits colors and rotations only
 RUN_FILES = ("checkpoint.pt", "stylized.ply", "metrics.json", "log.jsonl", "config.yaml")
 
 
-SCREEN_SIZE_REFERENCE = 1000  # pixels: the image size 3DGS's max_screen_size was chosen for
-
-
-class StylizeDiverged(RuntimeError):
+class StylizeDiverged(Diverged):
     """The loss or the parameters became non-finite; the last good state was saved."""
 
 
@@ -98,8 +96,6 @@ class StylizeInputs:
 
 
 # --- small utilities -------------------------------------------------------------------------------------------
-
-
 def tv_loss(img: torch.Tensor) -> torch.Tensor:
     """Mean squared difference of horizontal plus vertical neighbours of an [H,W,3] image."""
     return ((img[1:] - img[:-1]) ** 2).mean() + ((img[:, 1:] - img[:, :-1]) ** 2).mean()
@@ -115,16 +111,6 @@ def anchor_norm(x: torch.Tensor, anchor: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(((x - anchor) ** 2).sum() + NORM_EPS)
 
 
-def phase_of(step: int, steps: tuple) -> tuple[str, int, int]:
-    """(phase, 0-based index within it, its length) of the 1-based global ``step``."""
-    start = 0
-    for name, n in zip(PHASES, steps):
-        if step <= start + n:
-            return name, step - start - 1, n
-        start += n
-    raise ValueError(step)
-
-
 def flow_field_tensor(doubled: torch.Tensor) -> torch.Tensor:
     """[H,W,2] doubled-angle field -> [H,W,3] (c·cos2θ, c·sin2θ, c), the layout flow_terms takes."""
     return torch.cat([doubled, doubled.norm(dim=-1, keepdim=True)], -1).contiguous()
@@ -135,6 +121,154 @@ def flow_terms(g, cam, fld, weights):
     from ..flow import flow_terms as _flow_terms
 
     return _flow_terms(g, cam, fld, weights)
+
+
+# --- what the run needs once -------------------------------------------------------------------------------------
+@dataclass
+class Targets:
+    """The painting and the per-view targets, computed once per run (``prepare``)."""
+
+    style_work: torch.Tensor  # the painting at its working size [hs,ws,3] (CPU)
+    style_field: tuple  # (θ, coherence, doubled) numpy at the working size
+    style_feats: torch.Tensor  # [768, Ns] the style term's target features
+    match_feats: torch.Tensor  # [768, Ns] luminance features: the field match
+    style_doubled_cells: torch.Tensor  # the painting's doubled-angle field at its feature cells
+    recolored: list  # per view [H,W,3]: the photos in the painting's palette (pre-process and Lab targets)
+    lab_stats: list  # per view: the Lab chroma statistics of ``recolored`` (the Lab term's target, once)
+    palette: tuple  # (mean, transform) of that color transfer
+    photo_feats: list  # per view [768, Nc]: RGB VGG features of the photo (content)
+    inv_depth: list  # per view [H,W]: the un-stylized scene's inverse depth
+    originals: list  # per view [H,W,3] (CPU): renders of the un-stylized scene
+
+
+def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
+    from ..losses import (color_transfer, field_at_cells, flatten_feats, lab_chroma_stats, luminance, resize_style,
+                          stroke_field)
+    from ..renderer import render
+
+    style_np = inp.style.detach().cpu().numpy().astype(np.float32)
+    style_work = torch.from_numpy(resize_style(style_np, cfg.style_height)).contiguous()  # [hs,ws,3]
+    with torch.no_grad():
+        sf_lum = vgg(luminance(style_work.to(device)), scale=1.0)  # [1,768,fh,fw]: the field match
+        sf = sf_lum if cfg.loss.luminance_only else vgg(style_work.to(device), scale=1.0)
+    s_theta, s_coh, s_doubled = stroke_field(style_work.numpy())
+    cells = torch.from_numpy(field_at_cells(s_doubled, tuple(sf_lum.shape[-2:]))).to(device)
+    photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
+    recolored, pal_m, pal_t = color_transfer(photos, style_work.to(device))
+    g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
+    inv_depth, photo_feats, originals = [], [], []
+    with torch.no_grad():
+        for photo, cam in zip(photos, inp.cameras):
+            ro = render(g_in, cam, bg)
+            inv_depth.append(inverse_depth(ro.depth))
+            originals.append(ro.color.clamp(0, 1).cpu())
+            photo_feats.append(flatten_feats(vgg(photo, scale=cfg.vgg_scale)))  # content: RGB
+    return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
+                   flatten_feats(sf_lum).contiguous(), cells, recolored, [lab_chroma_stats(r) for r in recolored],
+                   (pal_m, pal_t), photo_feats, inv_depth, originals)
+
+
+# --- the Stylize phase -------------------------------------------------------------------------------------------
+class Stylize(Phase):
+    """The style, content, geometry and flow terms (SPEC §3) against targets made at its start: the opacity /
+    scale anchors (tracked by density control) and the per-view stroke fields."""
+
+    TERMS = STYLIZE_TERMS
+    STAGES = ("vgg", "style", "terms", "flow")
+
+    def __init__(self, steps: int, cfg: StylizeConfig, tg: Targets, vgg, **kw):
+        super().__init__("stylize", steps, **kw)
+        from ..losses import StyleLoss
+
+        self.cfg, self.tg, self.vgg, w = cfg, tg, vgg, cfg.loss
+        self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss)  # the painting's side computed once
+        self.fields = None  # per view [H,W,3] on the device
+        self.const = {"style": w.w_style, "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
+                      "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
+                      "aniso": w.w_aniso}
+        # a term weighted 0 over the whole phase is not computed at all
+        self.on = {t: v != 0 for t, v in self.const.items()}
+        self.on["lab"] = w.w_lab_start != 0 or w.w_lab_end != 0
+        self.vgg_on = self.on["style"] or self.on["content"]
+        self.render_weights = self.on["align"] or self.on["aniso"]
+
+    def weights(self, k: int) -> dict:
+        return dict(self.const, lab=self.cfg.loss.lab_weight(k, self.steps))
+
+    def row(self, k: int) -> dict:
+        return {"w_lab": round(self.cfg.loss.lab_weight(k, self.steps), 6)}
+
+    def setup(self, run: Run) -> None:
+        p = run.params
+        run.density.track("opacity_logits", p.opacity_logits.detach().clone())  # the regularizer anchors
+        run.density.track("log_scales", p.log_scales.detach().clone())
+        if self.fields is None:
+            self.fields = self.make_fields(run)
+
+    @torch.no_grad()
+    def make_fields(self, run: Run) -> list:
+        """Per view the target stroke field [H,W,3] from the current render ("matched") or the canvas."""
+        from ..losses import flatten_feats, luminance, map_field_canvas, map_field_matched, match_style_cells
+        from ..renderer import render
+
+        tg, out = self.tg, []
+        g = run.params.gaussians()
+        for cam in run.cams:
+            if self.cfg.loss.field_mapping == "canvas":
+                _, _, d = map_field_canvas(torch.from_numpy(tg.style_field[2]).to(run.device), cam.height, cam.width)
+            else:
+                f = self.vgg(luminance(render(g, cam, run.background).color), scale=self.cfg.vgg_scale)  # [1,768,hc,wc]
+                idx, wt = match_style_cells(flatten_feats(f), tg.match_feats)
+                _, _, d = map_field_matched(tg.style_doubled_cells, idx, wt, cam.height, cam.width, tuple(f.shape[-2:]))
+            out.append(flow_field_tensor(d.to(device=run.device, dtype=torch.float32)))
+        return out
+
+    def terms(self, run: Run, view: View) -> dict:
+        from ..losses import content_loss, lab_chroma_loss, luminance
+
+        tg, on, t, vi = self.tg, self.on, run.timer, view.index
+        img, p, anchors = view.out.color, run.params, run.density.tracked
+        terms = {}
+        if self.vgg_on:
+            if self.cfg.loss.luminance_only:  # the style term sees luminance, the content term RGB: one batch
+                a, a_rgb = self.vgg.features_of([luminance(img), img], self.cfg.vgg_scale)
+            else:
+                a = a_rgb = self.vgg.features_of([img], self.cfg.vgg_scale)[0]
+            t.mark("vgg")
+            if on["style"]:
+                terms["style"] = self.style_fn(a, tg.style_feats)
+            t.mark("style")
+            if on["content"]:
+                terms["content"] = content_loss(a_rgb, tg.photo_feats[vi])
+        if on["depth"]:
+            terms["depth"] = ((inverse_depth(view.out.depth) - tg.inv_depth[vi]) ** 2).mean()
+        if on["tv"]:
+            terms["tv"] = tv_loss(img)
+        if on["opacity_reg"]:
+            terms["opacity_reg"] = anchor_norm(p.opacity_logits, anchors["opacity_logits"])
+        if on["scale_reg"]:
+            terms["scale_reg"] = anchor_norm(p.log_scales, anchors["log_scales"])
+        if on["lab"]:
+            terms["lab"] = lab_chroma_loss(img, target_stats=tg.lab_stats[vi])
+        t.mark("terms")
+        if self.render_weights:
+            terms["align"], terms["aniso"] = flow_terms(view.gaussians, view.cam, self.fields[vi], view.out.weights)
+        t.mark("flow")
+        return terms
+
+    def flush_extra(self, run: Run, view: View) -> dict:
+        from ..losses import flow_alignment_score_torch
+
+        with torch.no_grad():
+            s = flow_alignment_score_torch(view.out.color.detach(), self.fields[view.index][..., :2])
+        return {"flow_score": round(float(s), 5)}
+
+    def state_dict(self) -> dict:
+        return {"fields": [f.cpu() for f in self.fields] if self.fields is not None else None}
+
+    def load_state_dict(self, sd: dict, device=None) -> None:
+        if sd.get("fields") is not None:
+            self.fields = [f.to(device) for f in sd["fields"]]
 
 
 # --- the run ---------------------------------------------------------------------------------------------------
@@ -153,45 +287,79 @@ class StylizeResult:
     originals: list = field(default_factory=list)  # renders of the un-stylized scene per view [H,W,3] (CPU)
 
 
-class _State:
-    def __init__(self):
-        self.step = 0
-        self.order: list = []
-        self.fields = None  # list of [H,W,3] on device (stylize targets)
-        self.post_targets = None  # list of [H,W,3] on device
-        self.phase_time = dict.fromkeys(PHASES, 0.0)
-        self.counts = {}
-        self.log: list = []
-        self.densify_events: list = []
-
-
 def load_checkpoint(path) -> dict:
-    return runs.read_checkpoint(path, CHECKPOINT_FORMAT, "stylize")
+    """A stylization checkpoint; one written before train/loop.py is brought to its layout."""
+    ck = runs.read_checkpoint(path, CHECKPOINT_FORMAT, "stylize")
+    if "phases" not in ck:
+        d = dict(ck.get("density") or {})
+        if ck.get("anchors") is not None:
+            d["tracked"] = ck["anchors"]
+        d.setdefault("rng", ck.get("split_rng"))
+        d.setdefault("events", ck.get("densify_events", []))
+        post = ck.get("post_targets")  # stored as uint8
+        ck["density"] = d
+        ck["phases"] = {"stylize": {"fields": ck.get("fields")},
+                        "post": {"targets": None if post is None else [t.float() / 255.0 for t in post]}}
+    return ck
+
+
+def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, dist, out) -> Run:
+    """Parameters, one Adam, density control and the three phases."""
+    from ..losses import color_transfer, recolor_sh
+    from ..renderer import render
+    from ..train.density import DensityControl
+    from ..train.init import scene_extent
+    from ..train.optim import GaussianOptimizer, GaussianParams, tangential_hook
+
+    cams = list(inp.cameras)
+    bg = tuple(float(v) for v in cfg.background)
+    n_pre, n_sty, n_post = cfg.phase_steps()
+    g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
+    g_work = g_in if cfg.keep_sh else g_in.with_sh_degree(0)
+    if cfg.palette_init:  # the same colour map the pre-process targets went through, applied in closed form
+        g_work = dataclasses.replace(g_work, sh=recolor_sh(g_work.sh, *tg.palette))
+    extent = scene_extent(cams)
+    params = GaussianParams(g_work, g_work.sh_degree)
+    opt = GaussianOptimizer(params, cfg.lr, extent, cfg.lr.means_steps or cfg.iterations)
+    longest = max(max(c.width, c.height) for c in cams)
+    density = DensityControl(cfg.density, g_in.num, device, extent=extent, window=2 * len(cams) - 1,
+                             image_size=longest, seed=cfg.seed + 1, dist=dist)
+
+    def post_targets(run: Run) -> list:  # every view rendered and recolored once more
+        with torch.no_grad():
+            g = run.params.gaussians()
+            rs = [render(g, cam, bg).color.clamp(0, 1) for cam in cams]
+        return color_transfer(rs, tg.style_work.to(device))[0]
+
+    dens = set(cfg.density.phases)
+    hook = [(tangential_hook(cfg.geometry.tangential_lambda), ("means",))] if cfg.geometry.tangential_lambda > 0 else []
+    phases = [Fit("pre", n_pre, tg.recolored, density="pre" in dens),
+              Stylize(n_sty, cfg, tg, vgg, density="stylize" in dens, hooks=hook,  # the hook in Stylize only
+                      trainable=[f for f in FIELDS if not (cfg.geometry.lock_xyz and f == "means")]),
+              Fit("post", n_post, make_targets=post_targets, trainable=POST_TRAINABLE, density="post" in dens)]
+    settings = LoopSettings(cfg.log_every, cfg.checkpoint_every, cfg.checkpoint_seconds, cfg.views_per_step)
+    return Run(params, opt, density, phases, cams, settings, device=device, seed=cfg.seed, background=bg, dist=dist,
+               out=out, fmt=CHECKPOINT_FORMAT, extra=lambda: {"config": dataclasses.asdict(cfg),
+                                                             "names": list(inp.names), "sources": inp.sources})
 
 
 def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=None, overwrite=False,
                 progress=True, vgg=None, interrupt_at: int | None = None, quiet=False,
-                on_progress=None) -> StylizeResult:
+                on_progress=None, dist=None) -> StylizeResult:
     """Run the three phases. ``resume``: a run folder / checkpoint to continue. ``vgg``: a loaded feature
     network (default: load_vgg(cfg.vgg_weights)). ``interrupt_at``: behave as if Ctrl-C came after that
     step (tests). ``on_progress(step, gaussians)``: called at every log flush (every ``log_every`` steps and
     at the end of each phase) with the current Gaussians, detached (the live viewer, ``stylize --view``).
+    ``dist``: a ``Dist`` (torchrun; default one process: only its main rank writes files).
     Raises KeyboardInterrupt after saving a checkpoint, StylizeDiverged on NaN."""
-    from tqdm import tqdm
-
-    from ..losses import (color_transfer, content_loss, fast_loss, field_at_cells, fit_loss,
-                          flatten_feats, flow_alignment_score_torch, gram_loss, lab_chroma_loss, load_vgg, luminance,
-                          map_field_canvas, map_field_matched, match_style_cells, nnfm_loss, recolor_sh, resize_style,
-                          stroke_field)
-    from ..renderer import render
-    from ..train.density import DensityConfig, DensityControl
-    from ..train.init import scene_extent
-    from ..train.optim import GaussianOptimizer, GaussianParams, LearningRates, tangential_hook
+    from ..distributed import Dist
+    from ..losses import load_vgg
 
     t_start = time.perf_counter()
     cfg = cfg.validate()
     inp.check()
-    device = resolve_device(cfg.device)
+    dist = dist or Dist()
+    device = torch.device(dist.device) if dist.world > 1 else resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     out = Path(out_dir) if out_dir is not None else None
     ck = load_checkpoint(resume) if resume is not None else None
@@ -199,372 +367,41 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         raise InputError("the checkpoint was made on a different dataset (its view names differ)", resume)
     if cfg.background is None:  # record the resolved background (evaluation re-renders with it)
         cfg = dataclasses.replace(cfg, background=[float(v) for v in inp.background])
-    if out is not None:
+    if out is not None and dist.is_main:
         runs.start_run_dir(out, overwrite, ck is not None, RUN_FILES)
         write_text(out / "config.yaml", config_yaml(cfg))
-
-    # --- the feature network and the painting (once) ----------------------------------------------------------
     announce = vgg is None  # a caller that passes the network has already said where it came from
-    if vgg is None:
-        vgg = load_vgg(cfg.vgg_weights, device)
-    vgg = vgg.to(device)
-    style_in = luminance if cfg.luminance_only else (lambda x: x)  # the style term's input (and nothing else)
-    style_np = inp.style.detach().cpu().numpy().astype(np.float32)
-    style_work = torch.from_numpy(resize_style(style_np, cfg.style_height)).contiguous()  # [hs,ws,3]
-    with torch.no_grad():
-        sf_lum = vgg(luminance(style_work.to(device)), scale=1.0)  # [1,768,fh,fw]: the field match
-        sf = sf_lum if cfg.luminance_only else vgg(style_work.to(device), scale=1.0)
-    style_cells = tuple(sf_lum.shape[-2:])
-    style_feats = flatten_feats(sf).contiguous()  # [768, Ns]: the style term's target
-    match_feats = flatten_feats(sf_lum).contiguous()
-    s_theta, s_coh, s_doubled = stroke_field(style_work.numpy())
-    style_doubled_cells = torch.from_numpy(field_at_cells(s_doubled, style_cells)).to(device)
-
-    # --- per-view targets (once) ---------------------------------------------------------------------------------
-    cams: list[Camera] = list(inp.cameras)
-    n_views = len(cams)
-    bg = tuple(float(v) for v in (cfg.background if cfg.background is not None else inp.background))
-    photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
-    recolored, pal_m, pal_t = color_transfer(photos, style_work.to(device))  # palette-matched photos (pre + Lab)
-    g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
-    inv_depth, photo_feats, originals = [], [], []
-    with torch.no_grad():
-        for i, cam in enumerate(cams):
-            ro = render(g_in, cam, bg)
-            inv_depth.append(inverse_depth(ro.depth))
-            originals.append(ro.color.clamp(0, 1).cpu())
-            photo_feats.append(flatten_feats(vgg(photos[i], scale=cfg.vgg_scale)))  # content: RGB
-    extent = scene_extent(cams)
-
-    # --- parameters, one Adam across the phases ---------------------------------------------------------------------
-    n_pre, n_sty, n_post = steps = cfg.phase_steps()
-    g_work = g_in if cfg.keep_sh else g_in.with_sh_degree(0)
-    if cfg.palette_init:  # the same colour map the pre-process targets went through, applied in closed form
-        g_work = dataclasses.replace(g_work, sh=recolor_sh(g_work.sh, pal_m, pal_t))
-    lrs = LearningRates(cfg.lr_means, cfg.lr_means_final, cfg.lr_means_steps, cfg.lr_sh_dc, cfg.lr_sh_rest,
-                        cfg.lr_opacity, cfg.lr_scales, cfg.lr_quats)
-    budget = cfg.gaussian_budget or max(g_in.num, int(math.ceil(cfg.budget_factor * g_in.num)))
-    if not cfg.use_budget:
-        budget = 1 << 62
-    st = _State()
-    gen = torch.Generator().manual_seed(cfg.seed)
-    params = GaussianParams(g_work, g_work.sh_degree)  # a resumed run replaces it (load_state_dict below)
-    opt = GaussianOptimizer(params, lrs, extent, lrs.means_steps)
-    # the tangential hook acts in the Stylize phase only (SPEC §3); the loop installs it per step
-    stylize_hooks = [(tangential_hook(cfg.tangential_lambda), ("means",))] if cfg.tangential_lambda > 0 else []
-    # 3DGS's screen-size rule was set for ~1000-pixel images; larger renders scale it so that a sharper view
-    # of the same scene does not prune every splat as "too big on screen" (seen in the stability suite)
-    longest = max(max(c.width, c.height) for c in cams)
-    screen_limit = cfg.max_screen_size * max(1.0, longest / SCREEN_SIZE_REFERENCE)
-    dcfg = DensityConfig(grad_threshold=cfg.densify_grad_threshold, percent_dense=cfg.percent_dense,
-                         min_opacity=cfg.min_opacity, max_screen_size=screen_limit,
-                         max_world_size=cfg.max_world_size, interval=cfg.densify_interval, start=0, until=1 << 62,
-                         opacity_reset_interval=0, max_gaussians=budget, prune_unseen=cfg.prune_unseen,
-                         contribution_window=2 * n_views - 1, split_mode=cfg.split_mode)  # any 2n-1 consecutive views hold an epoch
-    density = DensityControl(dcfg, params.num, device)
-    density.generator = torch.Generator(device=device).manual_seed(cfg.seed + 1)
-    start_counts = {"input": g_in.num}
-
-    # --- the run state: one state_dict / load_state_dict for the checkpoint, the last-good snapshot and resume ---
-    def state_dict(checkpoint: bool = False) -> dict:
-        sd = {"iteration": st.step, "params": opt.params.state_dict(), "optimizer": opt.state_dict(),
-              "density": density.state_dict(), "split_rng": density.generator.get_state(),
-              "order": list(st.order), "rng": gen.get_state(), "torch_rng": torch.get_rng_state(),
-              "phase_time": dict(st.phase_time), "counts": dict(st.counts),
-              "densify_events": list(st.densify_events), "log_len": len(st.log)}
-        if checkpoint:  # what a new process needs besides (the per-view targets are fixed once made)
-            sd.update({"format": CHECKPOINT_FORMAT, "log": st.log,
-                       "fields": [f.cpu() for f in st.fields] if st.fields is not None else None,
-                       "post_targets": ([(t.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu() for t in st.post_targets]
-                                        if st.post_targets is not None else None),
-                       "config": dataclasses.asdict(cfg), "names": list(inp.names), "sources": inp.sources})
-        return sd
-
-    def load_state_dict(sd: dict) -> None:
-        nonlocal opt
-        o = GaussianOptimizer(GaussianParams.from_state_dict(sd["params"], device), lrs, extent, lrs.means_steps)
-        o.load_state_dict(sd["optimizer"])
-        opt = o
-        if sd.get("density") is not None:
-            density.load_state_dict(sd["density"])
-        if sd.get("anchors") is not None:  # checkpoints before the anchors moved into density control's state
-            density.tracked = {k: v.to(device) for k, v in sd["anchors"].items()}
-        if sd.get("split_rng") is not None:
-            density.generator.set_state(sd["split_rng"])
-        st.step, st.order = int(sd["iteration"]), list(sd["order"])
-        gen.set_state(sd["rng"])
-        torch.set_rng_state(sd["torch_rng"])
-        st.phase_time, st.counts = dict(sd["phase_time"]), dict(sd["counts"])
-        st.densify_events = list(sd.get("densify_events", []))
-        if "log" in sd:
-            st.log = list(sd["log"])
-        else:
-            del st.log[sd["log_len"]:]
-        if sd.get("fields") is not None:
-            st.fields = [f.to(device) for f in sd["fields"]]
-        if sd.get("post_targets") is not None:
-            st.post_targets = [t.to(device=device, dtype=torch.float32) / 255.0 for t in sd["post_targets"]]
-
+    vgg = (vgg if vgg is not None else load_vgg(cfg.vgg_weights, device)).to(device)
+    tg = prepare(inp, cfg, vgg, device, tuple(cfg.background))
+    run = build_run(inp, cfg, tg, vgg, device, dist, out)
     if ck is not None:
-        load_state_dict(ck)
-    start_step = st.step
-
-    def save_checkpoint(note=""):
-        if out is None:
-            return
-        ckpt = state_dict(checkpoint=True)
-        ckpt["note"] = note
-        with atomic_path(out / "checkpoint.pt") as tmp, open(tmp, "wb") as f:
-            torch.save(ckpt, f)  # to a file object: a full disk raises OSError (a path gives a RuntimeError)
-
-    def write_log():
-        if out is not None:
-            import json
-            write_text(out / "log.jsonl", "".join(json.dumps(r) + "\n" for r in st.log))
-
-    # --- phase set-up (idempotent: a resumed run restores these from the checkpoint) ----------------------------
-    def features(img):
-        return flatten_feats(vgg(img, scale=cfg.vgg_scale))
-
-    def ensure_stylize_targets():
-        if not density.tracked:  # the regularizer anchors: density control keeps them aligned
-            density.tracked = {"opacity_logits": opt.params.opacity_logits.detach().clone(),
-                               "log_scales": opt.params.log_scales.detach().clone()}
-        if st.fields is not None:
-            return
-        fl = []
-        with torch.no_grad():
-            g = opt.params.gaussians()
-            for cam in cams:
-                if cfg.field_mapping == "canvas":
-                    _, _, d = map_field_canvas(torch.from_numpy(s_doubled).to(device), cam.height, cam.width)
-                else:
-                    f = vgg(luminance(render(g, cam, bg).color), scale=cfg.vgg_scale)  # [1,768,hc,wc]
-                    idx, w = match_style_cells(flatten_feats(f), match_feats)
-                    _, _, d = map_field_matched(style_doubled_cells, idx, w, cam.height, cam.width,
-                                                tuple(f.shape[-2:]))
-                fl.append(flow_field_tensor(d.to(device=device, dtype=torch.float32)))
-        st.fields = fl
-
-    def ensure_post_targets():
-        if st.post_targets is not None:
-            return
-        with torch.no_grad():
-            g = opt.params.gaussians()
-            rs = [render(g, cam, bg).color.clamp(0, 1) for cam in cams]
-        st.post_targets, _, _ = color_transfer(rs, style_work.to(device))
-
-    # --- the loop --------------------------------------------------------------------------------------------------
-    timer = StageTimer(device, STAGES)
-    bad = torch.zeros((), dtype=torch.bool, device=device)
-    zero = torch.zeros((), device=device)
-    last_good = None
-    buf: list = []  # (host info dict, device tensor of LOG_TERMS)
-    pbar = None
-    phase_t0, cur_phase = None, None
-    interrupted = False
-
-    def sync():
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-
-    def close_phase():
-        nonlocal phase_t0, pbar
-        if cur_phase is not None and phase_t0 is not None:
-            sync()
-            st.phase_time[cur_phase] += time.perf_counter() - phase_t0
-            st.counts[f"after_{cur_phase}"] = opt.params.num
-        phase_t0 = None
-        if pbar is not None:
-            pbar.close()
-            pbar = None
-
-    def flush(step, phase, k, rout_color, fld):
-        """The one host sync of an interval: log rows, NaN check, progress bar, last-good snapshot."""
-        nonlocal buf, last_good
-        extra = {}
-        if phase == "stylize" and fld is not None:
-            with torch.no_grad():
-                extra["flow_score"] = flow_alignment_score_torch(rout_color.detach(), fld[..., :2])
-        vals = torch.stack([v for _, v in buf]).cpu().tolist() if buf else []
-        ok = bool(~bad & opt.params.all_finite())
-        for (info, _), row in zip(buf, vals):
-            r = dict(info)
-            r.update({n: round(float(x), 7) for n, x in zip(LOG_TERMS, row)})
-            st.log.append(r)
-        if extra and st.log:
-            st.log[-1]["flow_score"] = round(float(extra["flow_score"]), 5)
-        buf = []
-        if not ok:
-            raise StylizeDiverged(f"non-finite loss or parameters at or before iteration {step} ({phase} phase)")
-        last_good = state_dict()
-        if pbar is not None and st.log:
-            post = {"loss": f"{st.log[-1]['loss']:.4f}", "n": opt.params.num}
-            if "flow_score" in st.log[-1]:
-                post["flow"] = f"{st.log[-1]['flow_score']:.3f}"
-            pbar.set_postfix(post, refresh=True)
-
-    last_good = state_dict()
-    last_ck = [time.perf_counter()]
-    if not quiet and announce and vgg.is_random:
+        run.load_state_dict(ck)
+    start_step = run.step
+    if not quiet and announce and vgg.is_random and dist.is_main:
         print("WARNING: VGG-16 is RANDOMLY initialized (not pretrained): the style/content losses are not "
               "meaningful; a smoke run only")
-    total = sum(steps)
-    with _Interrupt() as intr:
-        try:
-            while st.step < total:
-                step = st.step + 1
-                phase, k, n_phase = phase_of(step, steps)
-                if phase != cur_phase:
-                    close_phase()
-                    cur_phase = phase
-                    if phase == "stylize":
-                        ensure_stylize_targets()
-                        if k == 0:
-                            st.counts["before_stylize"] = opt.params.num
-                    elif phase == "post":
-                        ensure_post_targets()
-                    if k == 0:  # a resumed run keeps the statistics it accumulated (from the checkpoint)
-                        density.reset_stats(opt.params.num)
-                    pbar = tqdm(total=n_phase, initial=k, disable=not progress, dynamic_ncols=True,
-                                desc=f"{phase:>7}", unit="it", leave=True)
-                    sync()
-                    phase_t0 = time.perf_counter()
-                timer.begin(step)
-                opt.set_step(step)
-                opt.hooks = stylize_hooks if phase == "stylize" else []
-                if not st.order:
-                    st.order = torch.randperm(n_views, generator=gen).tolist()
-                vi = st.order.pop()
-                cam = cams[vi]
-                use_density = (phase == "pre" and cfg.density_in_pre) or (phase == "stylize" and cfg.density_in_stylize)
-                flow_on = phase == "stylize" and (cfg.w_align > 0 or cfg.w_aniso > 0)
-                g = opt.params.gaussians()
-                rout = render(g, cam, bg, return_weights=use_density or flow_on)
-                img = rout.color
-                timer.mark("render")
-                terms = {}
-                fld = None
-                if phase == "stylize":
-                    fld = st.fields[vi]
-                    a = features(style_in(img))  # the style term's features
-                    a_rgb = features(img) if cfg.luminance_only else a  # the content term's (RGB)
-                    timer.mark("vgg")
-                    if cfg.style_loss == "fast":
-                        terms["style"] = fast_loss(a, style_feats)
-                    elif cfg.style_loss == "nnfm":
-                        terms["style"] = nnfm_loss(a, style_feats)
-                    else:
-                        terms["style"] = gram_loss(a, style_feats)
-                    timer.mark("style")
-                    terms["content"] = content_loss(a_rgb, photo_feats[vi])
-                    terms["depth"] = ((inverse_depth(rout.depth) - inv_depth[vi]) ** 2).mean()
-                    terms["tv"] = tv_loss(img)
-                    terms["opacity_reg"] = anchor_norm(opt.params.opacity_logits, density.tracked["opacity_logits"])
-                    terms["scale_reg"] = anchor_norm(opt.params.log_scales, density.tracked["log_scales"])
-                    terms["lab"] = lab_chroma_loss(img, recolored[vi])
-                    w_lab = cfg.lab_weight(k, n_phase)
-                    loss = (cfg.w_style * terms["style"] + cfg.w_content * terms["content"]
-                            + cfg.w_depth * terms["depth"] + cfg.w_tv * terms["tv"]
-                            + cfg.w_opacity_reg * terms["opacity_reg"] + cfg.w_scale_reg * terms["scale_reg"]
-                            + w_lab * terms["lab"])
-                    timer.mark("losses")
-                    if flow_on:
-                        terms["align"], terms["aniso"] = flow_terms(g, cam, fld, rout.weights)
-                        loss = loss + cfg.w_align * terms["align"] + cfg.w_aniso * terms["aniso"]
-                    timer.mark("flow")
-                else:
-                    w_lab = 0.0
-                    target = recolored[vi] if phase == "pre" else st.post_targets[vi]
-                    terms["fit"] = fit_loss(img, target)
-                    loss = terms["fit"]
-                    timer.mark("losses")
-                terms["loss"] = loss
-                bad |= ~torch.isfinite(loss.detach())
-                loss.backward()
-                timer.mark("backward")
-                frozen = POST_FROZEN if phase == "post" else (("means",) if (phase == "stylize" and cfg.lock_xyz) else ())
-                for f in frozen:
-                    getattr(opt.params, f).grad = None  # Adam skips a parameter without a gradient
-                if use_density:
-                    density.accumulate(rout, cam.width, cam.height)
-                opt.step()
-                opt.zero_grad()
-                timer.mark("optimizer")
-                if use_density and (k + 1) % cfg.densify_interval == 0 and k + 1 < n_phase:
-                    ev = density.densify_and_prune(opt, extent, step)
-                    ev.update(step=step, phase=phase)
-                    st.densify_events.append(ev)
-                    timer.mark("density")
-                timer.end()
-                st.step = step
-                if pbar is not None:
-                    pbar.update(1)  # host-side count only; loss and Gaussian count at the flush
-                buf.append(({"step": step, "phase": phase, "view": vi, "n": opt.params.num, "w_lab": round(w_lab, 6)},
-                            torch.stack([terms[t].detach().float().reshape(()) if t in terms else zero
-                                         for t in LOG_TERMS])))
-                if interrupt_at is not None and step == interrupt_at:
-                    intr.flag = True
-                # periodic checkpoints come at a flush, with the log written: a killed run resumes from a
-                # consistent (parameters, log) pair
-                ck_due = out is not None and ((cfg.checkpoint_every and step % cfg.checkpoint_every == 0) or (
-                    cfg.checkpoint_seconds and time.perf_counter() - last_ck[0] >= cfg.checkpoint_seconds))
-                if step % cfg.log_every == 0 or k + 1 == n_phase or intr.flag or ck_due:
-                    flush(step, phase, k, img, fld)
-                    if on_progress is not None:
-                        on_progress(step, opt.params.detached())
-                    if k + 1 == n_phase or step % (cfg.log_every * 10) == 0 or ck_due:
-                        write_log()
-                if ck_due:
-                    save_checkpoint("periodic")
-                    last_ck[0] = time.perf_counter()
-                if intr.flag:
-                    raise KeyboardInterrupt
-        except KeyboardInterrupt:
-            interrupted = True
-        except StylizeDiverged as e:
-            close_phase()
-            msg = str(e)
-            load_state_dict(last_good)
-            if out is not None:
-                write_log()
-                save_checkpoint("last good state before divergence")
-                msg += (f"; stopped. The last good state (iteration {st.step}) is in {out / 'checkpoint.pt'} "
-                        f"(continue with --resume {out} after lowering the learning rates or loss weights)")
-            raise StylizeDiverged(msg) from None
-    close_phase()
-    if st.fields is None and not interrupted:  # no stylize phase ran: the targets are still needed for the score
-        ensure_stylize_targets()
-    if interrupted:
-        if not bool(opt.params.all_finite()):
-            load_state_dict(last_good)
-        write_log()
-        save_checkpoint("interrupted")
-        if out is not None and not quiet:
-            print(f"interrupted at iteration {st.step}: saved {out / 'checkpoint.pt'}; continue with --resume {out}")
-        raise KeyboardInterrupt
-    write_log()
-    save_checkpoint("finished")
+    train(run, progress=progress, quiet=quiet, on_flush=on_progress, interrupt_at=interrupt_at,
+          diverged=StylizeDiverged, hint=" (continue with --resume {out} after lowering the learning rates or loss weights)")
+    sty = run.phase("stylize")
+    if sty.fields is None:  # no stylize step ran: the fields are still needed for the score
+        sty.fields = sty.make_fields(run)
 
-    final = opt.params.detached()
+    final = run.params.detached()
     final = final if cfg.keep_sh else final.with_sh_degree(0)
-    st.counts.setdefault("before_stylize", st.counts.get("after_pre", g_in.num))
+    counts, n_in = run.counts, inp.gaussians.num
+    before = counts.get("before_stylize", counts.get("after_pre", n_in))
     metrics = {
-        "iterations": st.step, "phase_steps": dict(zip(PHASES, steps)), "resumed_from": start_step or None,
-        "time_per_phase_s": {p: round(t, 3) for p, t in st.phase_time.items()},
-        "train_time_s": round(sum(st.phase_time.values()), 3),
-        "setup_time_s": None, "stage_split": timer.summary(), "device": str(device),
-        "gaussians_input": start_counts["input"], "gaussians_before_stylize": st.counts["before_stylize"],
-        "gaussians_after_stylize": st.counts.get("after_stylize", st.counts["before_stylize"]),
-        "gaussians_final": final.num, "gaussian_budget": budget if cfg.use_budget else None, "densify_events": st.densify_events,
-        "extent": extent, "flow_terms": "warp kernel",
+        **run.metrics(start_step), "phase_steps": dict(zip(PHASES, cfg.phase_steps())), "setup_time_s": None,
+        "device": str(device), "gaussians_input": n_in, "gaussians_before_stylize": before,
+        "gaussians_after_stylize": counts.get("after_stylize", before), "gaussians_final": final.num,
+        "gaussian_budget": run.density.budget, "extent": run.opt.extent, "flow_terms": "warp kernel",
         "vgg_random": bool(vgg.is_random), "vgg_source": vgg.source,
     }
     metrics["setup_time_s"] = round(time.perf_counter() - t_start - metrics["train_time_s"], 3)
-    return StylizeResult(final, inp, cfg, style_work, (s_theta, s_coh, s_doubled),
-                         [f.cpu() for f in st.fields] if st.fields is not None else [], st.log, metrics,
-                         bool(vgg.is_random), vgg.source, originals)
+    return StylizeResult(final, inp, cfg, tg.style_work, tg.style_field, [f.cpu() for f in sty.fields], run.log,
+                         metrics, metrics["vgg_random"], vgg.source, tg.originals)
 
 
-__all__ = ["StylizeInputs", "StylizeResult", "StylizeDiverged", "run_stylize", "load_checkpoint", "phase_of",
-           "tv_loss", "inverse_depth", "anchor_norm", "flow_field_tensor", "LOG_TERMS", "PHASES"]
+__all__ = ["StylizeInputs", "StylizeResult", "StylizeDiverged", "Stylize", "Targets", "prepare", "build_run",
+           "run_stylize", "load_checkpoint", "tv_loss", "inverse_depth", "anchor_norm", "flow_field_tensor",
+           "LOG_TERMS", "STYLIZE_TERMS", "PHASES"]

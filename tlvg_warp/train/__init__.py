@@ -1,11 +1,13 @@
-"""Scene fitting: trainable parameters and Adam (optim), adaptive density control (density),
-initialization (init) and the reconstruction loop (reconstruct)."""
+"""Scene fitting: trainable parameters and Adam (optim), adaptive density control (density), initialization
+(init), the one training loop with phases as objects (loop) and the reconstruction, one Fit phase (reconstruct)."""
 from .density import DensityConfig, DensityControl
 from .init import initialize, knn_distances, knn_scale, scene_extent
+from .loop import Diverged, Fit, LoopSettings, Phase, Run, train
 from .optim import (GaussianOptimizer, GaussianParams, LearningRates, footprint_normals, quat_to_rotmat,
                     tangential_hook)
-from .reconstruct import FitDiverged, FitState, ReconstructConfig, fit_scene, load_config
+from .reconstruct import FitDiverged, ReconstructConfig, fit_scene, load_config
 
 __all__ = ["DensityConfig", "DensityControl", "initialize", "knn_distances", "knn_scale", "scene_extent",
+           "Diverged", "Fit", "LoopSettings", "Phase", "Run", "train",
            "GaussianOptimizer", "GaussianParams", "LearningRates", "footprint_normals", "quat_to_rotmat",
-           "tangential_hook", "FitDiverged", "FitState", "ReconstructConfig", "fit_scene", "load_config"]
+           "tangential_hook", "FitDiverged", "ReconstructConfig", "fit_scene", "load_config"]

@@ -1,19 +1,24 @@
 """Adaptive density control (3DGS): clone / split / prune, opacity reset, a hard Gaussian budget, and
-pruning of Gaussians that contribute to no training view. One component, used by reconstruction and by
-the stylization loop::
+pruning of Gaussians that contribute to no training view. One component for every phase that runs it; it
+owns its schedule and every per-Gaussian tensor that must follow a keep / append (as gsplat's strategies)::
 
-    dc = DensityControl(DensityConfig(...), num=params.num, device=params.device)
-    out = render(params.gaussians(), cam, return_weights=dc.wants_weights_at(step))
+    dc = DensityControl(cfg.density, num=params.num, device=dev, extent=extent, window=2 * n_views - 1, seed=s)
+    dc.track("opacity_logits", anchor)               # a caller's per-Gaussian tensor (kept aligned from now on)
+    out = render(g, cam, return_weights=dc.wants_weights(s))
     loss.backward()
     dc.accumulate(out, cam.width, cam.height)        # on-device, no host sync
     opt.step()
-    if dc.is_densify_step(step): dc.densify_and_prune(opt, extent, step)   # syncs once
-    if dc.is_reset_step(step): dc.reset_opacity(opt)
+    dc.step(opt, s, n)                               # densify / prune / reset when the schedule says (syncs then)
+
+``s`` is the 1-based step within the phase and ``n`` the phase's length: no structural change at a phase's
+last step, so what a phase hands on (the exported model, the next phase) is what it trained.
 
 Gradient units. graphdeco's rasterizer differentiates with respect to the NDC mean: its screen-space
 gradient is ``dL/dpixel × (0.5·W, 0.5·H)``; gsplat rescales its pixel gradients the same way. The
 renderer here gives ``dL/dpixel`` in ``RenderOutput.means2d.grad``, so we multiply x by W/2 and y by H/2
-before taking the norm: the 3DGS threshold 2e-4 then means the same thing it does there.
+before taking the norm: the 3DGS threshold 2e-4 then means the same thing it does there. A step that
+averages the loss over k views scales each view's gradient by 1/k; ``accumulate(..., grad_scale=k)``
+undoes that (gsplat multiplies by its camera count the same way), so the threshold is per view.
 
 Decisions beyond 3DGS (documented here, tested in tests/test_train_density.py):
 - Layout after ``densify_and_prune``: the surviving originals in their order, then the clones, then the
@@ -27,60 +32,111 @@ Decisions beyond 3DGS (documented here, tested in tests/test_train_density.py):
   so the gaps stayed (the demo at 2x: 11-13% of covered pixels under alpha 0.9, 1% without densification).
 - Pruning (low opacity, too large on screen or in the world, no contribution) is decided on the
   Gaussians present before densification; a Gaussian that is pruned is not densified; new Gaussians are
-  not pruned in the step that creates them.
-- Budget: the count after a densify step never exceeds ``max_gaussians``. When the candidates do not fit,
-  those with the largest mean gradient are densified first. If the survivors alone exceed the budget
-  (e.g. a lowered budget), the least opaque are pruned.
+  not pruned in the step that creates them. The size rules apply after the first opacity reset (3DGS;
+  never without resets) or always (``size_rules: always``, ABC-GS's pre-process and the stylization). The
+  screen rule was set for ~1000-pixel images: larger images scale it, so a sharper view of the same scene
+  does not prune every splat as "too big on screen" (seen in the stability suite).
+- Budget: the count after a densify step never exceeds the budget (``max_gaussians``, or ``budget_factor``
+  × the starting count when it is 0). When the candidates do not fit, those with the largest mean gradient
+  are densified first. If the survivors alone exceed the budget (e.g. a lowered budget), the least opaque
+  are pruned.
 - No-contribution pruning: Σ αT per Gaussian (``RenderOutput.weights``) summed since the Gaussian was
-  born or last checked; once it has been rendered over ``contribution_window`` views (a training epoch)
-  and the sum is below ``min_contribution`` (pixel·alpha units) it is pruned. Weights are only asked for
-  in the ``contribution_window`` steps before each densify step (``wants_weights_at``), so a full epoch
-  (one random view per step, without replacement) is seen right before each check.
+  born or last checked; once it has been rendered over ``window`` views (2 epochs - 1: any that many
+  consecutive views hold a whole epoch) and the sum is below ``min_contribution`` (pixel·alpha units) it is
+  pruned. Weights are asked for (``wants_weights``) only in the steps that hold the last window of views
+  before each densify step; renders that carry weights anyway (the flow terms') are counted too.
+- Several ranks (torch.distributed): every rank accumulates its own views; at a densify step the
+  statistics are summed (screen radii: max) over the ranks first, and the split RNG is seeded identically,
+  so every rank makes the same decision. The contribution sums that carry over to the next window stay
+  on the main rank only (the others restart from zero), so the next sum counts each view once.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
 from .optim import FIELDS, GaussianOptimizer, quat_to_rotmat
 
+SPLIT_CHILDREN = 2  # children per split Gaussian (3DGS)
+SCREEN_SIZE_REFERENCE = 1000  # pixels: the image size 3DGS's max_screen_size was chosen for
+
 
 @dataclass
 class DensityConfig:
-    grad_threshold: float = 2e-4  # mean NDC-space screen gradient norm that triggers clone/split (3DGS)
-    percent_dense: float = 0.01  # clone when max scale <= this × extent, else split (3DGS)
+    """The ``density`` section of every config (class defaults: graphdeco's 3DGS; each command sets its own)."""
+
+    phases: list[str] = field(default_factory=lambda: ["fit"])  # the phases that run density control
+    interval: int = 100  # densify every this many steps of a phase (3DGS)
+    start: int = 500  # first densify step of a phase (3DGS)
+    until: int = 15000  # no densification from this step of a phase on (3DGS); 0: no end
+    grad_threshold: float = 2e-4  # mean NDC screen-gradient norm for clone/split (3DGS)
+    percent_dense: float = 0.01  # clone when the max scale is below this fraction of the extent, split above (3DGS)
+    split_mode: str = "3dgs"  # 3dgs: 2 children sampled in the parent, scales / 1.6; moments: keep mean and covariance
     min_opacity: float = 0.005  # prune below this opacity (3DGS)
-    max_screen_size: float = 20.0  # prune when max 2D radius exceeded this many pixels (after the 1st reset)
-    max_world_size: float = 0.1  # prune when max scale > this × extent (with the screen-size rule)
-    split_children: int = 2  # children per split Gaussian (3DGS: 2, scale / (0.8·2))
-    split_mode: str = "3dgs"  # "3dgs": children sampled in the parent, scales / 1.6; "moments": see below
-    interval: int = 100  # densify every this many steps
-    start: int = 500  # first densify step
-    until: int = 15000  # no densification at or after this step
-    opacity_reset_interval: int = 3000  # reset opacities to <= reset_opacity every this many steps (0 = off)
-    reset_opacity: float = 0.01  # the opacity ceiling after a reset (3DGS)
-    max_gaussians: int = 1_000_000  # hard budget
-    prune_unseen: bool = True  # prune Gaussians contributing to no training view
-    min_contribution: float = 0.5  # Σ αT over an epoch (pixel units) under which a Gaussian counts as unseen
-    contribution_window: int = 0  # views per check window (0: set by the caller to the training-view count)
+    max_screen_size: float = 20.0  # prune above this 2D radius in pixels (3DGS; scaled up for images over 1000 px)
+    max_world_size: float = 0.1  # prune above this fraction of the extent (3DGS); 0: off
+    size_rules: str = "after_reset"  # when the two size rules prune: after_reset (3DGS; never without resets) | always
+    opacity_reset_interval: int = 3000  # cap the opacities at reset_opacity every this many steps (3DGS); 0: never
+    reset_opacity: float = 0.01  # the opacity ceiling of a reset (3DGS)
+    max_gaussians: int = 1_000_000  # hard budget; 0: budget_factor x the starting count
+    budget_factor: float = 1.2  # the budget relative to the starting count when max_gaussians is 0
+    use_budget: bool = True  # cap the Gaussian count at the budget (ABC-GS has no cap)
+    prune_unseen: bool = True  # prune Gaussians that contribute to no training view over an epoch
+    min_contribution: float = 0.5  # Σ αT (pixels) over the check window under which a Gaussian is unseen
+
+    RULES = {"interval": (">=", 1), "start": (">=", 0), "until": (">=", 0), "grad_threshold": (">=", 0),
+             "percent_dense": (">=", 0), "split_mode": ("of", "moments", "3dgs"), "min_opacity": (">=", 0),
+             "max_screen_size": (">=", 0), "max_world_size": (">=", 0), "size_rules": ("of", "after_reset", "always"),
+             "opacity_reset_interval": (">=", 0), "reset_opacity": ("in", 0, 1), "max_gaussians": (">=", 0),
+             "budget_factor": (">=", 1), "min_contribution": (">=", 0)}
+
+    def budget(self, num: int) -> int | None:
+        """The Gaussian budget of a run that starts with ``num`` Gaussians (None: no cap)."""
+        if not self.use_budget:
+            return None
+        return self.max_gaussians or max(num, int(math.ceil(self.budget_factor * num)))
+
+
+# old flat config names of the ``density`` section shared by both commands (they still load, with a note)
+DENSITY_RENAMED = {"densify_interval": "density.interval", "densify_grad_threshold": "density.grad_threshold",
+                   **{k: f"density.{k}" for k in ("percent_dense", "split_mode", "min_opacity", "max_screen_size",
+                                                  "max_world_size", "prune_unseen")}}
 
 
 class DensityControl:
-    """Per-Gaussian accumulators (all on the device) and the densify / prune / reset operations."""
+    """Per-Gaussian accumulators (all on the device), the schedule, and the densify / prune / reset operations.
 
-    def __init__(self, config: DensityConfig | None = None, num: int = 0, device="cpu", dtype=torch.float32):
+    extent: the scene extent (clone/split and world-size rules); window: views per no-contribution check (set
+    by the caller to 2 × its views − 1; 0: every check); image_size: the longest image side (screen rule);
+    seed: the split RNG (identical on every rank); dist: a ``Dist`` (statistics summed over ranks)."""
+
+    def __init__(self, config: DensityConfig | None = None, num: int = 0, device="cpu", dtype=torch.float32, *,
+                 extent: float = 1.0, window: int = 0, image_size: int = 0, seed: int | None = None, dist=None):
         self.config = config or DensityConfig()
         self.device, self.dtype = torch.device(device), dtype
+        self.extent, self.window, self.dist = float(extent), int(window), dist
+        self.start_num = num  # the count the run started with: the budget's reference
+        self.screen_limit = self.config.max_screen_size * max(1.0, image_size / SCREEN_SIZE_REFERENCE)
+        self.views_per_step = 1  # views accumulated per step over all ranks (how many steps hold a window)
         self.reset_stats(num)
         self.contrib = torch.zeros(num, dtype=dtype, device=self.device)  # Σ αT since birth / last check
         self.contrib_views = torch.zeros(num, dtype=torch.int32, device=self.device)
-        self.generator = None  # torch.Generator for split sampling (None: the global RNG)
+        self.generator = None if seed is None else torch.Generator(device=self.device).manual_seed(seed)
+        self.events: list[dict] = []  # one dict per densify step (counts, step, phase)
         # the caller's per-Gaussian tensors (e.g. the stylization's regularizer anchors): every keep / append
         # applies to them as to the parameters, Adam's moments and the statistics; a new row takes the new
         # Gaussian's value of the parameter field of the same name (zeros when the name is not a field)
         self.tracked: dict[str, torch.Tensor] = {}
+
+    @property
+    def budget(self) -> int | None:
+        return self.config.budget(self.start_num)
+
+    def track(self, name: str, tensor: torch.Tensor) -> None:
+        """Keep ``tensor`` [N, ...] aligned with the Gaussians through every densify step (unless it already is)."""
+        self.tracked.setdefault(name, tensor)
 
     # accumulators ------------------------------------------------------------------------------------
     def reset_stats(self, num: int) -> None:
@@ -88,30 +144,23 @@ class DensityControl:
         self.denom = torch.zeros(num, dtype=self.dtype, device=self.device)
         self.max_radii = torch.zeros(num, dtype=self.dtype, device=self.device)
 
+    def begin_phase(self, num: int) -> None:
+        """A phase starts: gradient statistics do not carry over from the previous one (contributions do)."""
+        self.reset_stats(num)
+
     @property
     def num(self) -> int:
         return int(self.grad_accum.shape[0])
 
-    def wants_weights_at(self, step: int) -> bool:
-        """Whether the render of ``step`` (1-based) should return Σ αT: only during the last
-        ``contribution_window`` steps before each densify step (the weights cost an atomic add per
-        contribution, so they are not gathered when no check will use them)."""
-        c = self.config
-        if not c.prune_unseen or not self.accumulating(step):
-            return False
-        if c.contribution_window <= 0 or c.interval <= 0 or c.contribution_window >= c.interval:
-            return True
-        nxt = -(-step // c.interval) * c.interval  # the next densify step at or after this one
-        return nxt >= c.start and nxt - step < c.contribution_window
-
-    def accumulate(self, out, width: int, height: int) -> None:
+    def accumulate(self, out, width: int, height: int, grad_scale: float = 1.0) -> None:
         """Add one view's statistics (call after backward). Vectorized, no host sync."""
         vis = out.radii > 0
         visf = vis.to(self.dtype)
         with torch.no_grad():
             if out.means2d.grad is not None:
                 g = out.means2d.grad.detach().to(self.dtype)
-                gn = torch.hypot(g[:, 0] * (0.5 * width), g[:, 1] * (0.5 * height))
+                sx, sy = 0.5 * width * grad_scale, 0.5 * height * grad_scale
+                gn = torch.hypot(g[:, 0] * sx, g[:, 1] * sy)
                 self.grad_accum += gn * visf
                 self.denom += visf
             self.max_radii = torch.maximum(self.max_radii, out.radii.to(self.dtype) * visf)
@@ -122,18 +171,50 @@ class DensityControl:
     def mean_grads(self) -> torch.Tensor:
         return torch.where(self.denom > 0, self.grad_accum / self.denom.clamp_min(1), torch.zeros_like(self.denom))
 
-    # schedule ------------------------------------------------------------------------------------------
-    def is_densify_step(self, step: int) -> bool:
-        """``step`` is 1-based (the number of optimizer steps taken), as graphdeco's ``iteration``."""
-        c = self.config
-        return c.interval > 0 and c.start <= step < c.until and step % c.interval == 0
+    # schedule (s: 1-based step within the phase, n: the phase's length) ----------------------------------
+    def accumulating(self, s: int) -> bool:
+        return self.config.until <= 0 or s < self.config.until
 
-    def is_reset_step(self, step: int) -> bool:
+    def is_densify_step(self, s: int, n: int | None = None) -> bool:
         c = self.config
-        return c.opacity_reset_interval > 0 and step < c.until and step % c.opacity_reset_interval == 0
+        return (c.interval > 0 and c.start <= s and self.accumulating(s) and s % c.interval == 0
+                and (n is None or s < n))
 
-    def accumulating(self, step: int) -> bool:
-        return step < self.config.until
+    def is_reset_step(self, s: int, n: int | None = None) -> bool:
+        c = self.config
+        return (c.opacity_reset_interval > 0 and self.accumulating(s) and s % c.opacity_reset_interval == 0
+                and (n is None or s < n))
+
+    def wants_weights(self, s: int) -> bool:
+        """Whether the render of step ``s`` should return Σ αT: only in the steps that hold the last window of
+        views before each densify step (the weights cost an atomic add per contribution)."""
+        c = self.config
+        if not c.prune_unseen or not self.accumulating(s):
+            return False
+        steps = -(-self.window // max(1, self.views_per_step))
+        if steps <= 0 or c.interval <= 0 or steps >= c.interval:
+            return True
+        nxt = -(-s // c.interval) * c.interval  # the next densify step at or after this one
+        return nxt >= c.start and nxt - s < steps
+
+    @torch.no_grad()
+    def step(self, opt: GaussianOptimizer, s: int, n: int | None = None, tag: dict | None = None) -> dict | None:
+        """After the optimizer step ``s`` of a phase of ``n``: densify / prune and reset the opacities when the
+        schedule says so. Returns the densify event (counts, and ``tag``) or None."""
+        ev = None
+        if self.is_densify_step(s, n):
+            self._reduce_stats()
+            ev = dict(self.densify_and_prune(opt, self.extent, s), **(tag or {}))
+            self.events.append(ev)
+        if self.is_reset_step(s, n):
+            self.reset_opacity(opt)
+        return ev
+
+    def _reduce_stats(self) -> None:
+        d = self.dist
+        if d is not None and d.world > 1:
+            d.all_reduce_sum_([self.grad_accum, self.denom, self.contrib, self.contrib_views])
+            d.all_reduce_max_([self.max_radii])
 
     # operations -----------------------------------------------------------------------------------------
     @torch.no_grad()
@@ -142,12 +223,13 @@ class DensityControl:
         c, p = self.config, opt.params
         opac = torch.sigmoid(p.opacity_logits.detach())
         prune = opac < c.min_opacity
-        if c.opacity_reset_interval <= 0 or step > c.opacity_reset_interval:  # graphdeco: size rules after 1st reset
-            prune |= self.max_radii > c.max_screen_size
-            prune |= p.log_scales.detach().exp().amax(dim=1) > c.max_world_size * extent
+        reset = c.opacity_reset_interval
+        if c.size_rules == "always" or (reset > 0 and step > reset):  # graphdeco: after the first reset
+            prune |= self.max_radii > self.screen_limit
+            if c.max_world_size > 0:
+                prune |= p.log_scales.detach().exp().amax(dim=1) > c.max_world_size * extent
         if c.prune_unseen:
-            window = c.contribution_window
-            done = self.contrib_views >= window if window > 0 else torch.zeros_like(prune)
+            done = self.contrib_views >= self.window if self.window > 0 else torch.zeros_like(prune)
             prune |= done & (self.contrib < c.min_contribution)
         return prune
 
@@ -160,18 +242,19 @@ class DensityControl:
         grads = self.mean_grads()
         max_scale = p.log_scales.detach().exp().amax(dim=1)
         cand = (grads >= c.grad_threshold) & ~prune
-        # budget: each clone adds 1, each split adds split_children - 1
+        budget = self.budget if self.budget is not None else 1 << 62
+        # budget: each clone adds 1, each split adds SPLIT_CHILDREN - 1
         n_keep = n - int(prune.sum())
-        over = max(0, n_keep - c.max_gaussians)
+        over = max(0, n_keep - budget)
         if over:  # survivors alone exceed the budget: drop the least opaque survivors
             opac = torch.where(prune, torch.full_like(grads, -1.0), torch.sigmoid(p.opacity_logits.detach()))
             cut = torch.topk(opac, over, largest=False).indices  # pruned ones (-1) are not in this set
             prune[cut] = True
             cand &= ~prune
             n_keep -= over
-        room = c.max_gaussians - n_keep
+        room = budget - n_keep
         is_clone = max_scale <= c.percent_dense * extent
-        cost = torch.where(is_clone, 1, max(c.split_children - 1, 0)).to(torch.int64)
+        cost = torch.where(is_clone, 1, SPLIT_CHILDREN - 1).to(torch.int64)
         n_cand = int(cand.sum())
         if n_cand and int((cost * cand).sum()) > room:
             order = torch.argsort(torch.where(cand, grads, torch.full_like(grads, -1.0)), descending=True)[:n_cand]
@@ -183,17 +266,13 @@ class DensityControl:
         appended = self._new_gaussians(p, clone_idx, split_idx)
         keep = ~prune
         keep[split_idx] = False  # split parents are replaced by their children
-        opt.rebuild(keep, appended)
-        n_new = appended["means"].shape[0]
-        self._after_rebuild(keep, n_new)
-        for name, t in list(self.tracked.items()):
-            new = appended[name].to(t) if name in appended else t.new_zeros((n_new, *t.shape[1:]))
-            self.tracked[name] = torch.cat([t[keep], new]).contiguous()
+        opt.rebuild(keep, appended)  # parameters and Adam's moments
+        self._apply(keep, appended)  # statistics and tracked tensors
         return {"cloned": int(clone_idx.numel()), "split": int(split_idx.numel()),
                 "pruned": int(prune.sum()), "num": opt.params.num}
 
     def _new_gaussians(self, p, clone_idx, split_idx) -> dict:
-        k = self.config.split_children
+        k = SPLIT_CHILDREN
         t = {f: getattr(p, f).detach() for f in FIELDS}
         parts = {f: [t[f][clone_idx]] for f in FIELDS}
         if split_idx.numel() and self.config.split_mode == "moments":
@@ -218,17 +297,23 @@ class DensityControl:
                 parts[f].append(x.repeat(k, *([1] * (x.dim() - 1))))
         return {f: torch.cat(v, dim=0) for f, v in parts.items()}
 
-    def _after_rebuild(self, keep, n_new: int) -> None:
-        n_total = int(keep.sum()) + n_new
-        self.reset_stats(n_total)
+    def _apply(self, keep: torch.Tensor, appended: dict) -> None:
+        """The same keep / append on every per-Gaussian tensor density control holds."""
+        n_new = appended["means"].shape[0]
+        self.reset_stats(int(keep.sum()) + n_new)
         z = torch.zeros(n_new, dtype=self.contrib.dtype, device=self.device)
         self.contrib = torch.cat([self.contrib[keep], z])
         self.contrib_views = torch.cat([self.contrib_views[keep], z.to(torch.int32)])
-        w = self.config.contribution_window
-        if w > 0:  # a full window has been checked: start the next one
-            done = self.contrib_views >= w
+        if self.window > 0:  # a full window has been checked: start the next one
+            done = self.contrib_views >= self.window
             self.contrib = torch.where(done, torch.zeros_like(self.contrib), self.contrib)
             self.contrib_views = torch.where(done, torch.zeros_like(self.contrib_views), self.contrib_views)
+        if self.dist is not None and self.dist.world > 1 and not self.dist.is_main:
+            self.contrib.zero_()  # the carried (summed) part lives on the main rank only
+            self.contrib_views.zero_()
+        for name, t in list(self.tracked.items()):
+            new = appended[name].to(t) if name in appended else t.new_zeros((n_new, *t.shape[1:]))
+            self.tracked[name] = torch.cat([t[keep], new]).contiguous()
 
     @torch.no_grad()
     def reset_opacity(self, opt: GaussianOptimizer) -> None:
@@ -238,19 +323,43 @@ class DensityControl:
         new = torch.minimum(p.opacity_logits.detach(), cap.to(p.device))
         opt.replace("opacity_logits", new, reset_state=torch.ones(p.num, dtype=torch.bool, device=p.device))
 
-    # checkpoints ------------------------------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        sd = {k: getattr(self, k).detach().clone()
-              for k in ("grad_accum", "denom", "max_radii", "contrib", "contrib_views")}
+    @torch.no_grad()
+    def fit_budget(self, g):
+        """``g`` within the budget from the start: its most opaque Gaussians when it has more."""
+        if self.budget is None or g.num <= self.budget:
+            return g
+        keep = torch.topk(g.opacity_logits, self.budget).indices.sort().values
+        return g.subset(keep)
+
+    # state (checkpoint, last-good snapshot, resume) ----------------------------------------------------------
+    STATS = ("grad_accum", "denom", "max_radii", "contrib", "contrib_views")
+
+    def state_dict(self, global_stats: bool = False) -> dict:
+        """Copies of everything that changes during a run. ``global_stats``: the statistics summed over the
+        ranks (a collective: every rank calls it; for the checkpoint that one rank writes)."""
+        sd = {k: getattr(self, k).detach().clone() for k in self.STATS}
+        if global_stats and self.dist is not None and self.dist.world > 1:
+            self.dist.all_reduce_sum_([sd[k] for k in ("grad_accum", "denom", "contrib", "contrib_views")])
+            self.dist.all_reduce_max_([sd["max_radii"]])
         sd["tracked"] = {k: v.detach().clone() for k, v in self.tracked.items()}
+        sd["rng"] = self.generator.get_state() if self.generator is not None else None
+        sd["events"] = [dict(e) for e in self.events]
+        sd["start_num"] = self.start_num  # the budget's reference (a resumed run starts from another count)
         return sd
 
-    def load_state_dict(self, sd: dict) -> None:
-        for k, v in sd.items():
-            if k == "tracked":
-                self.tracked = {n: t.to(self.device) for n, t in v.items()}
-            else:
-                setattr(self, k, v.to(self.device))
+    def load_state_dict(self, sd: dict, from_checkpoint: bool = False) -> None:
+        """``from_checkpoint``: ``sd`` holds the statistics summed over the ranks, which only the main rank keeps."""
+        for k in self.STATS:
+            if k in sd:
+                setattr(self, k, sd[k].to(self.device))
+        self.tracked = {n: t.to(self.device) for n, t in sd.get("tracked", {}).items()}
+        if sd.get("rng") is not None and self.generator is not None:
+            self.generator.set_state(sd["rng"])
+        self.events = [dict(e) for e in sd.get("events", [])]
+        self.start_num = int(sd.get("start_num", self.start_num))
+        if from_checkpoint and self.dist is not None and self.dist.world > 1 and not self.dist.is_main:
+            for k in ("grad_accum", "denom", "contrib", "contrib_views"):
+                getattr(self, k).zero_()
 
 
-__all__ = ["DensityConfig", "DensityControl"]
+__all__ = ["DensityConfig", "DensityControl", "DENSITY_RENAMED", "SPLIT_CHILDREN", "SCREEN_SIZE_REFERENCE"]

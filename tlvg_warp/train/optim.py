@@ -26,18 +26,28 @@ GEOMETRY = ("means", "log_scales", "opacity_logits")  # what the post-process co
 
 @dataclass
 class LearningRates:
-    means: float = 1.6e-4  # xyz start, multiplied by the scene extent
-    means_final: float = 1.6e-6  # xyz end of the exponential decay, times the extent
-    means_steps: int = 30000  # steps over which xyz decays (then stays at means_final)
-    sh_dc: float = 2.5e-3
-    sh_rest: float = 1.25e-4
-    opacity: float = 0.05
-    scales: float = 5e-3
-    quats: float = 1e-3
+    """The ``lr`` section of every config: Adam's learning rate per parameter group (3DGS defaults)."""
+
+    means: float = 1.6e-4  # xyz learning rate at the start, times the scene extent (3DGS)
+    means_final: float = 1.6e-6  # xyz learning rate at the end of the exponential decay, times the extent (3DGS)
+    means_steps: int = 30000  # steps of the xyz decay (then it stays at means_final); 0: the run's iterations
+    sh_dc: float = 2.5e-3  # SH DC band (3DGS)
+    sh_rest: float = 1.25e-4  # higher SH bands (3DGS: DC / 20)
+    opacity: float = 0.05  # opacity logits (3DGS original release; its 2024 update uses 0.025)
+    scales: float = 5e-3  # log scales (3DGS)
+    quats: float = 1e-3  # rotations (3DGS)
+
+    RULES = {"means": (">=", 0), "means_final": (">=", 0), "means_steps": (">=", 0), "sh_dc": (">=", 0),
+             "sh_rest": (">=", 0), "opacity": (">=", 0), "scales": (">=", 0), "quats": (">=", 0)}
 
     def for_field(self, name: str, extent: float) -> float:
         return {"means": self.means * extent, "quats": self.quats, "log_scales": self.scales,
                 "opacity_logits": self.opacity, "sh_dc": self.sh_dc, "sh_rest": self.sh_rest}[name]
+
+
+# old flat config names of the ``lr`` section (they still load, with a note)
+LR_RENAMED = {f"lr_{k}": f"lr.{k}" for k in ("means", "means_final", "means_steps", "sh_dc", "sh_rest", "opacity",
+                                             "scales", "quats")}
 
 
 def exp_decay(step: int, start: float, end: float, steps: int) -> float:
@@ -84,6 +94,12 @@ class GaussianParams:
 
     def trainable(self) -> list[str]:
         return [f for f in FIELDS if f not in self.frozen]
+
+    def set_trainable(self, fields) -> None:
+        """Only ``fields`` get gradients from now on; the others keep their values (no gradient: Adam skips
+        them, and the renderer does not compute one)."""
+        for f in FIELDS:
+            getattr(self, f).requires_grad_(f in fields and f not in self.frozen)
 
     def state_dict(self) -> dict:
         return {"tensors": {f: t.detach().clone() for f, t in self.tensors().items()},
@@ -260,5 +276,5 @@ def tangential_hook(lam: float = 1.0):
     return hook
 
 
-__all__ = ["FIELDS", "GEOMETRY", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
+__all__ = ["FIELDS", "GEOMETRY", "LR_RENAMED", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
            "quat_to_rotmat", "footprint_normals", "tangential_hook", "sh_coeffs"]

@@ -1,0 +1,357 @@
+"""The one training loop (tlvg_warp/train/loop.py) on tiny CPU cases:
+- each phase's terms against oracles computed here, with a stub feature network (average pooling: its
+  features are known in closed form) instead of VGG;
+- views_per_step: the loss of a batched step is the mean of its views' losses (oracle: the photometric loss of
+  each view rendered here), and a 1-rank run with 2 views per step equals a 2-rank run with 1 view per step
+  (two threads joined by an in-process stand-in of torch.distributed, so the collectives are exercised);
+- the performance rule: nothing in a step reads a tensor on the host (item, tolist, bool, float, cpu, nonzero)
+  except where the schedule says (density control's steps) — the log and the non-finite check are read at
+  the log flush only;
+- the hook list of a phase acts in that phase only, and a phase's trainable groups are the only ones moving.
+The SIGKILL + resume test is in tests/test_loop_resume.py."""
+from __future__ import annotations
+
+import math
+import sys
+import threading
+from dataclasses import dataclass
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from tlvg_warp import render
+from tlvg_warp.io.demo import builtin_painting, demo_dataset
+from tlvg_warp.stylize import StylizeInputs
+from tlvg_warp.stylize.config import config_from_dict as stylize_config
+from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, prepare
+from tlvg_warp.train.loop import Fit, LoopSettings, Phase, Run, View, train
+from tlvg_warp.train.reconstruct import config_from_dict as fit_config
+from tlvg_warp.train.reconstruct import fit_scene
+
+W, H, VIEWS, SUBSAMPLE = 32, 24, 4, 8
+TERM_TOL = 1e-5  # float32 terms against float64 oracles of the same quantities
+BATCH_TOL = 2e-5  # 2 ranks x 1 view vs 1 rank x 2 views: the same sums in another order (float32)
+
+
+class StubFeatures(torch.nn.Module):
+    """A feature network with closed-form features: 4x4 average pooling of the image (3 'channels')."""
+
+    is_random, source = True, "stub"
+
+    def __init__(self):
+        super().__init__()
+        self.calls = []  # the images it saw
+
+    def forward(self, img, scale=1.0):
+        x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img
+        self.calls.append(x.detach())
+        return F.avg_pool2d(x.float(), 4)
+
+    def features_of(self, images, scale=1.0):  # one batched pass, as VGG16Features.features_of
+        f = self(torch.stack([im.permute(2, 0, 1) for im in images]), scale)
+        return [fi.reshape(3, -1) for fi in f]
+
+
+@pytest.fixture(scope="module")
+def demo():
+    ds = demo_dataset(n_views=VIEWS, width=W, height=H)
+    g = ds.gaussians.subset(torch.arange(0, ds.gaussians.num, SUBSAMPLE))
+    return StylizeInputs(g, list(ds.cameras), list(ds.names), [ds.image(i) for i in range(VIEWS)],
+                         builtin_painting(), tuple(ds.background))
+
+
+def _stylize_run(inp, net, **over):
+    from tlvg_warp.distributed import Dist
+
+    cfg = stylize_config({"iterations": 6, "device": "cpu", "style_height": 64, "vgg_scale": 1.0,
+                          "background": list(inp.background), **over}).validate()
+    tg = prepare(inp, cfg, net, torch.device("cpu"), inp.background)
+    return build_run(inp, cfg, tg, net, torch.device("cpu"), Dist(), None), cfg, tg
+
+
+def _view(run, vi):
+    g = run.params.gaussians()
+    cam = run.cams[vi]
+    return View(vi, cam, run.background, render(g, cam, run.background, return_weights=True), g)
+
+
+# --- each phase's terms ----------------------------------------------------------------------------------------
+def test_stylize_terms_against_closed_forms(demo):
+    net = StubFeatures()
+    run, cfg, tg = _stylize_run(demo, net)
+    sty = run.phase("stylize")
+    sty.setup(run)
+    with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
+        run.params.opacity_logits += 0.25
+        run.params.log_scales -= 0.125
+    net.calls.clear()
+    view = _view(run, 2)
+    terms = sty.terms(run, view)
+    assert tuple(terms) == STYLIZE_TERMS  # every term, in the summation order
+    img = view.out.color.detach().double()
+    # the style term saw luminance (R = G = B), the content term RGB, in one batch
+    (batch,) = net.calls  # [2,3,H,W]
+    y = (img * torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)).sum(-1)
+    assert torch.allclose(batch[0].double(), y.expand(3, -1, -1), atol=1e-6)
+    assert torch.allclose(batch[1].double(), img.permute(2, 0, 1), atol=1e-6)
+    pool = lambda x: F.avg_pool2d(x.permute(2, 0, 1)[None], 4).reshape(3, -1)  # noqa: E731
+    photo = demo.photos[2].double()
+    content = ((pool(img) - pool(photo)) ** 2).mean()
+    inv = lambda d: torch.where(d > 0, 1 / d.clamp_min(1e-6), torch.zeros_like(d))  # noqa: E731
+    with torch.no_grad():
+        d0 = render(demo.gaussians, run.cams[2], run.background).depth.double()
+    depth = ((inv(view.out.depth.detach().double()) - inv(d0)) ** 2).mean()
+    tv = ((img[1:] - img[:-1]) ** 2).mean() + ((img[:, 1:] - img[:, :-1]) ** 2).mean()
+    n = run.params.num
+    want = {"content": content, "depth": depth, "tv": tv,
+            "opacity_reg": math.sqrt(n * 0.25 ** 2), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
+    for k, v in want.items():
+        assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k
+    assert all(torch.isfinite(t) and t.requires_grad for t in terms.values())
+    # the weight schedule: Lab linear over the phase, the others constant (Python floats: no tensor ops)
+    w0, w_last = sty.weights(0), sty.weights(sty.steps - 1)
+    assert (w0["lab"], w_last["lab"]) == pytest.approx((cfg.loss.w_lab_start, cfg.loss.w_lab_end), abs=1e-12)
+    assert all(isinstance(v, float) for v in w0.values()) and w0["style"] == cfg.loss.w_style
+
+
+def test_zero_weighted_terms_are_not_computed(demo):
+    net = StubFeatures()
+    run, _, _ = _stylize_run(demo, net, **{"loss.w_align": 0.0, "loss.w_aniso": 0.0, "loss.w_lab_start": 0.0,
+                                           "loss.w_lab_end": 0.0, "loss.w_style": 0.0, "loss.w_content": 0.0})
+    sty = run.phase("stylize")
+    sty.setup(run)
+    net.calls.clear()
+    terms = sty.terms(run, _view(run, 0))
+    assert set(terms) == {"depth", "tv", "opacity_reg", "scale_reg"} and not net.calls
+    assert not sty.render_weights  # no flow terms: the render need not return Σ αT
+
+
+def test_fit_terms_are_the_photometric_loss(demo):
+    from tlvg_warp.losses import fit_loss
+
+    run, _, tg = _stylize_run(demo, StubFeatures())
+    pre, post = run.phase("pre"), run.phase("post")
+    view = _view(run, 1)
+    with torch.no_grad():
+        fit = pre.terms(run, view)["fit"]
+        want = float(fit_loss(view.out.color, tg.recolored[1]))
+    assert float(fit) == pytest.approx(want, rel=1e-6)
+    post.setup(run)  # the post targets: every view rendered and recolored
+    assert len(post.targets) == VIEWS and post.state_dict()["targets"] is not None
+    with torch.no_grad():
+        fit = post.terms(run, view)["fit"]
+        want = float(fit_loss(view.out.color, post.targets[1]))
+    assert float(fit) == pytest.approx(want, rel=1e-6)
+    assert set(post.trainable) == {"quats", "sh_dc", "sh_rest"}  # the post-process fits colors and rotations
+    assert pre.state_dict()["targets"] is None  # given targets are not stored (the pre-process remakes them)
+
+
+# --- the loop ---------------------------------------------------------------------------------------------------
+class _Const(Phase):
+    """A phase whose loss is the sum of the colors (any gradient will do) with a recording hook."""
+
+    TERMS = ("sum",)
+
+    def __init__(self, name, steps, seen, **kw):
+        def hook(params, before):
+            seen.append(name)
+        super().__init__(name, steps, hooks=[(hook, ("means",))], **kw)
+
+    def terms(self, run, view):
+        return {"sum": view.out.color.mean()}
+
+
+def _tiny_run(inp, phases, **settings):
+    from tlvg_warp.train.density import DensityConfig, DensityControl
+    from tlvg_warp.train.optim import GaussianOptimizer, GaussianParams, LearningRates
+
+    params = GaussianParams(inp.gaussians.with_sh_degree(0))
+    opt = GaussianOptimizer(params, LearningRates(), 1.0)
+    dc = DensityControl(DensityConfig(phases=[]), params.num)
+    return Run(params, opt, dc, phases, inp.cameras, LoopSettings(**settings), device="cpu",
+               background=inp.background)
+
+
+def test_hooks_and_trainable_groups_per_phase(demo):
+    seen = []
+    a = _Const("a", 3, seen, trainable=("sh_dc",))
+    b = _Const("b", 2, seen)
+    run = _tiny_run(demo, [a, b], log_every=100)
+    g0 = run.params.detached()
+    moved = {}
+
+    def cb(step, r):
+        if step == 3:
+            g = r.params.detached()
+            moved.update({f: not torch.equal(getattr(g, f), getattr(g0, f)) for f in g.FIELDS})
+    train(run, progress=False, callback=cb)
+    assert seen == ["a"] * 3 + ["b"] * 2  # each phase's hook runs in its own steps only
+    assert moved == {"means": False, "quats": False, "log_scales": False, "opacity_logits": False, "sh": True}
+    assert [r["phase"] for r in run.log] == ["a"] * 3 + ["b"] * 2 and run.counts["after_a"] == run.params.num
+
+
+def test_batched_step_loss_is_the_mean_of_its_views(demo):
+    from tlvg_warp.losses import fit_loss
+
+    photos = [p.float() for p in demo.photos]
+    fit = Fit("fit", 3, photos)
+    run = _tiny_run(demo, [fit], log_every=1, views_per_step=2)
+    g0 = run.params.detached()
+    train(run, progress=False)
+    first = run.log[0]
+    assert len(first["view"]) == 2
+    with torch.no_grad():
+        want = sum(float(fit_loss(render(g0, demo.cameras[v], demo.background).color, photos[v]))
+                   for v in first["view"]) / 2
+    assert first["loss"] == pytest.approx(want, rel=1e-5)
+    # an epoch of 4 views is two steps: each view once
+    assert sorted(run.log[0]["view"] + run.log[1]["view"]) == list(range(VIEWS))
+
+
+# --- two ranks in one process -----------------------------------------------------------------------------------
+class _Group:
+    """Ranks as threads that take turns: a rank computes while holding ``turn`` and lets go of it only inside a
+    collective (Warp's tape is process-wide state: two renders at once would share it)."""
+
+    def __init__(self, world):
+        self.barrier, self.slots = threading.Barrier(world, timeout=120), [None] * world
+        self.turn = threading.Lock()
+
+
+@dataclass
+class ThreadDist:
+    """The ``Dist`` API for ranks that are threads of this process (the collectives reduce in rank order)."""
+
+    rank: int
+    world: int
+    group: _Group
+    device: str = "cpu"
+    local_rank: int = 0
+
+    @property
+    def is_main(self):
+        return self.rank == 0
+
+    def _exchange(self, obj):
+        g = self.group
+        g.slots[self.rank] = obj
+        g.turn.release()
+        try:
+            g.barrier.wait()
+            out = list(g.slots)
+            g.barrier.wait()
+        finally:
+            g.turn.acquire()
+        return out
+
+    def _reduce_(self, tensors, op):
+        present = [t for t in tensors if t is not None]
+        by_dtype = {}
+        for t in present:
+            by_dtype.setdefault(t.dtype, []).append(t)
+        for group in by_dtype.values():
+            flat = torch.cat([t.detach().reshape(-1) for t in group])
+            total = op(self._exchange(flat.clone()))
+            off = 0
+            for t in group:
+                with torch.no_grad():
+                    t.copy_(total[off:off + t.numel()].view_as(t))
+                off += t.numel()
+
+    def all_reduce_sum_(self, tensors):
+        self._reduce_(tensors, lambda xs: sum(xs[1:], xs[0]))
+
+    def all_reduce_mean_(self, tensors):
+        self._reduce_(tensors, lambda xs: sum(xs[1:], xs[0]) / len(xs))
+
+    def all_reduce_max_(self, tensors):
+        self._reduce_(tensors, lambda xs: torch.stack(xs).amax(0))
+
+    def broadcast_object(self, obj, src=0):
+        return self._exchange(obj)[src]
+
+    def barrier(self):
+        self._exchange(None)
+
+    def rank_slice(self, items):
+        return list(items)[self.rank::self.world]
+
+
+class _Synthetic:
+    """Photos rendered from the demo's Gaussians, for fit_scene (with density control on)."""
+
+    def __init__(self, inp):
+        self.cameras, self.names, self.points = inp.cameras, list(inp.names), None
+        self.background = inp.background
+        self._imgs = [p.float() for p in inp.photos]
+
+    def image(self, i):
+        return self._imgs[i]
+
+
+def test_one_rank_two_views_equals_two_ranks_one_view(demo):
+    ds = _Synthetic(demo)
+    over = {"iterations": 12, "device": "cpu", "holdout_every": 0, "sh_degree": 0, "log_every": 4,
+            "density.start": 4, "density.interval": 4, "density.max_gaussians": 0, "lr.means": 1e-3}
+    g1, m1 = fit_scene(ds, fit_config({**over, "views_per_step": 2}).validate(), None, demo.gaussians, progress=False)
+    assert any(e["cloned"] + e["split"] for e in m1["densify_events"])  # density control acted
+    group, out = _Group(2), {}
+
+    def rank(r):
+        with group.turn:
+            out[r] = fit_scene(ds, fit_config(over).validate(), None, demo.gaussians, progress=False,
+                               dist=ThreadDist(r, 2, group))
+
+    threads = [threading.Thread(target=rank, args=(r,)) for r in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    (g2, m2), (g2b, _) = out[0], out[1]
+    assert m2["densify_events"] == m1["densify_events"]  # every rank decided as the single process did
+    for f in g1.FIELDS:
+        assert torch.equal(getattr(g2, f), getattr(g2b, f)), f  # the ranks agree exactly
+        assert torch.allclose(getattr(g2, f), getattr(g1, f), atol=BATCH_TOL), f
+    assert [s for s, _ in m2["loss_history"]] == [s for s, _ in m1["loss_history"]] == [4, 8, 12]
+    assert [v for _, v in m2["loss_history"]] == pytest.approx([v for _, v in m1["loss_history"]], rel=1e-4)
+
+
+# --- the performance rule ---------------------------------------------------------------------------------------
+HOST_READS = ("item", "tolist", "cpu", "numpy", "__bool__", "__float__", "__int__", "__index__", "nonzero")
+OWN = ("tlvg_warp/train/", "tlvg_warp/stylize/")
+HOST_RNG = ("next_batch", "background")  # the view order and random backgrounds: a CPU generator by design
+
+
+def test_no_host_reads_in_a_step_outside_the_schedule(demo, monkeypatch):
+    """Counted: calls of host-reading tensor methods made from the loop's own code (train/, stylize/) while a
+    step runs. Allowed: density control's densify steps (its decisions are data-dependent) and nothing else;
+    the log flush, the non-finite check and the snapshot happen between steps."""
+    reads, inside = [], {"step": None}
+    for name in HOST_READS:
+        orig = getattr(torch.Tensor, name)
+
+        def wrapped(self, *a, _orig=orig, _name=name, **k):
+            if inside["step"] is not None:
+                f = sys._getframe(1)
+                path = f.f_code.co_filename.replace("\\", "/")
+                if any(o in path for o in OWN) and f.f_code.co_name not in HOST_RNG:
+                    reads.append((inside["step"], _name, f.f_code.co_name))
+            return _orig(self, *a, **k)
+        monkeypatch.setattr(torch.Tensor, name, wrapped)
+    from tlvg_warp.train import loop as L
+
+    real_step = L._Loop.step
+
+    def step(self, phase, k, s):
+        inside["step"] = s
+        try:
+            return real_step(self, phase, k, s)
+        finally:
+            inside["step"] = None
+    monkeypatch.setattr(L._Loop, "step", step)
+    run, _, _ = _stylize_run(demo, StubFeatures(), **{"iterations": 12, "log_every": 4, "density.interval": 2})
+    train(run, progress=False)
+    outside = [r for r in reads if r[2] not in ("densify_and_prune", "prune_mask", "_apply", "fit_budget")]
+    assert outside == [], outside
+    assert any(r[2] == "densify_and_prune" for r in reads)  # the counter works: densify steps do read
