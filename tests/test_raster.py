@@ -289,10 +289,10 @@ def test_backward_after_an_in_place_change_is_refused():
 
 # -- binning in the fitted-scene regime: a few huge Gaussians among many small ones -------------------------------
 
-def fitted_like_scene(n_small=1500, seed=0, dtype=torch.float64):
+def fitted_like_scene(n_small=1500, seed=0, dtype=torch.float64, log_scale=-3.6):
     """Many small Gaussians and a few huge ones (a needle across the image, rotated disks, one partly off
     screen, one larger than the view): the per-Gaussian tile counts of a fitted scene, from 1 to every tile."""
-    g = random_scene(n_small, 1, seed=seed, dtype=dtype, spread=0.5, log_scale=-3.6, opacity_shift=0.5)
+    g = random_scene(n_small, 1, seed=seed, dtype=dtype, spread=0.5, log_scale=log_scale, opacity_shift=0.5)
     gen = torch.Generator().manual_seed(seed + 1)
     big_means = torch.tensor([[0.0, 0.0, 0.0], [0.4, 0.3, -0.2], [-0.9, 0.2, 0.5], [1.6, -0.2, 0.1],
                               [0.0, 1.0, 0.0], [-0.3, -0.5, -0.4]], dtype=dtype)
@@ -367,10 +367,10 @@ def binned_pairs(cap):
     return out
 
 
-def check_fitted_binning(device, dtype):
+def check_fitted_binning(device, dtype, **scene):
     from tlvg_warp.ops import capture_binning
 
-    g = fitted_like_scene(dtype=torch.float64).to(device=device, dtype=dtype)
+    g = fitted_like_scene(dtype=torch.float64, **scene).to(device=device, dtype=dtype)
     cam = camera(200, 152, fov=55.0)  # 13 x 10 tiles, the last row and column narrower
     with capture_binning() as cap:
         render(g, cam)
@@ -379,7 +379,7 @@ def check_fitted_binning(device, dtype):
     got = binned_pairs(cap)
     tiles = want.shape[1]
     per_gaussian = want.sum(1)
-    assert int((per_gaussian > tiles // 2).sum()) >= 3 and int((per_gaussian == 1).sum()) > 100  # both regimes
+    assert int((per_gaussian > tiles // 2).sum()) >= 3 and int((per_gaussian > 0).sum()) > 100  # both regimes
     diff = (got != want) & ~borderline
     assert not diff.any(), f"{int(diff.sum())} pairs differ from the brute-force criterion, e.g. {diff.nonzero()[:5].tolist()}"
     assert torch.equal(cap["counts"].cpu().long(), got.sum(1))
@@ -388,18 +388,18 @@ def check_fitted_binning(device, dtype):
     p = _cpu(proj)
     m, q, o = p.means2d.float().double(), p.conic.float().double(), p.opacity.float().double()
     H, W = cam.height, cam.width
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
-                            indexing="ij")
-    tile = ((ys // 16) * math.ceil(W / 16) + xs // 16).long().flatten()
-    dx, dy = xs.flatten()[:, None] - m[:, 0], ys.flatten()[:, None] - m[:, 1]
-    power = -0.5 * (q[:, 0] * dx * dx + q[:, 2] * dy * dy) - q[:, 1] * dx * dy
-    seen = (power <= 0) & (o * torch.exp(power.clamp_max(0)) >= 1 / 255) & (p.radii > 0)
     r = p.radii.double()
-    tx, ty = (xs.flatten() // 16)[:, None], (ys.flatten() // 16)[:, None]
-    inbox = ((tx >= torch.floor((m[:, 0] - r) / 16)) & (tx < torch.floor((m[:, 0] + r) / 16) + 1)
-             & (ty >= torch.floor((m[:, 1] - r) / 16)) & (ty < torch.floor((m[:, 1] + r) / 16) + 1))
-    pix, gau = (seen & inbox).nonzero(as_tuple=True)
-    assert got[gau, tile[pix]].all(), "a tile with a visible pixel of a Gaussian was not binned"
+    tiles_x = math.ceil(W / 16)
+    for t in range(got.shape[1]):  # one tile's pixels at a time (memory)
+        ty, tx = divmod(t, tiles_x)
+        ys, xs = torch.meshgrid(torch.arange(ty * 16, min(ty * 16 + 16, H), dtype=torch.float64) + 0.5,
+                                torch.arange(tx * 16, min(tx * 16 + 16, W), dtype=torch.float64) + 0.5, indexing="ij")
+        dx, dy = xs.flatten()[:, None] - m[:, 0], ys.flatten()[:, None] - m[:, 1]
+        power = -0.5 * (q[:, 0] * dx * dx + q[:, 2] * dy * dy) - q[:, 1] * dx * dy
+        seen = ((power <= 0) & (o * torch.exp(power.clamp_max(0)) >= 1 / 255)).any(0) & (p.radii > 0)
+        inbox = ((tx >= torch.floor((m[:, 0] - r) / 16)) & (tx < torch.floor((m[:, 0] + r) / 16) + 1)
+                 & (ty >= torch.floor((m[:, 1] - r) / 16)) & (ty < torch.floor((m[:, 1] + r) / 16) + 1))
+        assert got[seen & inbox, t].all(), f"tile {t}: a Gaussian visible at one of its pixels was not binned"
 
 
 def _cpu(proj):
