@@ -74,7 +74,7 @@ def run(args) -> int:
     write_json(out / "bench_raster.json", {"device": str(device), "gpu": torch.cuda.get_device_name(device)
                                            if device.type == "cuda" else "cpu", "repeats": repeats,
                                            "ours_depth": args.depth, "rows": rows})
-    write_text(out / "bench_raster.md", "\n\n".join(x for x in (table, stages) if x) + "\n")
+    write_text(out / "bench_raster.md", "\n\n".join(x for x in (stages, table) if x) + "\n")  # the table last
     if kernels:
         print(f"\ntop kernels per render (CUPTI):\n{kernels}")
     if stages:
