@@ -5,6 +5,7 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 
 from tlvg_warp.cli import main
 from tlvg_warp.eval.metrics import interval
@@ -30,7 +31,12 @@ ablations: [abcgs]
 scenes: {{demo: {{demo: true, downscale: 4}}}}
 paintings: {{starry: builtin}}
 """)
-    assert main(["study", str(y)]) == 0
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)  # as each torchrun rank runs (OMP_NUM_THREADS=1); 2 threads crawl on a busy 2-core box
+    try:
+        assert main(["study", str(y)]) == 0
+    finally:
+        torch.set_num_threads(n)
     return root / "out", y
 
 
