@@ -11,7 +11,8 @@
 #      parallelism, and the GPUs' link (nvidia-smi topo).
 # Staging as for .ci/gpu_study.sh (env.sh, /tmp/tlvg-data with fern_llff and styles/, the converted VGG at
 # /tmp/tlvg-gpu/vgg16_hed.pt). On the device:
-#   source /tmp/tlvg-gpu/env.sh && bash .ci/gpu_scaling.sh [fit] [stylize] [study] [nccl] [table]
+#   source /tmp/tlvg-gpu/env.sh && bash .ci/gpu_scaling.sh [stage] [fit] [stylize] [study] [nccl] [table]
+# (`stage` alone: only copy a carried .gpu/vgg or .gpu/data to /tmp, in calls of their own: 64 MiB a call)
 # No argument: all of them (about 8-9 minutes: fit ~55 s, warm-up ~30 s, stylize runs ~3 min, studies
 # ~4 min). Split over two calls if needed: `fit stylize nccl` then `study table` (runs stay in /tmp while
 # the machine is warm). ITS (default 1000) and STUDY_ITS (default 600) set the iterations. The table is last.
@@ -26,6 +27,10 @@ FERN="--scene $R/fern/point_cloud.ply --data $D/fern_llff --downscale 2 --style 
 QUICK="--quiet --overwrite --set orbit_frames=0 --set comparison_views=1 --set checkpoint_seconds=0"
 now() { date +%s.%N; }
 [ $# -eq 0 ] && set -- fit stylize nccl study table
+# staging as .ci/gpu_study.sh: a call that carries .gpu/vgg or .gpu/data copies it to /tmp (kept while warm)
+[ -d .gpu/vgg ] && mkdir -p /tmp/tlvg-gpu && cp .gpu/vgg/*.pt "$TLVG_VGG_WEIGHTS"
+[ -d .gpu/data ] && mkdir -p $D && cp -r .gpu/data/* $D/
+[ "$*" = stage ] && { ls -la "$TLVG_VGG_WEIGHTS" $D 2>&1; exit 0; }
 [ -f "$TLVG_VGG_WEIGHTS" ] && [ -d $D/fern_llff ] && [ -d $D/styles ] || { echo "weights or data not staged"; exit 1; }
 nvidia-smi --query-gpu=index,name,memory.total --format=csv,noheader | tee "$L/gpus.txt"
 python3 -c 'import torch, sys; n = torch.cuda.device_count(); print("torch", torch.__version__, "GPUs", n); sys.exit(n < 2)' \
