@@ -266,9 +266,14 @@ def count_tiles_kernel(
     total: wp.array(dtype=wp.int64),  # [1] out, zero-initialized: the sum of the counts
     depth_keys: wp.array(dtype=float),  # [2N] out: [:N] the depths, the depth sort's keys
     order: wp.array(dtype=wp.int32),  # [2N] out: [:N] the Gaussian ids, its values
+    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2] out: zeroed (tile_ranges_kernel fills the non-empty ones)
 ):
-    # launched on N rounded up to a multiple of 32 threads; the ones past N join the warp's collectives only
+    # launched on max(N, tiles) rounded up to a multiple of 32 threads; the ones past N join the warp's
+    # collectives only
     i = wp.tid()
+    if i < ranges.shape[0]:
+        ranges[i, 0] = 0
+        ranges[i, 1] = 0
     geo = geo_t()
     rect = wp.vec4i()
     items = int(0)

@@ -45,14 +45,20 @@ _streams: dict = {}  # torch stream handle -> its wp.Stream (wrapping one regist
 
 @contextlib.contextmanager
 def warp_on(device: torch.device):
-    """Run Warp launches on torch's current stream so no extra synchronization is needed."""
+    """Run Warp launches on torch's current stream so no extra synchronization is needed. The stream stays the
+    Warp device's current stream after the render (set once, with one wait on Warp's previous stream; a render
+    on another torch stream switches it again): entering and leaving a ScopedStream per render cost two
+    cross-stream synchronizations of host time each."""
     if device.type == "cuda":
         ts = torch.cuda.current_stream(device)
         stream = _streams.get(ts.cuda_stream)
         if stream is None:
             stream = _streams[ts.cuda_stream] = wp.stream_from_torch(ts)  # keeps ts alive: its handle stays unique
-        with wp.ScopedStream(stream):
-            yield stream.device
+        wdev = stream.device
+        if wdev.stream is not stream:
+            wdev.set_stream(stream, sync=True)
+        with wp.ScopedDevice(wdev):
+            yield wdev
     else:
         yield wp.device_from_torch(device)
 
@@ -307,9 +313,24 @@ def shade(K, wargs, pouts, center, sh_degree: int, n: int, device, tape: wp.Tape
 
 
 def binning_geometry(proj: Projected):
-    """float32 views of what the binning kernels read (copies only on the float64 path)."""
-    return [ct(proj.means2d.float().contiguous(), wp.vec2), ct(proj.radii, wp.int32),
-            ct(proj.conic.float().contiguous(), wp.vec3), ct(proj.opacity.float().contiguous())]
+    """float32 views of what the binning kernels read (copies only on the float64 path; the projection's
+    outputs are contiguous)."""
+    if proj.depth.dtype == torch.float32:
+        return [ct(proj.means2d, wp.vec2), ct(proj.radii), ct(proj.conic, wp.vec3), ct(proj.opacity)]
+    return [ct(proj.means2d.float(), wp.vec2), ct(proj.radii), ct(proj.conic.float(), wp.vec3),
+            ct(proj.opacity.float())]
+
+
+_dummies: dict = {}
+
+
+def _dummy(dtype, device) -> torch.Tensor:
+    """A one-element buffer for kernel outputs that a render does not ask for (never read)."""
+    key = (dtype, device)
+    t = _dummies.get(key)
+    if t is None:
+        t = _dummies[key] = torch.zeros(1, dtype=dtype, device=device)
+    return t
 
 
 def tile_grid(width: int, height: int) -> tuple[int, int]:
@@ -335,13 +356,14 @@ def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: 
     total = torch.zeros(1, dtype=torch.int64, device=device)
     depth_keys = torch.empty(2 * n, dtype=torch.float32, device=device)
     order = torch.empty(2 * n, dtype=torch.int32, device=device)
-    fast_launch(K.count_tiles, warp_padded(n), [*geometry, ct(proj.depth.float()), n, tiles_x, tiles_y, width, height,
-                                                int(all_tiles), ct(counts), ct(total), ct(depth_keys), ct(order)],
-                wp.device_from_torch(device))
+    ranges = torch.empty(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)  # zeroed by the kernel
+    fast_launch(K.count_tiles, warp_padded(max(n, tiles_x * tiles_y)),
+                [*geometry, ct(proj.depth.float()), n, tiles_x, tiles_y, width, height, int(all_tiles), ct(counts),
+                 ct(total), ct(depth_keys), ct(order), ct(ranges)], wp.device_from_torch(device))
     total = int(total.item())
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
-    return counts, total, geometry, (depth_keys, order)
+    return counts, total, geometry, (depth_keys, order, ranges)
 
 
 def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, sort_buffers, width: int, height: int,
@@ -352,11 +374,13 @@ def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, so
     wdev = wp.device_from_torch(device)
     n = proj.depth.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
-    ranges = torch.zeros(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)
+    if sort_buffers is None:  # no Gaussians: nothing was counted
+        return torch.zeros(tiles_x * tiles_y, 2, dtype=torch.int32, device=device), \
+            torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
+    depth_keys, order, ranges = sort_buffers
     if total == 0:
         return ranges, torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
     # depth order (culled Gaussians sort anywhere: they emit no keys)
-    depth_keys, order = sort_buffers
     sort_pairs(depth_keys, order, n)
     del depth_keys
     order = order[:n]
@@ -384,7 +408,7 @@ def blend(K, proj: Projected, pouts, counts, total: int, geometry, sort_buffers,
     depth = torch.empty((H, W) if want_depth else (1, 1), dtype=dtype, device=device)  # (1, 1): never written
     T = torch.empty(H, W, dtype=dtype, device=device)
     last = torch.empty(H, W, dtype=torch.int32, device=device)
-    weights = torch.zeros(n if settings["weights"] else 1, dtype=dtype, device=device)
+    weights = torch.zeros(n, dtype=dtype, device=device) if settings["weights"] else _dummy(dtype, device)
     bg = K.vec3(*map(K.scalar, settings["background"]))
     w_means2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pouts
     args = [ct(ranges), ct(ids), w_means2d, w_conic, w_opacity, w_color, w_depth, bg, W, H, tiles_x, int(want_depth)]

@@ -42,6 +42,18 @@ def check_inputs(g: Gaussians, cam: Camera, background) -> tuple:
     return tuple(bg.tolist())
 
 
+_zero_pairs: dict = {}
+
+
+def _zero_pair(dtype, device) -> torch.Tensor:
+    """A [1, 2] zero per (dtype, device), kept: the probe is a fresh leaf view of it per render (no allocation)."""
+    key = (dtype, device)
+    z = _zero_pairs.get(key)
+    if z is None:
+        z = _zero_pairs[key] = torch.zeros(1, 2, dtype=dtype, device=device)
+    return z
+
+
 def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None = None,
            return_weights: bool = False, all_tiles: bool = False, depth: bool = True) -> RenderOutput:
     """Rasterize ``g`` into ``cam`` on the device of ``g``'s tensors, differentiably.
@@ -58,7 +70,7 @@ def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None 
     if not 0 <= degree <= g.sh_degree:
         raise InputError(f"sh_degree {degree} is outside 0..{g.sh_degree} (the stored degree)")
     # a stride-0 broadcast zero: an [N, 2] leaf that owns 2 scalars; its .grad is the [N, 2] gradient
-    probe = torch.zeros(1, 2, dtype=g.dtype, device=g.device).expand(g.num, 2).detach().requires_grad_(True)
+    probe = _zero_pair(g.dtype, g.device).expand(g.num, 2).detach().requires_grad_(True)
     settings = {"sh_degree": degree, "background": bg, "weights": bool(return_weights), "all_tiles": bool(all_tiles),
                 "depth": bool(depth)}
     color, alpha, depth, radii, weights = RasterizeFn.apply(
