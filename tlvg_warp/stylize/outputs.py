@@ -218,16 +218,14 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         web = {f"bytes_out_{k}": os.path.getsize(out / f"stylized.{k.replace('_', '.')}")
                for k in ("compressed_ply", "spz")}
     write_json(out / "cameras.json", cameras_json(SimpleNamespace(cameras=inp.cameras, names=inp.names)))
-    device = res.gaussians.device
-    bg = tuple(float(v) for v in (cfg.background if cfg.background is not None else inp.background))
-    g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
+    bg = tuple(float(v) for v in cfg.background)  # run_stylize records the background it used
 
     scores, scores_orig, rows = [], [], []
     pick = set(np.linspace(0, len(inp.cameras) - 1, min(cfg.comparison_views, len(inp.cameras))).round().astype(int))
     with torch.no_grad():
         for i, cam in enumerate(inp.cameras):
             sty = render(g, cam, bg).color.clamp(0, 1).cpu()
-            org = res.originals[i] if res.originals else render(g_in, cam, bg).color.clamp(0, 1).cpu()
+            org = res.originals[i]
             photo = inp.photos[i].detach().cpu()
             write_image(out / "renders" / f"view_{i:03d}.png", sty)
             write_image(out / "originals" / f"view_{i:03d}.png", org)
@@ -277,7 +275,7 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         "flow_alignment_per_view": [round(s, 5) for s in scores],
         "flow_alignment_original": float(np.mean(scores_orig)) if scores_orig else 0.0,
         "field_mapping": cfg.loss.field_mapping,
-        "bytes_in": int(input_bytes) if input_bytes is not None else int(g_in.nbytes()),
+        "bytes_in": int(input_bytes) if input_bytes is not None else int(inp.gaussians.nbytes()),
         "bytes_out": int(out_bytes),
         **web,
         "sh_degree_out": g.sh_degree,

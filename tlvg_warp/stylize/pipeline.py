@@ -20,8 +20,8 @@ Decisions (beyond the spec, documented):
 - keep_sh False (default): the whole run works at SH degree 0 (the input's view-dependent bands are
   dropped at the start), so stylized.ply is exactly what was optimized.
 - The content loss compares RGB VGG features of the render with those of the original photo, also when the
-  style loss is luminance-only (SPEC §3, as ARF-Plus: only the style term is decoupled); that costs a second
-  VGG pass per iteration when luminance_only. The RGB-loss ablation changes the style term's input only.
+  style loss is luminance-only (SPEC §3, as ARF-Plus: only the style term is decoupled); both renders go
+  through VGG in one batch. The RGB-loss ablation changes the style term's input only.
 - The "matched" target field of a view is built from the FAST/NNFM cell match of that view's render at the
   start of stylize and then held fixed (a target that moved with the render would chase itself). The match
   is on luminance features whatever the style term's input, so the RGB-loss ablation keeps the same fields.
@@ -236,7 +236,7 @@ class Stylize(Phase):
                 a = a_rgb = self.vgg.features_of([img], self.cfg.vgg_scale)[0]
             t.mark("vgg")
             if on["style"]:
-                terms["style"] = self.style_fn(a, tg.style_feats)
+                terms["style"] = self.style_fn(a)
             t.mark("style")
             if on["content"]:
                 terms["content"] = content_loss(a_rgb, tg.photo_feats[vi])

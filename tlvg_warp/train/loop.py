@@ -179,7 +179,7 @@ class Run:
 
     def __init__(self, params, opt, density, phases: list, cams: list, settings: LoopSettings, *, device,
                  seed: int = 0, view_ids=None, background=(0.0, 0.0, 0.0), dist=None, out=None,
-                 fmt: str = "tlvg_warp.run.v1", extra=None, log_file: str | None = "log.jsonl", stages=()):
+                 fmt: str = "tlvg_warp.run.v1", extra=None, log_file: str | None = "log.jsonl"):
         from ..distributed import Dist
 
         self.params, self.opt, self.density = params, opt, density
@@ -194,7 +194,7 @@ class Run:
         self.counts: dict = {}
         self.columns = ("loss", *dict.fromkeys(t for p in self.phases for t in p.TERMS))
         self.timer = StageTimer(self.device, (*STAGES[:1], *dict.fromkeys(s for p in self.phases for s in p.STAGES),
-                                              *STAGES[1:], *stages), settings.timing_every)
+                                              *STAGES[1:]), settings.timing_every)
         self.loop_time = 0.0  # this process's seconds in the loop
         density.views_per_step = settings.views_per_step * self.dist.world
 
@@ -307,8 +307,9 @@ def train(run: Run, *, progress: bool = True, quiet: bool = False, callback=None
             loop.run()
         except KeyboardInterrupt:
             loop.close_phase()
-            if not bool(run.params.all_finite()):
-                run.load_state_dict(loop.last_good)
+            # the state of the last flush: the one a Ctrl-C flag stops at, and consistent with the log (a second
+            # Ctrl-C may have stopped a step half-way, after the optimizer step and before its log row)
+            run.load_state_dict(loop.last_good)
             files = _stop_files(run, "interrupted", on_stop)
             if run.out is not None and not quiet and run.dist.is_main:
                 print(f"interrupted at iteration {run.step}: saved {' and '.join(map(str, files))}; "
@@ -360,7 +361,6 @@ class _Loop:
             r.density.begin_phase(r.params.num)
         r.params.set_trainable(phase.trainable)
         r.opt.hooks = list(phase.hooks)
-        self.cols = [r.columns.index(t) for t in phase.TERMS]
         self.pbar = tqdm(total=phase.steps, initial=k, disable=not self.progress, dynamic_ncols=True,
                          desc=f"{phase.label:>7}", unit="it", leave=True)
         self.phase = phase
@@ -432,7 +432,7 @@ class _Loop:
             t.mark("backward")
             if dens:
                 r.density.accumulate(view.out, cam.width, cam.height, grad_scale=n)
-            rows.append(torch.stack([loss.detach().float(), *(terms[c].detach().float() for c in phase.TERMS)]))
+            rows.append(torch.stack([loss.detach().float(), *(x.detach().float() for x in terms.values())]))
         r.dist.all_reduce_mean_([getattr(r.params, f).grad for f in FIELDS])
         r.opt.step()
         r.opt.zero_grad()
@@ -442,7 +442,7 @@ class _Loop:
         t.end()
         info = {"step": step, "phase": phase.name, "view": mine[0][0] if n == 1 else [vi for vi, _ in mine],
                 "n": r.params.num, **phase.row(k)}
-        self.buf.append((info, self.cols, rows[0] if n == 1 else torch.stack(rows).mean(0)))
+        self.buf.append((info, tuple(terms), rows[0] if n == 1 else torch.stack(rows).mean(0)))
         return view
 
     def checkpoint_due(self, step: int) -> bool:
@@ -471,13 +471,13 @@ class _Loop:
         vals = flat.cpu().tolist()
         ok = vals[-1] == 1.0
         i = 0
-        for info, cols, _ in buf:
+        for info, names, _ in buf:
             row = dict(info)
-            row.update(dict.fromkeys(r.columns, 0.0))
-            for c, x in zip((0, *cols), vals[i:i + 1 + len(cols)]):
-                row[r.columns[c]] = round(x, 7)
+            row.update(dict.fromkeys(r.columns, 0.0))  # a term the phase did not compute logs 0
+            for c, x in zip(("loss", *names), vals[i:i + 1 + len(names)]):
+                row[c] = round(x, 7)
             ok = ok and math.isfinite(vals[i])  # the loss of that step
-            i += 1 + len(cols)
+            i += 1 + len(names)
             r.log.append(row)
         if not ok:
             raise _Stop(step, phase.name)

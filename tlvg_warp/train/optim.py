@@ -78,8 +78,8 @@ class GaussianParams:
 
     def gaussians(self) -> Gaussians:
         """A differentiable view (the SH bands concatenated)."""
-        return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits,
-                         torch.cat([self.sh_dc, self.sh_rest], dim=1))
+        sh = self.sh_dc if self.sh_rest.shape[1] == 0 else torch.cat([self.sh_dc, self.sh_rest], dim=1)
+        return Gaussians(self.means, self.quats, self.log_scales, self.opacity_logits, sh)
 
     def detached(self) -> Gaussians:
         return self.gaussians().clone()
