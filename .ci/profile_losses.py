@@ -296,11 +296,11 @@ def cache_experiment(args, dev, vgg):
 
     f0, g0, c0 = score(rgb)
     print(f"  start: FAST {f0:.4f}  Gram dist {g0:.4f}  content {c0:.3f}")
-    print("  refresh_every  matches  s/step   FAST (fresh)   Gram dist   content")
-    for R in args.refresh_list:
+    print("  refresh_every  cache       matches  s/step   FAST (fresh)   Gram dist   content")
+    for R, cache in [(R, c) for R in args.refresh_list for c in (args.cache_kinds if R > 1 else ["-"])]:
         tex = rgb.clone().requires_grad_(True)
         opt = torch.optim.Adam([tex], lr=args.lr)
-        style = S.StyleLoss(sf, "fast", refresh_every=R)
+        style = S.StyleLoss(sf, "fast", refresh_every=R, cache="projection" if cache == "-" else cache)
         t = time.perf_counter()
         for v in order:
             y, x = offs[v]
@@ -315,7 +315,7 @@ def cache_experiment(args, dev, vgg):
         sync(dev)
         dt = (time.perf_counter() - t) / len(order)
         f, g, c = score(tex.detach())
-        print(f"  {R:13d}  {style.refreshes:7d}  {dt:6.3f}   {f:12.4f}   {g:9.4f}   {c:7.3f}", flush=True)
+        print(f"  {R:13d}  {cache:10s}  {style.refreshes:7d}  {dt:6.3f}   {f:12.4f}   {g:9.4f}   {c:7.3f}", flush=True)
 
 
 def main():
@@ -339,6 +339,7 @@ def main():
     ap.add_argument("--steps", type=int, default=120, help="cache experiment: optimization steps")
     ap.add_argument("--lr", type=float, default=0.01, help="cache experiment: Adam learning rate on the texture")
     ap.add_argument("--refresh-list", type=int, nargs="+", default=[1, 3, 10, 30])
+    ap.add_argument("--cache-kinds", nargs="+", default=["projection", "match"], choices=["projection", "match"])
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -382,6 +383,7 @@ def main():
     style_f = S.StyleFeatures(s_feats)
     fast = S.StyleLoss(style_f, "fast")
     cached = S.StyleLoss(style_f, "fast", refresh_every=args.refresh_every)
+    cached_match = S.StyleLoss(style_f, "fast", refresh_every=args.refresh_every, cache="match")
     nnfm, gramL = S.StyleLoss(style_f, "nnfm"), S.StyleLoss(style_f, "gram")
     try:
         lab_stats = C.lab_chroma_stats(target)
@@ -412,6 +414,7 @@ def main():
     if do_after:
         run("style FAST", "after", lambda: fast(a))
         run(f"style FAST refresh {args.refresh_every} (amort.)", "after", lambda: cached(a, key=0))
+        run(f"style FAST match-cache {args.refresh_every}", "after", lambda: cached_match(a, key=0))
         run("style FAST solve=lu64 (old solve)", "after", lambda: S.fast_loss(a, style_f, solve="lu64"))
     if do_before:
         run("style NNFM", "before", lambda: legacy_nnfm_loss(a, s_feats))
@@ -440,7 +443,8 @@ def main():
     # the stylize step's terms (FAST, content, Lab, flow, VGG): the configured method
     per = {}
     for name, impl, ms, la, sy in rows:
-        if name.startswith(("vgg", "style FAST", "content", "lab", "flow")) and "refresh" not in name and "lu64" not in name:
+        if (name.startswith(("vgg", "style FAST", "content", "lab", "flow")) and "refresh" not in name
+                and "cache" not in name and "lu64" not in name):
             per.setdefault(impl, [0.0, 0, 0])
             per[impl][0] += ms
             per[impl][1] += la

@@ -260,3 +260,16 @@ def test_style_loss_cache_reuses_the_projection_per_key():
     assert nn.refreshes == 1
     with pytest.raises(ValueError):
         style_mod.StyleLoss(s, refresh_every=0)
+
+
+def test_style_loss_match_cache_redoes_the_solve():
+    s = torch.from_numpy(feats(30, 8, 33))
+    loss = style_mod.StyleLoss(s, refresh_every=2, cache="match")
+    a0, a1 = torch.from_numpy(feats(400, 8, 40)), torch.from_numpy(feats(401, 8, 40))
+    assert loss(a0, key=0).item() == fast_loss(a0, s).item()
+    idx0 = style_mod._topk_both(a0, style_mod.StyleFeatures(s), 5)
+    P, ok = style_mod.fast_projection(a1, s, idx=idx0)  # a0's match, a1's own A, B and solve
+    want = style_mod.cosine_distance_to_fixed(a1, torch.where(ok, P.T @ a1, a1), dim=1)
+    assert loss(a1, key=0).item() == want.item() and loss.refreshes == 1
+    with pytest.raises(ValueError, match="cache"):
+        style_mod.StyleLoss(s, cache="all")

@@ -356,24 +356,29 @@ class StyleLoss:
     ``kind``: "fast" | "nnfm" | "gram". ``solve``: FAST's solve (:func:`fast_projection`).
 
     Match caching (optional; off by default): with ``refresh_every = R > 1`` and a ``key`` per call (the view
-    index), the FAST projection P (the top-k match and the C x C solve, the costly part) is recomputed on the
-    first call of a key and then on every R-th call of that key; the calls between reuse P and take the
-    target b = Pᵀa from the current features (NNFM reuses the nearest-neighbour indices). R = 1, or no key,
-    recomputes every call: exactly :func:`fast_loss`. ``match_of(key)`` returns the last top-k indices of a key
-    (the stroke field's match); ``reset()`` drops the cache (e.g. after the Gaussians or the views change)."""
+    index), FAST's costly part is computed on the first call of a key and then on every R-th call of that key;
+    the calls between reuse it. ``cache`` says what is reused: "projection" (the top-k match AND the C x C solve:
+    the target is b = Pᵀa of the current features with the key's last P; the cheapest) or "match" (the top-k
+    match only: A, B and the solve are redone from the current features). NNFM reuses its nearest neighbours.
+    R = 1, or no key, recomputes every call: exactly :func:`fast_loss`. ``match_of(key)`` returns a key's last
+    top-k indices [Nc,k] (the stroke field's match); ``reset()`` drops the cache. The reused P is a C x C map,
+    valid whatever the render's cell count (density control may change the scene between calls)."""
 
     KINDS = ("fast", "nnfm", "gram")
+    CACHES = ("projection", "match")
 
     def __init__(self, style_feats, kind: str = "fast", k: int = K_CROSS, refresh_every: int = 1,
-                 solve: str = "auto"):
+                 solve: str = "auto", cache: str = "projection"):
         if kind not in self.KINDS:
             raise ValueError(f"kind must be one of {self.KINDS}, got {kind!r}")
         if int(refresh_every) != refresh_every or refresh_every < 1:
             raise ValueError(f"refresh_every must be an integer >= 1, got {refresh_every!r}")
+        if cache not in self.CACHES:
+            raise ValueError(f"cache must be one of {self.CACHES}, got {cache!r}")
         _solve_kind(solve, torch.empty(0))
         self.style = style_feats if isinstance(style_feats, StyleFeatures) else StyleFeatures(style_feats)
-        self.kind, self.k, self.refresh_every, self.solve = kind, int(k), int(refresh_every), solve
-        self._cache: dict = {}  # key -> [calls since refresh, payload]
+        self.kind, self.k, self.refresh_every, self.solve, self.cache = kind, int(k), int(refresh_every), solve, cache
+        self._cache: dict = {}  # key -> [calls since refresh, payload dict]
         self.refreshes = 0  # matches computed (a count for logs and tests)
 
     def reset(self) -> None:
@@ -381,9 +386,9 @@ class StyleLoss:
 
     def match_of(self, key):
         hit = self._cache.get(key)
-        return None if hit is None else hit[1][-1]
+        return None if hit is None else hit[1]["idx"][0]
 
-    def _cached(self, key, compute):
+    def _cached(self, key, compute) -> dict:
         hit = self._cache.get(key) if key is not None and self.refresh_every > 1 else None
         if hit is not None and hit[0] < self.refresh_every:
             hit[0] += 1
@@ -401,15 +406,21 @@ class StyleLoss:
             return gram_loss(a, st)
         ad = a.detach()
         if self.kind == "nnfm":
-            nn_idx, = self._cached(key, lambda: (_topk_both(ad, st, 1, need_cols=False)[0],))
-            return cosine_distance_to_fixed(a, st.s[:, nn_idx[:, 0]], dim=0)
+            idx = self._cached(key, lambda: {"idx": _topk_both(ad, st, 1, need_cols=False)})["idx"]
+            return cosine_distance_to_fixed(a, st.s[:, idx[0][:, 0]], dim=0)
 
         def compute():
             idx = _topk_both(ad, st, self.k)
+            if self.cache == "match":
+                return {"idx": idx}
             P, ok = fast_projection(ad, st, self.k, idx=idx, solve=self.solve)
-            return P, ok, idx[0]
+            return {"idx": idx, "P": P, "ok": ok}
 
-        P, ok, _ = self._cached(key, compute)
+        got = self._cached(key, compute)
+        if "P" in got:
+            P, ok = got["P"], got["ok"]
+        else:
+            P, ok = fast_projection(ad, st, self.k, idx=got["idx"], solve=self.solve)
         with torch.no_grad():
             b = _apply_projection(P, ok, ad)
         return cosine_distance_to_fixed(a, b, dim=1)
