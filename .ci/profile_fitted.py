@@ -3,81 +3,38 @@
 python3 .ci/profile_fitted.py SCENE.ply DATASET [IMAGES]
 Prints: the fwd / fwd+bwd medians over every view for both, the per-pixel list lengths (Gaussians binned per
 tile, Gaussians walked per pixel until saturation), the intersections per render, and the top CUDA kernels of
-each rasterizer (CUPTI via torch.profiler) on view 0."""
+each rasterizer (CUPTI via torch.profiler) over every view. `bench raster --scene` reports the same in its tables."""
 import statistics
 import sys
 
 import torch
-from torch.profiler import ProfilerActivity, profile
 
-from tlvg_warp import load_dataset, ops
-from tlvg_warp.eval.bench_raster import PEERS, _sync, time_fn
-from tlvg_warp.io.ply import load_ply
+from tlvg_warp.eval import bench_raster as br
 
 ply, data = sys.argv[1], sys.argv[2]
 images = sys.argv[3] if len(sys.argv) > 3 else "images_4"
 dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-g = load_ply(ply).to(device=dev)
-ds = load_dataset(data, images=images)
-cams = list(ds.cameras)
+case = br.scene_case(f"{ply}:{data}:{images}", dev)
+g, cams = case.g, case.cams
 print(f"scene {ply}: {g.num:,} Gaussians, SH {g.sh_degree}; {len(cams)} views {cams[0].width}x{cams[0].height}")
-
-# per-pixel list lengths of ours: capture the binning state of one forward per view
-seen = {}
-orig_blend = ops.blend
-
-
-def spy(K, proj, pouts, counts, total, geometry, cam, settings):
-    out = orig_blend(K, proj, pouts, counts, total, geometry, cam, settings)
-    seen["total"] = total
-    seen["state"] = out[4]
-    return out
-
-
-ops.blend = spy
-lens, walked, totals = [], [], []
-from tlvg_warp import render
-for cam in cams:
-    with torch.no_grad():
-        render(g, cam)
-    st = seen["state"]
-    ranges, last = st["args"][0]._ref, st["saved"][2]._ref  # [tiles, 2], [H, W]
-    totals.append(seen["total"])
-    per_tile = (ranges[:, 1] - ranges[:, 0]).float()
-    H, W = last.shape
-    ys, xs = torch.meshgrid(torch.arange(H, device=dev), torch.arange(W, device=dev), indexing="ij")
-    tiles_x = (W + 15) // 16
-    start = ranges[(ys // 16) * tiles_x + xs // 16, 0]
-    per_px = (last - start).float()
-    lens.append((per_tile.mean().item(), per_tile.max().item(), per_px.mean().item(), per_px.max().item()))
-ops.blend = orig_blend
-print(f"intersections per render: mean {statistics.mean(totals):,.0f}, max {max(totals):,}")
-if lens:
-    print(f"Gaussians binned per tile: mean {statistics.mean(l[0] for l in lens):.0f}, max {max(l[1] for l in lens):.0f}; "
-          f"walked per pixel: mean {statistics.mean(l[2] for l in lens):.0f}, max {max(l[3] for l in lens):.0f}")
-
+ls = br.scene_lists(g, cams)
+print(f"intersections per render: mean {ls['intersections']:,.0f}, max {ls['intersections_max']:,}")
+print(f"Gaussians binned per tile: mean {ls['tile_mean']:.0f}, max {ls['tile_max']}; "
+      f"walked per pixel: mean {ls['px_mean']:.0f}, max {ls['px_max']}")
 for peer in ("tlvg_warp", "gsplat"):
     try:
-        fwds, fbs = [], []
-        for cam in cams:
-            fwd, fb, _ = PEERS[peer](g, cam)
-            fwds.append(time_fn(fwd, dev, 10))
-            fbs.append(time_fn(fb, dev, 10))
+        make = br.PEER_VIEWS[peer](g)
+        views = [make(cam) for cam in cams]
+        fwds = [br.time_fn(v[0], dev, 10) for v in views]
+        fbs = [br.time_fn(v[1], dev, 10) for v in views]
         print(f"{peer}: fwd median {statistics.median(fwds):.3f} ms, fwd+bwd {statistics.median(fbs):.3f} ms "
               f"(over {len(cams)} views, median of 10 each)")
-        fwd, fb, _ = PEERS[peer](g, cams[0])
-        for name, fn in (("fwd", fwd), ("fwd+bwd", fb)):
-            for _ in range(3):
-                fn()
-            _sync(dev)
-            with profile(activities=[ProfilerActivity.CUDA]) as prof:
-                for _ in range(10):
-                    fn()
-                _sync(dev)
-            evs = [e for e in prof.key_averages() if e.device_time_total > 0]
-            tot = sum(e.device_time_total for e in evs) / 10 / 1e3
-            print(f"  {peer} {name}: GPU kernels+copies {tot:.3f} ms/it")
-            for e in sorted(evs, key=lambda e: -e.device_time_total)[:12]:
-                print(f"    {e.device_time_total / 10 / 1e3:7.3f} ms  x{e.count // 10:<3d} {e.key[:90]}")
+        for name, k in (("fwd", 0), ("fwd+bwd", 1)):
+            st = br.gpu_stages([v[k] for v in views], dev)
+            if st:
+                print(f"  {peer} {name}: GPU kernels+copies {st['gpu total']:.3f} ms/render; by stage: "
+                      + ", ".join(f"{s} {st[s]:.3f}" for s in br.STAGE_NAMES))
+                for ms, count, key in st["kernels"][:12]:
+                    print(f"    {ms:7.3f} ms  x{count:<4g} {key[:90]}")
     except Exception as e:  # noqa: BLE001 - a development aid: report and go on
         print(f"{peer}: failed: {type(e).__name__}: {e}")

@@ -1,9 +1,10 @@
 """Bridge between torch tensors and the Warp raster kernels: one op per pipeline stage (project, bin,
-blend) and the autograd Function that carries them on one Warp tape.
+blend) and the autograd Function that carries them.
 
-Gradients: Warp generates the projection/SH adjoint; the blending backward is hand-written and registered
-on the same tape with ``Tape.record_func``. Every Warp array gets its own torch-allocated grad buffer
-(Warp never writes into a torch ``.grad``, which would double count)."""
+Kernels get bare array descriptors of torch tensors (``ct``), launched through recorded ``wp.Launch``es
+(``fast_launch``): a render's host time, not its GPU time, bounds small and sparse scenes. Gradients: the
+blending and SH backwards are hand-written; the projection's adjoint is Warp-generated, launched by hand with the
+torch-allocated gradient buffers as its adjoint arguments (``project_adjoint``)."""
 from __future__ import annotations
 
 import contextlib
@@ -200,31 +201,23 @@ def capture_binning():
         _capture = prev
 
 
-_inputs: dict = {}  # id(tensor) -> (weakref, layout key, wp.array): the wrappers of recently rendered inputs
+_inputs: dict = {}  # id(tensor) -> (weakref, layout key, descriptor): the inputs of recent renders
 
 
-def input_array(t: torch.Tensor, dtype) -> wp.array:
-    """``to_warp`` for a render input, reused across renders while the tensor keeps its storage (an optimizer
-    steps the same tensors in place; building a wp.array costs the host more than some kernels take). The entry
-    goes when the tensor does; a tensor given new storage (``t.data = ...``) gets a new wrapper."""
-    if not t.is_contiguous():
-        return to_warp(t, dtype)
-    key = (t.data_ptr(), t.shape, t.dtype, dtype)
+def input_ct(t: torch.Tensor, dtype):
+    """``ct`` of a render input, reused across renders while the tensor keeps its storage and layout (an optimizer
+    steps the same tensors in place). The entry goes when the tensor does; a tensor given new storage
+    (``t.data = ...``) gets a new descriptor. The descriptor holds a detached alias of t's storage, never t."""
+    if t.numel() and t.stride()[-1] != 1:  # the vector dimension must be innermost and contiguous
+        return ct(t.detach().contiguous(), dtype)
+    key = (t.data_ptr(), t.shape, t.stride(), t.dtype)
     hit = _inputs.get(id(t))
     if hit is not None and hit[0]() is t and hit[1] == key:
         return hit[2]
-    a = to_warp(t, dtype)  # holds a detached alias of t's storage, never t itself (the weak entry can go)
+    a = ct(t.detach(), dtype)
     tid = id(t)
     _inputs[tid] = (weakref.ref(t, lambda _r: _inputs.pop(tid, None)), key, a)
     return a
-
-
-def attach_grad(a: wp.array, like: torch.Tensor, zero: bool = True) -> torch.Tensor:
-    """Give ``a`` a fresh torch-allocated grad buffer (allocated only when the backward runs, so the forward's
-    peak memory holds no gradients) and return that buffer; ``zero=False`` when a kernel writes all of it."""
-    g = torch.zeros_like(like) if zero else torch.empty_like(like)
-    a.grad = to_warp(g, a.dtype)
-    return g
 
 
 def packed_zeros(shapes, dtype, device) -> list[torch.Tensor]:
@@ -233,14 +226,6 @@ def packed_zeros(shapes, dtype, device) -> list[torch.Tensor]:
     sizes = [math.prod(s) for s in shapes]
     buf = torch.zeros(sum(sizes), dtype=dtype, device=device)
     return [v.view(s) for v, s in zip(buf.split(sizes), shapes)]
-
-
-def attach_grads(arrays, likes) -> list[torch.Tensor]:
-    """``attach_grad`` for several arrays at once, their zeroed grads packed in one buffer."""
-    grads = packed_zeros([t.shape for t in likes], likes[0].dtype, likes[0].device)
-    for a, g in zip(arrays, grads):
-        a.grad = to_warp(g, a.dtype)
-    return grads
 
 
 @dataclass
@@ -279,37 +264,49 @@ def camera_center(K, values):
     return K.vec3(*map(K.scalar, values[2]))
 
 
-def project(K, wargs, cam: Camera, cam_values, n: int, dtype, device, tape: wp.Tape):
-    """Launch the projection on the tape (Warp-generated adjoint); returns (Projected, warp output arrays
-    [means2d, conic, depth, opacity, color, radii]). The color is filled by ``shade``."""
+def project(K, args, cam: Camera, cam_values, n: int, dtype, device):
+    """Launch the projection: returns (Projected, its output descriptors [means2d, conic, depth, opacity, color,
+    radii]). The color is filled by ``shade``; the adjoint is launched by ``project_adjoint``."""
     means2d, conic, depth, opacity, color = packed_zeros([(n, 2), (n, 3), (n,), (n,), (n, 3)], dtype, device)
     proj = Projected(means2d, None, conic, depth, opacity, color, torch.zeros(n, dtype=torch.int32, device=device))
-    outs = [to_warp(proj.means2d, K.vec2), to_warp(proj.conic, K.vec3), to_warp(proj.depth, K.scalar),
-            to_warp(proj.opacity, K.scalar), to_warp(proj.color, K.vec3), wp.from_torch(proj.radii, dtype=wp.int32)]
-    inputs, outputs, wdev = wargs[:4] + camera_args(cam, K, cam_values), outs[:4] + outs[5:], wp.device_from_torch(device)
-    fast_launch(K.project, n, inputs + outputs, wdev)
-    tape.record_launch(K.project, n, 0, inputs, outputs, wdev)  # its adjoint: Warp-generated, run by the tape
+    outs = [ct(means2d, K.vec2), ct(conic, K.vec3), ct(depth), ct(opacity), ct(color, K.vec3), ct(proj.radii)]
+    fast_launch(K.project, n, args[:4] + camera_args(cam, K, cam_values) + outs[:4] + outs[5:], wp.device_from_torch(device))
     return proj, outs
 
 
-def shade(K, wargs, pouts, center, sh_degree: int, n: int, device, tape: wp.Tape):
-    """Launch the SH color of the projected Gaussians and record its hand-written backward on the tape (after
-    the projection, so it runs before the projection adjoint: its means gradient is a plain store)."""
-    wdev = wp.device_from_torch(device)
-    w_means, _q, _s, _o, w_sh = wargs
-    w_color, w_radii = pouts[4], pouts[5]
-    n_coeffs = (sh_degree + 1) ** 2
-    sh_args = [w_means, w_sh, w_radii, center, sh_degree]
+def project_adjoint(K, args, pouts, grads, out_grads, cam: Camera, cam_values, n: int, device):
+    """The projection's Warp-generated adjoint: dL/d(screen mean, conic, depth, opacity) -> ``grads`` of the four
+    geometric inputs (accumulated). What wp.Tape would launch, with the gradient buffers passed as adjoint
+    arguments: the forward descriptors carry no gradient pointers, so no output gradient is zeroed on the way (the
+    screen-mean one stays dL/d(screen mean))."""
+    if n == 0:
+        return
+    cam_args = camera_args(cam, K, cam_values)
+    tape = wp.Tape()  # only for its rule of adjoint values of the non-array arguments
+    wp.launch(K.project, dim=n, inputs=[_bare(a) for a in args[:4]] + cam_args,
+              outputs=[_bare(a) for a in pouts[:4] + pouts[5:]],
+              adj_inputs=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))]
+              + [tape.get_adjoint(a) for a in cam_args],
+              adj_outputs=[ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[2]), ct(out_grads[3]), None],
+              adjoint=True, device=wp.device_from_torch(device))
+
+
+def shade(K, args, pouts, center, sh_degree: int, n: int, device):
+    """Launch the SH color of the projected Gaussians."""
     if n:
-        fast_launch(K.sh_color, n, sh_args + [w_color], wdev)
+        fast_launch(K.sh_color, n, [args[0], args[4], pouts[5], center, sh_degree, pouts[4]], wp.device_from_torch(device))
 
-    def sh_backward():
-        if n:
-            g_rgb = w_color.grad  # dL/d(SH sum) overwrites dL/dcolor in place (each thread its own element)
-            fast_launch(K.sh_backward, n, sh_args + [w_color.grad, g_rgb, w_means.grad], wdev)
-            fast_launch(K.sh_coeff_grad, n * n_coeffs, [w_means, w_radii, center, n_coeffs, g_rgb, w_sh.grad], wdev)
 
-    tape.record_func(backward=sh_backward, arrays=[])
+def shade_backward(K, args, pouts, center, sh_degree: int, n: int, g_color, g_means, g_sh, device):
+    """The SH backward: dL/dcolor -> dL/d(SH coefficients) and the view-direction part of dL/dmeans, which it
+    stores (run it before the projection adjoint, which adds to it). dL/d(SH sum) overwrites ``g_color``."""
+    if n:
+        wdev = wp.device_from_torch(device)
+        sh_args = [args[0], args[4], pouts[5], center, sh_degree]
+        c = ct(g_color, K.vec3)
+        fast_launch(K.sh_backward, n, sh_args + [c, c, ct(g_means, K.vec3)], wdev)
+        n_coeffs = (sh_degree + 1) ** 2
+        fast_launch(K.sh_coeff_grad, n * n_coeffs, [args[0], pouts[5], center, n_coeffs, c, ct(g_sh, K.vec3)], wdev)
 
 
 def binning_geometry(proj: Projected):
@@ -427,73 +424,62 @@ class RasterizeFn(torch.autograd.Function):
 
     ``means2d_probe`` is a zero tensor whose gradient receives dL/d(screen mean) for density control.
 
-    Memory: the tape runs the blending backward first, then drops the binning and per-pixel state (sorted ids,
-    T, last) before the input gradients are allocated, so the backward's peak never holds both. A second
-    backward through the same graph (retain_graph, gradcheck) rebuilds that state from the kept projection."""
+    The backward runs the blending backward, the SH backward and the projection's Warp-generated adjoint in
+    that order, on array descriptors (no wp.Tape, no wp.array per render). Memory: the binning and per-pixel
+    state (sorted ids, T, last) is dropped after the blending backward, before the input gradients are
+    allocated, so the backward's peak never holds both. A second backward through the same graph (retain_graph,
+    gradcheck) rebuilds that state from the kept projection."""
 
     @staticmethod
     def forward(ctx, means, quats, log_scales, opacity_logits, sh, means2d_probe, cam, settings):
         K = kernels_for(means.dtype)
         device, n = means.device, means.shape[0]
-        with warp_on(device) as wdev:
+        with warp_on(device):
             inputs = (means, quats, log_scales, opacity_logits, sh)
-            wargs = [input_array(t, ty) for t, ty in zip(inputs, (K.vec3, K.vec4, K.vec3, K.scalar, K.vec3))]
-            tape = wp.Tape()
+            args = [input_ct(t, ty) for t, ty in zip(inputs, (K.vec3, K.vec4, K.vec3, None, K.vec3))]
             cam_values = camera_values(cam)
-            proj, pouts = project(K, wargs, cam, cam_values, n, means.dtype, device, tape)
+            proj, pouts = project(K, args, cam, cam_values, n, means.dtype, device)
             center = camera_center(K, cam_values)  # ready before the sync
             binning = count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"])
             # the SH launch goes right after the sync: the GPU shades while the host prepares the binning
-            shade(K, wargs, pouts, center, settings["sh_degree"], n, device, tape)
+            shade(K, args, pouts, center, settings["sh_degree"], n, device)
             color, alpha, depth, weights, first = blend(K, proj, pouts, *binning, cam, settings)
             del binning
-            kept = {"blend": first}
-            io = {}  # filled by backward(): the upstream gradients, and the input gradients once allocated
-
-            def attach_input_grads():  # runs after blend_backward, before the SH and projection adjoints
-                sh_full = (settings["sh_degree"] + 1) ** 2 == sh.shape[1]  # sh_backward then stores every entry
-                io["grads"] = attach_grads(wargs[:4], inputs[:4]) + [attach_grad(wargs[4], sh, zero=not sh_full)]
-
-            def blend_backward():
-                # the sorted ids, T and last go when this returns (stream-ordered: safe with the launch queued);
-                # a second backward through the same graph rebuilds them
-                st = kept.pop("blend", None) or blend(
-                    K, proj, pouts, *count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"]),
-                    cam, settings)[4]
-                fast_launch(K.blend_backward, st["threads"],
-                            st["args"] + st["saved"] + io["upstream"] + [a.grad for a in st["args"][2:7]], wdev,
-                            block_dim=TILE * TILE)
-
-            tape.record_func(backward=attach_input_grads, arrays=[])
-            tape.record_func(backward=blend_backward, arrays=[])
-        ctx.state = (tape, proj, pouts, io, device, wargs)
-        # the inputs are read by the tape's adjoints: saving them lets autograd refuse a backward after an
-        # in-place change (torch's version counter) instead of returning stale gradients
+        ctx.state = (proj, pouts, args, {"blend": first}, cam, cam_values, center, settings)
+        # the inputs are read by the adjoints: saving them lets autograd refuse a backward after an in-place
+        # change (torch's version counter) instead of returning stale gradients
         ctx.save_for_backward(means, quats, log_scales, opacity_logits, sh)
-        ctx.image_size = (cam.height, cam.width)
         ctx.mark_non_differentiable(proj.radii, weights)
         return color, alpha, depth, proj.radii, weights if settings["weights"] else None  # depth None if not asked
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
-        tape, proj, pouts, io, device, wargs = ctx.state
-        ctx.saved_tensors  # noqa: B018 (raises if an input changed in place since the forward)
+        proj, pouts, args, kept, cam, cam_values, center, settings = ctx.state
+        inputs = ctx.saved_tensors  # (raises if an input changed in place since the forward)
         K = kernels_for(proj.depth.dtype)
+        device, dtype, n = proj.depth.device, proj.depth.dtype, proj.depth.shape[0]
+        H, W = cam.height, cam.width
         # gradient buffers exist only from here on (fresh per call, so a second backward through the same
         # graph, e.g. gradcheck or retain_graph, never sees the first call's sums)
-        screen = attach_grads(pouts[:5], [proj.means2d, proj.conic, proj.depth, proj.opacity, proj.color])[0]  # [N, 2]
-        # the projection adjoint would zero the output grads it consumes (Warp's default for arrays written once);
-        # retaining the screen-mean one makes it dL/d(screen mean) after the backward, with no copy
-        pouts[0].retain_grad = True
-        H, W = ctx.image_size
-        dtype = proj.depth.dtype
+        out_grads = packed_zeros([t.shape for t in (proj.means2d, proj.conic, proj.depth, proj.opacity, proj.color)],
+                                 dtype, device)
         # an absent upstream gradient is a broadcast zero (stride 0 over rows): no [H, W] buffer, no memset
         ups = [g.contiguous() if g is not None else torch.zeros(shape[-1], dtype=dtype, device=device).expand(shape)
                for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
-        io["upstream"] = [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
-        with warp_on(device):
-            tape.backward()
-        grads = io.pop("grads")
-        for a in wargs + pouts[:5]:  # let the buffers go with the autograd graph's references
-            a.grad = None
-        return (*grads, screen, None, None)
+        with warp_on(device) as wdev:
+            # the sorted ids, T and last go when this block ends (stream-ordered: safe with the launch queued);
+            # a second backward through the same graph rebuilds them
+            st = kept.pop("blend", None) or blend(
+                K, proj, pouts, *count_intersections(K, proj, W, H, settings["all_tiles"]), cam, settings)[4]
+            fast_launch(K.blend_backward, st["threads"],
+                        st["args"] + st["saved"] + [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
+                        + [ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[3]),  # the kernel's order:
+                           ct(out_grads[4], K.vec3), ct(out_grads[2])], wdev, block_dim=TILE * TILE)  # ..., color, depth
+            del st, ups
+            sh = inputs[4]
+            sh_full = (settings["sh_degree"] + 1) ** 2 == sh.shape[1]  # sh_backward then stores every entry
+            grads = packed_zeros([t.shape for t in inputs[:4]], dtype, device)
+            g_sh = torch.empty_like(sh) if sh_full else torch.zeros_like(sh)
+            shade_backward(K, args, pouts, center, settings["sh_degree"], n, out_grads[4], grads[0], g_sh, device)
+            project_adjoint(K, args, pouts, grads, out_grads, cam, cam_values, n, device)
+        return (*grads, g_sh, out_grads[0], None, None)
