@@ -75,7 +75,7 @@ class Phase:
     """A stretch of ``steps`` optimizer steps. Subclasses give ``terms`` (and usually ``TERMS``, ``setup``,
     ``weights``); the defaults train every group, without density control or hooks."""
 
-    TERMS: tuple = ()  # the names ``terms`` returns (the log's columns)
+    TERMS: tuple = ()  # the names ``terms`` may return (the log's columns; one it leaves out logs 0)
     STAGES: tuple = ()  # stages ``terms`` marks on run.timer (beyond the loop's own)
     render_weights = False  # the terms need Σ αT per Gaussian (RenderOutput.weights)
 

@@ -21,7 +21,6 @@ import torch
 from ..types import Gaussians, sh_coeffs
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
-GEOMETRY = ("means", "log_scales", "opacity_logits")  # what the post-process color fit keeps frozen
 
 
 @dataclass
@@ -276,5 +275,5 @@ def tangential_hook(lam: float = 1.0):
     return hook
 
 
-__all__ = ["FIELDS", "GEOMETRY", "LR_RENAMED", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
+__all__ = ["FIELDS", "LR_RENAMED", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
            "quat_to_rotmat", "footprint_normals", "tangential_hook", "sh_coeffs"]
