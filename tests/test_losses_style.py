@@ -173,8 +173,10 @@ def test_topk_both_and_union_against_dense_brute_force(monkeypatch):
     a, s = feats(24, 7, 29), feats(25, 7, 41)  # 29 render cells: padded to 32 in the column product
     an, sn = a / np.linalg.norm(a, axis=0), s / np.linalg.norm(s, axis=0)
     sim = an.T @ sn
-    for budget in (1 << 25, 50):  # one product, and row chunks of both
+    # one product or chunks of it; the CUDA layout (a second, transposed product over padded cells) or the CPU's
+    for budget, two in ((1 << 25, False), (50, False), (1 << 25, True), (50, True)):
         monkeypatch.setattr(style_mod, "SIM_BUDGET", budget)
+        monkeypatch.setattr(style_mod, "TWO_PRODUCTS", two)
         st = style_mod.StyleFeatures(torch.from_numpy(s))
         idx_r, idx_c = style_mod._topk_both(torch.from_numpy(a), st, 5)
         assert np.array_equal(np.sort(idx_r.numpy(), 1), np.sort(np.argsort(-sim, 1)[:, :5], 1))

@@ -28,6 +28,7 @@ RIDGE64 = 1e-10
 RIDGE32 = 1e-5
 EPS_COS = 1e-8  # F.cosine_similarity's eps: a (dead) all-zero row has cosine 0
 SIM_BUDGET = 1 << 25  # elements per similarity chunk: 32M floats = 128 MB in float32
+TWO_PRODUCTS = None  # the match's column pass from a second product: None = on CUDA only (tests force either)
 SOLVES = ("auto", "cholesky64", "lu64", "cholesky32")
 
 
@@ -129,26 +130,42 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     [Ns,kc] (best render cells per style cell, or None). ``s``: [C,Ns] or a StyleFeatures (its unit columns
     are reused).
 
-    Two products, each top-k along its rows (a top-k down the columns of one product was 2x slower on the
-    H200): sim = âᵀŝ [Nc,Ns] and simᵀ = ŝᵀâ [Ns,Nc']. The unit render features are laid out [Nc', C] with Nc'
-    the cell count rounded up to 8, so every operand and output of both float16 products is 16-byte aligned
+    On CUDA: two products, each top-k along its rows (a top-k down the columns of one product was 2x slower on
+    the H200): sim = âᵀŝ [Nc,Ns] and simᵀ = ŝᵀâ [Ns,Nc']. The unit render features are laid out [Nc', C] with
+    Nc' the cell count rounded up to 8, so every operand and output of both float16 products is 16-byte aligned
     (tensor-core kernels; 0.23 -> 0.05 ms at fern size); the padding cells' similarities are set to -inf
-    before their top-k. Products larger than SIM_BUDGET elements are made in row chunks."""
+    before their top-k. On the CPU (float32 products cost more than a top-k down the columns) one product, its
+    column top-k merged across row chunks. Products larger than SIM_BUDGET elements are made in chunks."""
     st = as_style(s, a)
     mdt = match_dtype(a)
     c, nc = a.shape
     ns = st.shape[1]
     kr, kc = min(k, ns), min(k, nc)
-    pad = (-nc) % 8 if need_cols else 0
+    two = need_cols and (a.is_cuda if TWO_PRODUCTS is None else TWO_PRODUCTS)
+    pad = (-nc) % 8 if two else 0
     anT = torch.empty(nc + pad, c, dtype=mdt, device=a.device)
     anT[:nc].copy_(_unit(a).T)  # the padding rows stay unset: only their own (overwritten) outputs see them
     idx_r = torch.empty(nc, kr, dtype=torch.long, device=a.device)
+    idx_c = torch.empty(ns, kc, dtype=torch.long, device=a.device) if need_cols else None
     sn = st.unit(mdt)
+    best_v = best_i = None  # CPU: running column top-k over the row chunks [kc', Ns]
     for i0, i1 in _chunks(nc, ns):
-        idx_r[i0:i1] = (anT[i0:i1] @ sn).topk(kr, dim=1).indices
+        sim = anT[i0:i1] @ sn  # [m, Ns]
+        idx_r[i0:i1] = sim.topk(kr, dim=1).indices
+        if need_cols and not two:
+            v, i = sim.topk(min(kc, i1 - i0), dim=0)  # [k', Ns]
+            if i0:
+                i = i + i0
+            if best_v is not None:
+                v, i = torch.cat([best_v, v]), torch.cat([best_i, i])
+                v, j = v.topk(min(kc, v.shape[0]), dim=0)
+                i = i.gather(0, j)
+            best_v, best_i = v, i
     if not need_cols:
         return idx_r, None
-    idx_c = torch.empty(ns, kc, dtype=torch.long, device=a.device)
+    if not two:
+        idx_c.copy_(best_i.T)
+        return idx_r, idx_c
     snT = st.unitT(mdt)
     for j0, j1 in _chunks(ns, nc + pad):
         simT = snT[j0:j1] @ anT.T  # [m, Nc']
