@@ -2,7 +2,8 @@
 # Issue 15 on the GPU: the rasterizer on fitted scenes against gsplat/gswarp, in one process per benchmark.
 #   fit    fern and beer fitted by `reconstruct` into /tmp/tlvg-runs/{fern,beer}/point_cloud.ply (skipped when there)
 #   tests  tests/test_raster_cuda.py (the CUDA binning/blending against the brute-force set and the float64 oracle)
-#   ab     blending variants on fern (4 views, ours only): staged-batch layout x __launch_bounds__, GPU time per stage
+#   ab     blending variants on fern (4 views, ours only): staged-batch layout, __launch_bounds__, batch walk
+#          (AB_VARIANTS="SLAB BLOCKS LOOP;..."), GPU time per stage
 #   bench  `bench raster`: fitted fern and beer (every view) + random 1M/3M, all peers; per-stage GPU times,
 #          top kernels, list lengths; the table last
 #   proxy  without the fitted scenes: a trained splat (PROXY, default .gpu/proxy/biker.compressed.ply, orbit views)
@@ -40,11 +41,13 @@ ab() {
   local scene=${1:-$FERN}
   [ -f "${scene%%:*}" ] || { echo "ab: no ${scene%%:*}"; return 1; }
   : > "$OUT/ab.txt"
-  for v in "vector 0,0" "scalar 0,0" "vector 4,3" "scalar 5,4" "vector 5,4"; do
+  local variants=("vector 0,0 while" "vector 0,0 for" "scalar 0,0 while" "vector 4,3 while")
+  [ -n "${AB_VARIANTS:-}" ] && IFS=';' read -ra variants <<< "$AB_VARIANTS"
+  for v in "${variants[@]}"; do
     set -- $v
-    echo "== TLVG_WARP_BLEND_SLAB=$1 TLVG_WARP_BLEND_BLOCKS=$2" | tee -a "$OUT/ab.txt"
-    TLVG_WARP_BLEND_SLAB=$1 TLVG_WARP_BLEND_BLOCKS=$2 timeout 240 python3 -m tlvg_warp bench raster --sizes none --garden "" \
-      --peers tlvg_warp --scene "$scene" --views 4 --repeats 10 --out "/tmp/tlvg-ab/$1_${2/,/_}" 2>&1 \
+    echo "== TLVG_WARP_BLEND_SLAB=$1 TLVG_WARP_BLEND_BLOCKS=$2 TLVG_WARP_BLEND_LOOP=$3" | tee -a "$OUT/ab.txt"
+    TLVG_WARP_BLEND_SLAB=$1 TLVG_WARP_BLEND_BLOCKS=$2 TLVG_WARP_BLEND_LOOP=$3 timeout 240 python3 -m tlvg_warp bench raster --sizes none --garden "" \
+      --peers tlvg_warp --scene "$scene" --views 4 --repeats 10 --out "/tmp/tlvg-ab/$1_${2/,/_}_$3" 2>&1 \
       | grep -E "^\| .*(fwd|fwd\+bwd) \||blend_(forward|backward)|Error|error" | tee -a "$OUT/ab.txt"
   done
 }

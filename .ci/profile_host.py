@@ -50,7 +50,7 @@ def wrap(mod, name, label=None):
 
 wrap(ops, "fast_launch", lambda a: f"launch {a[0].key[:36]}")
 wrap(ops, "sort_pairs", lambda a: f"sort {a[2]}")
-for name in ("project", "count_intersections", "shade", "bin_tiles", "blend", "attach_grads"):
+for name in ("project", "count_intersections", "shade", "bin_tiles", "blend", "shade_backward", "project_adjoint"):
     wrap(ops, name)
 wrap(renderer, "check_inputs")
 orig_item = torch.Tensor.item

@@ -11,7 +11,8 @@ def blend_min_blocks() -> tuple[int, int]:
     """Minimum resident 256-thread blocks per SM asked of the blending (forward, backward) kernels through
     __launch_bounds__ (0: the compiler's choice), which caps their registers at 65536 / (256 · blocks):
     ``TLVG_WARP_BLEND_BLOCKS=fwd,bwd`` overrides the default (for A/B runs on the GPU), as
-    ``TLVG_WARP_BLEND_SLAB=scalar`` does the shared-memory layout of the blending batches (default "vector")."""
+    ``TLVG_WARP_BLEND_SLAB=scalar`` does the shared-memory layout of the blending batches (default "vector") and
+    ``TLVG_WARP_BLEND_LOOP=for`` the forward's walk over a batch (default "while")."""
     v = os.environ.get("TLVG_WARP_BLEND_BLOCKS", "")
     if not v:
         return BLEND_MIN_BLOCKS
@@ -40,7 +41,8 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
     sh_color, sh_backward, sh_coeff_grad = make_sh(scalar, module_name(scalar))
     flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d)
     forward, backward = make_blend(scalar, module_name(scalar), blend_min_blocks(),
-                                   os.environ.get("TLVG_WARP_BLEND_SLAB", "vector"))
+                                   os.environ.get("TLVG_WARP_BLEND_SLAB", "vector"),
+                                   os.environ.get("TLVG_WARP_BLEND_LOOP", "while"))
     return SimpleNamespace(
         scalar=scalar,
         vec2=wp.types.vector(2, scalar),

@@ -163,15 +163,17 @@ def slab_id(slot: int, lane: int, x: int, write: int) -> int: ...
 def lead_lane(tid: int) -> int: ...
 
 
-def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vector"):
+def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vector", loop_kind: str = "while"):
     """(forward, backward) kernels for ``scalar``; ``min_blocks``: CUDA __launch_bounds__ minimum resident blocks
     per SM of each (0: none), which caps their registers (65536 / (256 · blocks) per thread); ``slab_layout``:
-    how a batch is staged in shared memory ("vector" or "scalar", see below)."""
+    how a batch is staged in shared memory ("vector" or "scalar", see below); ``loop_kind``: the forward's walk over
+    a batch, "while" (a saturated pixel leaves it, fewer registers) or "for" (the compiler unrolls it)."""
     vec2 = wp.types.vector(2, scalar)
     vec3 = wp.types.vector(3, scalar)
     vec4 = wp.types.vector(4, scalar)
     ctype = "double" if scalar == wp.float64 else "float"
     bounds = [{"launch_bounds": (TILE * TILE, b)} if b else {} for b in min_blocks]
+    use_while = int(loop_kind == "while")  # a compile-time constant of the kernel
 
     @wp.func
     def pixel_of(tid: int, tiles_x: int) -> wp.vec3i:
@@ -261,6 +263,30 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
         slab_id(0, lane, g, 1)
         stage_values(lane, vec4(m[0], m[1], q[0], q[1]), vec2(q[2], opacity[g]), vec4(c[0], c[1], c[2], z))
 
+    @wp.func
+    def blend_step(j: int, base: int, px: scalar, py: scalar, want_depth: int, want_weights: int,
+                   weights: wp.array(dtype=scalar), T: scalar, C: vec3, S: scalar, last: int, done: int):
+        """One staged splat over one pixel (front to back): the carried (T, C, S, last, done)."""
+        co = staged_conic_c_opacity(j)
+        power = splat_power(staged_geometry(j), co[0], px, py)
+        if power <= scalar(0.0):
+            alpha = wp.min(scalar(ALPHA_MAX), co[1] * wp.exp(power))
+            if alpha >= scalar(ALPHA_MIN):
+                T_next = T * (scalar(1.0) - alpha)
+                if T_next < scalar(T_MIN):
+                    done = 1
+                else:
+                    w = alpha * T
+                    cz = staged_color_depth(j)
+                    C += w * vec3(cz[0], cz[1], cz[2])
+                    if want_depth != 0:
+                        S += w * cz[3]
+                    if want_weights != 0:
+                        wp.atomic_add(weights, slab_id(0, j, 0, 0), w)
+                    T = T_next
+                    last = base + j + 1
+        return T, C, S, last, done
+
     @wp.kernel(enable_backward=False, module=module, **bounds[0])
     def blend_forward_kernel(
         ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
@@ -307,27 +333,19 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
                 stage_gaussian(base + lane, lane, ids, means2d, conic, opacity, color, depth, want_depth)
             sync_block(0)
             # no break/continue: Warp writes loop-carried variables back at the end of the body, which a
-            # break skips (a `done = 1; break` was lost, and every block walked its whole list)
-            for j in range(wp.min(B, end - base)):
-                if done == 0:
-                    co = staged_conic_c_opacity(j)
-                    power = splat_power(staged_geometry(j), co[0], px, py)
-                    if power <= scalar(0.0):
-                        alpha = wp.min(scalar(ALPHA_MAX), co[1] * wp.exp(power))
-                        if alpha >= scalar(ALPHA_MIN):
-                            T_next = T * (scalar(1.0) - alpha)
-                            if T_next < scalar(T_MIN):
-                                done = 1
-                            else:
-                                w = alpha * T
-                                cz = staged_color_depth(j)
-                                C += w * vec3(cz[0], cz[1], cz[2])
-                                if want_depth != 0:
-                                    S += w * cz[3]
-                                if want_weights != 0:
-                                    wp.atomic_add(weights, slab_id(0, j, 0, 0), w)
-                                T = T_next
-                                last = base + j + 1
+            # break skips (a `done = 1; break` was lost, and every block walked its whole list); the loop's own
+            # condition lets a saturated pixel leave the batch (a warp leaves once all its lanes have)
+            nb = wp.min(B, end - base)
+            if use_while != 0:
+                j = int(0)
+                while j < nb and done == 0:
+                    T, C, S, last, done = blend_step(j, base, px, py, want_depth, want_weights, weights, T, C, S, last, done)
+                    j += 1
+            else:
+                for j in range(nb):
+                    if done == 0:
+                        T, C, S, last, done = blend_step(j, base, px, py, want_depth, want_weights, weights, T, C, S,
+                                                         last, done)
             sync_block(0)  # the next batch overwrites the slab
         if inside:
             A = scalar(1.0) - T
