@@ -33,7 +33,7 @@ Decisions beyond 3DGS (documented here, tested in tests/test_train_density.py):
 - Pruning (low opacity, too large on screen or in the world, no contribution) is decided on the
   Gaussians present before densification; a Gaussian that is pruned is not densified; new Gaussians are
   not pruned in the step that creates them. The size rules apply after the first opacity reset (3DGS;
-  never without resets) or always (``size_rules: always``, ABC-GS's pre-process and the stylization). The
+  never without resets) or always (``size_rules: always``, ABC-GS's pre-process). The
   screen rule was set for ~1000-pixel images: larger images scale it, so a sharper view of the same scene
   does not prune every splat as "too big on screen" (seen in the stability suite).
 - Budget: the count after a densify step never exceeds the budget (``max_gaussians``, or ``budget_factor``
