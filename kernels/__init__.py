@@ -20,7 +20,7 @@ def blend_min_blocks() -> tuple[int, int]:
     return f, b
 
 
-BLEND_MIN_BLOCKS = (0, 0)
+BLEND_MIN_BLOCKS = (0, 3)  # the backward: 2% faster on the H200 (A/B on a trained splat, two runs), same registers
 
 
 @functools.lru_cache(maxsize=None)

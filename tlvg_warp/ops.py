@@ -103,28 +103,37 @@ def ct(t: torch.Tensor, dtype=None):
 _launches: dict = {}  # (kernel, device, block_dim) -> a recorded wp.Launch, its parameters reset per call
 
 
-def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None) -> None:
+def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, adj_args=None) -> None:
     """``wp.launch(kernel, dim, inputs=args, device=device, block_dim=block_dim, record_tape=False)`` for the
-    per-render launches off the tape, with less host time: the first call per (kernel, device, block_dim) records
-    a ``wp.Launch``; later calls only overwrite its parameters (array descriptors from ``ct``, ``wp.array``s,
-    scalars, vectors) and launch it, skipping ``wp.launch``'s per-argument checks and packing (a render's host time
-    bounds small steps). The Launch keeps no tensor alive between renders: it stores bare copies of the
-    descriptors; the caller's own references cover the enqueue (the allocator is stream-ordered)."""
+    per-render launches, with less host time: the first call per (kernel, device, block_dim, forward/adjoint)
+    records a ``wp.Launch``; later calls only overwrite its parameters (array descriptors from ``ct``,
+    ``wp.array``s, scalars, vectors) and launch it, skipping ``wp.launch``'s per-argument checks and packing (a
+    render's host time bounds small steps). ``adj_args``: launch the kernel's adjoint with these adjoint
+    arguments (None for an array: no gradient). The Launch keeps no tensor alive between renders: it stores bare
+    copies of the descriptors; the caller's own references cover the enqueue (the allocator is stream-ordered)."""
     if dim <= 0:
         return
     bare = [_bare(a) for a in args]  # `args` (and the tensors its descriptors hold) stays alive through the launch
-    key = (kernel, device.alias, block_dim)
+    adjoint = adj_args is not None
+    bare_adj = [_bare(a) if a is not None else _null_array() for a in adj_args] if adjoint else []
+    key = (kernel, device.alias, block_dim, adjoint)
     launch = _launches.get(key)
     if launch is None:
-        launch = wp.launch(kernel, dim=dim, inputs=bare, device=device, block_dim=block_dim, record_tape=False,
-                           record_cmd=True)
+        launch = wp.launch(kernel, dim=dim, inputs=bare, adj_inputs=bare_adj, adjoint=adjoint, device=device,
+                           block_dim=block_dim, record_tape=False, record_cmd=True)
         _launches[key] = launch
     else:
         for i, a in enumerate(bare):
             launch.set_param_at_index_from_ctype(i, a)
+        for i, a in enumerate(bare_adj):
+            launch.set_param_at_index_from_ctype(i, a, adjoint=True)
         launch.set_dim(dim)
     launch.launch()
-    del args
+    del args, adj_args
+
+
+def _null_array():
+    return (_ARRAY_T or warp_array_ctype())()
 
 
 def _bare(a):
@@ -279,16 +288,11 @@ def project_adjoint(K, args, pouts, grads, out_grads, cam: Camera, cam_values, n
     geometric inputs (accumulated). What wp.Tape would launch, with the gradient buffers passed as adjoint
     arguments: the forward descriptors carry no gradient pointers, so no output gradient is zeroed on the way (the
     screen-mean one stays dL/d(screen mean))."""
-    if n == 0:
-        return
     cam_args = camera_args(cam, K, cam_values)
-    tape = wp.Tape()  # only for its rule of adjoint values of the non-array arguments
-    wp.launch(K.project, dim=n, inputs=[_bare(a) for a in args[:4]] + cam_args,
-              outputs=[_bare(a) for a in pouts[:4] + pouts[5:]],
-              adj_inputs=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))]
-              + [tape.get_adjoint(a) for a in cam_args],
-              adj_outputs=[ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[2]), ct(out_grads[3]), None],
-              adjoint=True, device=wp.device_from_torch(device))
+    adj_cam = [type(a)() if not isinstance(a, int) else 0 for a in cam_args]  # no gradients for the camera
+    fast_launch(K.project, n, args[:4] + cam_args + pouts[:4] + pouts[5:], wp.device_from_torch(device),
+                adj_args=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))] + adj_cam
+                + [ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[2]), ct(out_grads[3]), None])
 
 
 def shade(K, args, pouts, center, sh_degree: int, n: int, device):
