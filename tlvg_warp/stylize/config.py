@@ -34,8 +34,11 @@ class StyleLoss:
     w_align: float = 2.0  # flow-alignment energy weight (paper eq. 1, ours; tuned on the demo, see README)
     w_aniso: float = 0.2  # anisotropy energy weight (across-stroke footprint energy + λmin/λmax, ours)
     field_mapping: str = "matched"  # the flow terms' target: matched (FAST match carries the painting's field) | canvas
+    fast_refresh: int = 1  # recompute a view's FAST match every N of its steps, reusing it between (ours, issue 15; 1: every step, as the paper)
+    fast_cache: str = "match"  # what fast_refresh reuses: match (the top-k cells only) | projection (cells and the solve)
 
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
+             "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              **{w: (">=", 0) for w in ("w_style", "w_content", "w_depth", "w_tv", "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}
 
@@ -88,6 +91,7 @@ class StylizeConfig:
     style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3)
     vgg_weights: str | None = None  # torchvision vgg16 state dict path, "random", or None (env / torch hub cache)
     vgg_scale: float = 0.5  # the render is resized by this before VGG (SPEC §3: x0.5)
+    vgg_channels_last: bool = True  # on CUDA: VGG in NHWC (cuDNN's layout; float32 arithmetic, gradients within 3e-4; issue 15)
     keep_sh: bool = False  # keep view-dependent SH bands in stylized.ply (default: degree 0, ~3.6x smaller)
     background: list[float] | None = None  # render background RGB; None: the dataset's (white for the demo)
     views_per_step: int = 1  # training views per step (per rank under torchrun); the loss is their mean

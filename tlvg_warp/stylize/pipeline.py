@@ -181,7 +181,8 @@ class Stylize(Phase):
         from ..losses import StyleLoss
 
         self.cfg, self.tg, self.vgg, w = cfg, tg, vgg, cfg.loss
-        self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss)  # the painting's side computed once
+        self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss, refresh_every=w.fast_refresh,
+                                  cache=w.fast_cache)  # the painting's side computed once
         self.fields = None  # per view [H,W,3] on the device
         self.const = {"style": w.w_style, "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
@@ -236,7 +237,7 @@ class Stylize(Phase):
                 a = a_rgb = self.vgg.features_of([img], self.cfg.vgg_scale)[0]
             t.mark("vgg")
             if on["style"]:
-                terms["style"] = self.style_fn(a)
+                terms["style"] = self.style_fn(a, key=vi)  # the key: a view's match may be reused (fast_refresh)
             t.mark("style")
             if on["content"]:
                 terms["content"] = content_loss(a_rgb, tg.photo_feats[vi])
@@ -372,6 +373,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         write_text(out / "config.yaml", config_yaml(cfg))
     announce = vgg is None  # a caller that passes the network has already said where it came from
     vgg = (vgg if vgg is not None else load_vgg(cfg.vgg_weights, device)).to(device)
+    if device.type == "cuda" and cfg.vgg_channels_last:
+        vgg.set_precision(channels_last=True)
     tg = prepare(inp, cfg, vgg, device, tuple(cfg.background))
     run = build_run(inp, cfg, tg, vgg, device, dist, out)
     if ck is not None:
