@@ -131,7 +131,9 @@ def peak_mb(fn, device) -> float:
     _sync(device)
     torch.cuda.reset_peak_memory_stats(device)
     base = torch.cuda.memory_allocated(device)
-    wp_base = wp.get_mempool_used_mem_current(f"cuda:{device.index or 0}")
+    # Warp's pool keeps a process-wide high-water mark that cannot be reset: count only what this call adds to it
+    # (a peer run earlier in the process, e.g. gswarp on another view, must not show in the next one's figure)
+    wp_base = wp.get_mempool_used_mem_high(f"cuda:{device.index or 0}")
     fn()
     _sync(device)
     torch_peak = torch.cuda.max_memory_allocated(device) - base
