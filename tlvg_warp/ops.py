@@ -334,6 +334,15 @@ def _dummy(dtype, device) -> torch.Tensor:
     return t
 
 
+def _zeros(n: int, dtype, device) -> torch.Tensor:
+    """A kept zero vector of n elements (read-only: the broadcast row of an absent upstream gradient)."""
+    key = (n, dtype, device)
+    t = _dummies.get(key)
+    if t is None:
+        t = _dummies[key] = torch.zeros(n, dtype=dtype, device=device)
+    return t
+
+
 def tile_grid(width: int, height: int) -> tuple[int, int]:
     return (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
 
@@ -468,7 +477,7 @@ class RasterizeFn(torch.autograd.Function):
         out_grads = packed_zeros([t.shape for t in (proj.means2d, proj.conic, proj.depth, proj.opacity, proj.color)],
                                  dtype, device)
         # an absent upstream gradient is a broadcast zero (stride 0 over rows): no [H, W] buffer, no memset
-        ups = [g.contiguous() if g is not None else torch.zeros(shape[-1], dtype=dtype, device=device).expand(shape)
+        ups = [g.contiguous() if g is not None else _zeros(shape[-1], dtype, device).expand(shape)
                for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
         with warp_on(device) as wdev:
             # the sorted ids, T and last go when this block ends (stream-ordered: safe with the launch queued);
