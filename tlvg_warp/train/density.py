@@ -33,7 +33,8 @@ Decisions beyond 3DGS (documented here, tested in tests/test_train_density.py):
 - Pruning (low opacity, too large on screen or in the world, no contribution) is decided on the
   Gaussians present before densification; a Gaussian that is pruned is not densified; new Gaussians are
   not pruned in the step that creates them. The size rules apply after the first opacity reset (3DGS;
-  never without resets) or always (``size_rules: always``, ABC-GS's pre-process). The
+  never without resets), always (``size_rules: always``, ABC-GS's pre-process), or never prune but split
+  (``size_rules: split``, the stylization: a fitted scene's large splats are refined, not deleted). The
   screen rule was set for ~1000-pixel images: larger images scale it, so a sharper view of the same scene
   does not prune every splat as "too big on screen" (seen in the stability suite).
 - Budget: the count after a densify step never exceeds the budget (``max_gaussians``, or ``budget_factor``
@@ -77,7 +78,7 @@ class DensityConfig:
     min_opacity: float = 0.005  # prune below this opacity (3DGS)
     max_screen_size: float = 20.0  # prune above this 2D radius in pixels (3DGS; scaled up for images over 1000 px)
     max_world_size: float = 0.1  # prune above this fraction of the extent (3DGS); 0: off
-    size_rules: str = "after_reset"  # when the two size rules prune: after_reset (3DGS; never without resets) | always
+    size_rules: str = "after_reset"  # the two size rules: prune after_reset (3DGS; never without resets) | prune always | split (first in the budget, never prune)
     opacity_reset_interval: int = 3000  # cap the opacities at reset_opacity every this many steps (3DGS); 0: never
     reset_opacity: float = 0.01  # the opacity ceiling of a reset (3DGS)
     max_gaussians: int = 1_000_000  # hard budget; 0: budget_factor x the starting count
@@ -88,7 +89,7 @@ class DensityConfig:
 
     RULES = {"interval": (">=", 1), "start": (">=", 0), "until": (">=", 0), "grad_threshold": (">=", 0),
              "percent_dense": (">=", 0), "split_mode": ("of", "moments", "3dgs"), "min_opacity": (">=", 0),
-             "max_screen_size": (">=", 0), "max_world_size": (">=", 0), "size_rules": ("of", "after_reset", "always"),
+             "max_screen_size": (">=", 0), "max_world_size": (">=", 0), "size_rules": ("of", "after_reset", "always", "split"),
              "opacity_reset_interval": (">=", 0), "reset_opacity": ("in", 0, 1), "max_gaussians": (">=", 0),
              "budget_factor": (">=", 1), "min_contribution": (">=", 0)}
 
@@ -225,13 +226,18 @@ class DensityControl:
         prune = opac < c.min_opacity
         reset = c.opacity_reset_interval
         if c.size_rules == "always" or (reset > 0 and step > reset):  # graphdeco: after the first reset
-            prune |= self.max_radii > self.screen_limit
-            if c.max_world_size > 0:
-                prune |= p.log_scales.detach().exp().amax(dim=1) > c.max_world_size * extent
+            prune |= self.too_big(p, extent)
         if c.prune_unseen:
             done = self.contrib_views >= self.window if self.window > 0 else torch.zeros_like(prune)
             prune |= done & (self.contrib < c.min_contribution)
         return prune
+
+    def too_big(self, p, extent: float) -> torch.Tensor:
+        """Bool [N]: the two 3DGS size rules (too large on screen in a view of the window, or in the world)."""
+        big = self.max_radii > self.screen_limit
+        if self.config.max_world_size > 0:
+            big |= p.log_scales.detach().exp().amax(dim=1) > self.config.max_world_size * extent
+        return big
 
     @torch.no_grad()
     def densify_and_prune(self, opt: GaussianOptimizer, extent: float, step: int) -> dict:
@@ -242,6 +248,11 @@ class DensityControl:
         grads = self.mean_grads()
         max_scale = p.log_scales.detach().exp().amax(dim=1)
         cand = (grads >= c.grad_threshold) & ~prune
+        forced = torch.zeros_like(cand)
+        if c.size_rules == "split":  # too-large splats are split (coverage kept), never deleted; they go first
+            forced = self.too_big(p, extent) & ~prune
+            cand |= forced
+            grads = torch.where(forced, torch.full_like(grads, float("inf")), grads)
         budget = self.budget if self.budget is not None else 1 << 62
         # budget: each clone adds 1, each split adds SPLIT_CHILDREN - 1
         n_keep = n - int(prune.sum())
@@ -253,7 +264,7 @@ class DensityControl:
             cand &= ~prune
             n_keep -= over
         room = budget - n_keep
-        is_clone = max_scale <= c.percent_dense * extent
+        is_clone = (max_scale <= c.percent_dense * extent) & ~forced
         cost = torch.where(is_clone, 1, SPLIT_CHILDREN - 1).to(torch.int64)
         n_cand = int(cand.sum())
         if n_cand and int((cost * cand).sum()) > room:
