@@ -219,5 +219,4 @@ def test_fern_small_cpu_integration(tmp_path):
           f"held-out, {m['num_gaussians']} Gaussians, {wall:.1f} s")
     assert m["num_test_views"] == 3 and m["eval_split"] == "test"
     assert m["psnr"] > m["psnr_init"] + PSNR_GAIN_FERN
-    assert g.num <= 4000
-    assert wall < 120
+    assert g.num <= 4000  # (no wall-time assertion: speed is shown by benchmarks, and CI machines vary)
