@@ -21,8 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from tlvg_warp import render
-from tlvg_warp.io.demo import builtin_painting, demo_dataset
-from tlvg_warp.stylize import StylizeInputs
+from _demo_helpers import demo_stylize_inputs
 from tlvg_warp.stylize.config import config_from_dict as stylize_config
 from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, prepare
 from tlvg_warp.train.loop import Fit, LoopSettings, Phase, Run, View, train
@@ -55,10 +54,7 @@ class StubFeatures(torch.nn.Module):
 
 @pytest.fixture(scope="module")
 def demo():
-    ds = demo_dataset(n_views=VIEWS, width=W, height=H)
-    g = ds.gaussians.subset(torch.arange(0, ds.gaussians.num, SUBSAMPLE))
-    return StylizeInputs(g, list(ds.cameras), list(ds.names), [ds.image(i) for i in range(VIEWS)],
-                         builtin_painting(), tuple(ds.background))
+    return demo_stylize_inputs(VIEWS, W, H, SUBSAMPLE)[1]
 
 
 def _stylize_run(inp, net, **over):

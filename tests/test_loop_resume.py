@@ -38,13 +38,9 @@ run_stylize(inputs(), config_from_dict(CFG), sys.argv[1], progress=False, quiet=
 
 
 def inputs():
-    from tlvg_warp.io.demo import builtin_painting, demo_dataset
-    from tlvg_warp.stylize import StylizeInputs
+    from _demo_helpers import demo_stylize_inputs
 
-    ds = demo_dataset(n_views=4, width=32, height=24)
-    g = ds.gaussians.subset(torch.arange(0, ds.gaussians.num, 8))
-    return StylizeInputs(g, list(ds.cameras), list(ds.names), [ds.image(i) for i in range(4)],
-                         builtin_painting(), tuple(ds.background))
+    return demo_stylize_inputs(4, 32, 24, 8)[1]
 
 
 def _rows(out: Path) -> list:

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from tlvg_warp.io.demo import builtin_painting, demo_dataset
-from tlvg_warp.stylize import StylizeInputs, load_config, run_stylize
+from _demo_helpers import demo_stylize_inputs
+from tlvg_warp.stylize import load_config, run_stylize
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 W, H, VIEWS, SUBSAMPLE = 48, 36, 4, 4
@@ -18,10 +18,7 @@ W, H, VIEWS, SUBSAMPLE = 48, 36, 4, 4
 
 @pytest.fixture(scope="module")
 def inputs():
-    ds = demo_dataset(n_views=VIEWS, width=W, height=H)
-    g = ds.gaussians.subset(torch.arange(0, ds.gaussians.num, SUBSAMPLE))
-    return StylizeInputs(g, list(ds.cameras), list(ds.names), [ds.image(i) for i in range(VIEWS)],
-                         builtin_painting(), tuple(ds.background))
+    return demo_stylize_inputs(VIEWS, W, H, SUBSAMPLE)[1]
 
 
 _VGG = []
