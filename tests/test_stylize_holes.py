@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from tlvg_warp import render
-from tlvg_warp.io.demo import builtin_painting, demo_dataset
-from tlvg_warp.stylize import StylizeInputs, run_stylize
+from _demo_helpers import demo_stylize_inputs
+from tlvg_warp.stylize import run_stylize
 from tlvg_warp.stylize.config import config_from_dict
 
 W, H, VIEWS = 80, 60, 8
@@ -25,10 +25,7 @@ COUNT_MAX = 1.2  # Gaussians relative to the input (the default budget)
 
 @pytest.fixture(scope="module")
 def demo():
-    ds = demo_dataset(n_views=VIEWS, width=W, height=H, spacing=2.0)
-    inp = StylizeInputs(ds.gaussians, list(ds.cameras), list(ds.names), [ds.image(i) for i in range(VIEWS)],
-                        builtin_painting(), tuple(ds.background))
-    return ds, inp
+    return demo_stylize_inputs(VIEWS, W, H, spacing=2.0)
 
 
 def _scaled(cam, k):
@@ -87,9 +84,10 @@ def _large_splat_threshold(ds, quantile: float) -> float:
 def test_fitted_scenes_large_splats_survive_stylization(demo):
     """Issue 14's holes: a fitted scene keeps large splats (no opacity reset ever pruned them), and the
     stylization's density control deleted them at its first step (size_rules 'always'; fern 126x94: 35% holes).
-    With 3DGS's rule (size pruning only after an opacity reset, and a stylization has none) a world-size limit
-    that 30% of the demo's splats exceed prunes nothing: holes stay under the bound at 1x and 2x; with
-    'always' the same run loses those splats and the measure sees it."""
+    Now the size rules split them (size_rules 'split', the stylize default): with a world-size limit that 30% of
+    the demo's splats exceed, holes stay under the bound at 1x and 2x; with 'always' the same run loses those
+    splats and the measure sees it; and with gradients unable to trigger a split, the size rules alone split
+    (and delete nothing), so the large splats are refined, not kept whole as 'after_reset' would."""
     ds, inp = demo
     limit = {"density.max_world_size": _large_splat_threshold(ds, 0.7)}
     res = _run(inp, **limit)
@@ -100,3 +98,7 @@ def test_fitted_scenes_large_splats_survive_stylization(demo):
     pruned = _run(inp, **limit, **{"density.size_rules": "always"})
     holes, _ = coverage_loss(ds.gaussians, pruned.gaussians, ds.cameras, 1)
     assert holes > 5 * HOLES_MAX, holes
+    forced = _run(inp, **limit, **{"density.grad_threshold": 1e9, "density.min_opacity": 0.0,
+                                   "density.prune_unseen": False})
+    events = forced.metrics["densify_events"]
+    assert sum(e["split"] for e in events) > 0 and sum(e["cloned"] + e["pruned"] for e in events) == 0, events
