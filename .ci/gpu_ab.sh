@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One GPU call: CUDA tests, the full raster benchmark, ours again with fast math off (the A/B of that switch),
-# and kernel vs host time at 1M for ours and gsplat (where the host bounds a step: host_gpu_timeline.py).
+# and kernel vs host time at 1M for ours and gsplat (where the host bounds a step: profile_host.py).
 # Usage on the device, after setup:
 #   bash .ci/gpu_ab.sh [--garden PATH]      (logs under $OUT)
 set -uo pipefail
