@@ -5,7 +5,8 @@ time-based mechanism) that is killed with SIGKILL (no handler runs) once its che
 Stylize phase (so the phase's targets, anchors and density state must come back from the file). Then
 ``run_stylize(..., resume=DIR)`` in this process finishes it. Oracles: an uninterrupted run of the same config
 in this process — final parameters bit-identical, every log row identical — and the killed run's own
-log.jsonl, which must hold every step up to its checkpoint (written at the same point)."""
+log.jsonl, which must hold every step up to its checkpoint (written at the same point). The FAST match is reused
+between a view's steps (``loss.fast_refresh`` 2), so a resume that lost that cache would diverge."""
 from __future__ import annotations
 
 import json
@@ -21,7 +22,8 @@ import torch
 
 HERE = Path(__file__).resolve().parent
 CFG = {"iterations": 24, "phases": [1, 2, 1], "device": "cpu", "vgg_weights": "random", "style_height": 64,
-       "log_every": 2, "checkpoint_seconds": 0.2, "density.interval": 3, "orbit_frames": 0}
+       "log_every": 2, "checkpoint_seconds": 0.2, "density.interval": 3, "orbit_frames": 0,
+       "loss.fast_refresh": 2}  # a view's FAST match reused on its next step: the cache must come back too
 STYLIZE_START, STYLIZE_END = 6, 18  # steps of the phases at 24 iterations, [1, 2, 1]
 FLUSH_SLEEP_S = 0.3  # the child sleeps at each log flush so that it is surely killed before its end
 

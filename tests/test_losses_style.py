@@ -275,3 +275,29 @@ def test_style_loss_match_cache_redoes_the_solve():
     assert loss(a1, key=0).item() == want.item() and loss.refreshes == 1
     with pytest.raises(ValueError, match="cache"):
         style_mod.StyleLoss(s, cache="all")
+
+
+@pytest.mark.parametrize("cache", ["projection", "match"])
+def test_style_loss_state_dict_resumes_the_cache(cache):
+    """A StyleLoss rebuilt from another's state_dict (a resumed stylization) gives, call for call, what the
+    original gives: it reuses the saved matches until their refresh is due. Catches a resume that drops the
+    cache (the restored loss would refresh at once and equal fast_loss) or forgets the per-key call counts
+    (it would refresh one call early or late)."""
+    s = torch.from_numpy(feats(31, 8, 33))
+    a_loss = style_mod.StyleLoss(s, refresh_every=3, cache=cache)
+    for call in range(4):  # key 0: refreshed at call 0 and 3; key 1: at call 0
+        a_loss(torch.from_numpy(feats(500 + call, 8, 40)), key=0)
+        if call < 2:
+            a_loss(torch.from_numpy(feats(600 + call, 8, 40)), key=1)
+    sd = a_loss.state_dict()
+    b_loss = style_mod.StyleLoss(s, refresh_every=3, cache=cache)
+    b_loss.load_state_dict(sd)
+    assert b_loss.refreshes == a_loss.refreshes == 3
+    for call in range(4):
+        for key in (0, 1):
+            x = torch.from_numpy(feats(700 + 10 * call + key, 8, 40))
+            want, got = a_loss(x, key=key).item(), b_loss(x, key=key).item()
+            assert got == want
+            if (key, call) in ((0, 0), (0, 1), (1, 0)):  # reused matches: not FAST of these features
+                assert got != fast_loss(x, s).item()
+    assert b_loss.refreshes == a_loss.refreshes

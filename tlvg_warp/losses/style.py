@@ -363,6 +363,17 @@ def content_loss(render_feats: torch.Tensor, photo_feats: torch.Tensor) -> torch
     return F.mse_loss(render_feats, photo_feats.to(render_feats).detach())
 
 
+def _moved(x, device):
+    """Tensors inside nested dicts / tuples / lists moved to ``device`` (None and other values as they are)."""
+    if isinstance(x, torch.Tensor):
+        return x if device is None else x.to(device)
+    if isinstance(x, dict):
+        return {k: _moved(v, device) for k, v in x.items()}
+    if isinstance(x, (tuple, list)):
+        return type(x)(_moved(v, device) for v in x)
+    return x
+
+
 class StyleLoss:
     """A style loss against one painting, built once per stylization; call it once per step.
 
@@ -400,6 +411,15 @@ class StyleLoss:
 
     def reset(self) -> None:
         self._cache.clear()
+
+    def state_dict(self) -> dict:
+        """The match cache (on the CPU) and the refresh count: a resumed run reuses what the straight run would."""
+        return {"refreshes": self.refreshes,
+                "cache": {k: [n, _moved(pay, "cpu")] for k, (n, pay) in self._cache.items()}}
+
+    def load_state_dict(self, sd: dict, device=None) -> None:
+        self.refreshes = int(sd.get("refreshes", 0))
+        self._cache = {k: [n, _moved(pay, device)] for k, (n, pay) in (sd.get("cache") or {}).items()}
 
     def match_of(self, key):
         hit = self._cache.get(key)

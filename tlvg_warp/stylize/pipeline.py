@@ -265,11 +265,14 @@ class Stylize(Phase):
         return {"flow_score": round(float(s), 5)}
 
     def state_dict(self) -> dict:
-        return {"fields": [f.cpu() for f in self.fields] if self.fields is not None else None}
+        return {"fields": [f.cpu() for f in self.fields] if self.fields is not None else None,
+                "style_cache": self.style_fn.state_dict()}  # the reused FAST matches (loss.fast_refresh > 1)
 
     def load_state_dict(self, sd: dict, device=None) -> None:
         if sd.get("fields") is not None:
             self.fields = [f.to(device) for f in sd["fields"]]
+        if sd.get("style_cache") is not None:
+            self.style_fn.load_state_dict(sd["style_cache"], device)
 
 
 # --- the run ---------------------------------------------------------------------------------------------------
