@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -192,11 +193,43 @@ def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
     plt.close(fig)
 
 
+OUTPUT_WORKERS = min(8, os.cpu_count() or 1)  # threads that encode and score the outputs beside the GPU renders
+
+
+def _write_view(out: Path, i: int, sty: torch.Tensor, org: torch.Tensor, photo: torch.Tensor, fld) -> tuple:
+    """One view's renders/, originals/, photos/ and fields/ files, and the flow alignment of the stylized and
+    the original render to its target field (None without fields)."""
+    from ..losses import flow_alignment_score
+
+    write_image(out / "renders" / f"view_{i:03d}.png", sty)
+    write_image(out / "originals" / f"view_{i:03d}.png", org)
+    write_image(out / "photos" / f"view_{i:03d}.png", photo)
+    score = score_orig = None
+    if fld is not None:
+        with atomic_path(out / "fields" / f"view_{i:03d}.npy") as tmp:
+            np.save(tmp, fld.astype(np.float32))
+        score, score_orig = flow_alignment_score(sty.numpy(), fld), flow_alignment_score(org.numpy(), fld)
+    return sty.numpy(), org.numpy(), photo.numpy(), score, score_orig
+
+
+def _write_orbit(out: Path, frames: list, fps: int) -> str | None:
+    """orbit.mp4; PNG frames in orbit_frames/ when no encoder works. Returns the note to show (or None)."""
+    try:
+        note = write_video(out / "orbit.mp4", frames, fps)
+    except RuntimeError as e:  # no working encoder (a full disk is a WriteError and stops the run)
+        note = f"orbit.mp4 not written ({e}); frames are in orbit_frames/"
+        for k, f in enumerate(frames):
+            write_image(out / "orbit_frames" / f"frame_{k:04d}.png", f)
+    if note:
+        print(note)
+    return note
+
+
 def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start: float | None = None,
                   progress: bool = False) -> dict:
     """Write every output file of a finished run; returns the metrics (also in metrics.json)."""
     from ..io import save_ply
-    from ..losses import field_picture, flow_alignment_score
+    from ..losses import field_picture
     from ..renderer import render
     from ..train.reconstruct import cameras_json
 
@@ -208,65 +241,48 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
     if bad:
         raise RuntimeError(f"refusing to write a PLY with {bad} non-finite values")
     g_cpu = g.to(device="cpu", dtype=torch.float32)
-    save_ply(g_cpu, out / "stylized.ply")
-    web = {}
-    if cfg.web_formats:  # the same scene for browser viewers (SuperSplat, PlayCanvas, SPZ)
-        from ..io.splat_formats import save_compressed_ply, save_spz
-
-        save_compressed_ply(g_cpu, out / "stylized.compressed.ply")
-        save_spz(g_cpu, out / "stylized.spz")
-        web = {f"bytes_out_{k}": os.path.getsize(out / f"stylized.{k.replace('_', '.')}")
-               for k in ("compressed_ply", "spz")}
-    write_json(out / "cameras.json", cameras_json(SimpleNamespace(cameras=inp.cameras, names=inp.names)))
     bg = tuple(float(v) for v in cfg.background)  # run_stylize records the background it used
+    # The GPU renders in this thread; the encoding and scoring (PNG, PLY formats, video, flow scores: numpy,
+    # OpenCV and ffmpeg, which release the GIL) run in a pool beside it: they were most of the outputs' time.
+    with ThreadPoolExecutor(max_workers=OUTPUT_WORKERS) as pool:
+        jobs = [pool.submit(save_ply, g_cpu, out / "stylized.ply")]
+        if cfg.web_formats:  # the same scene for browser viewers (SuperSplat, PlayCanvas, SPZ)
+            from ..io.splat_formats import save_compressed_ply, save_spz
 
-    scores, scores_orig, rows = [], [], []
-    pick = set(np.linspace(0, len(inp.cameras) - 1, min(cfg.comparison_views, len(inp.cameras))).round().astype(int))
-    with torch.no_grad():
-        for i, cam in enumerate(inp.cameras):
-            sty = render(g, cam, bg).color.clamp(0, 1).cpu()
-            org = res.originals[i]
-            photo = inp.photos[i].detach().cpu()
-            write_image(out / "renders" / f"view_{i:03d}.png", sty)
-            write_image(out / "originals" / f"view_{i:03d}.png", org)
-            write_image(out / "photos" / f"view_{i:03d}.png", photo)
-            if res.fields:
-                fld = res.fields[i][..., :2].numpy()
-                with atomic_path(out / "fields" / f"view_{i:03d}.npy") as tmp:
-                    np.save(tmp, fld.astype(np.float32))
-                scores.append(flow_alignment_score(sty.numpy(), fld))
-                scores_orig.append(flow_alignment_score(org.numpy(), fld))
-            if i in pick:
-                rows.append((photo.numpy(), org.numpy(), sty.numpy()))
-    style_np = inp.style.detach().cpu().numpy()
-    write_image(out / "style.png", style_np)
-    s_theta, s_coh, _ = res.style_field
-    write_image(out / "stroke_field.png", field_picture(res.style_work.numpy(), s_theta, s_coh))
-    fa = float(np.mean(scores)) if scores else 0.0
-    caption = (f"config: style={cfg.loss.style_loss}, luminance_only={cfg.loss.luminance_only}, "
-               f"lock_xyz={cfg.geometry.lock_xyz}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
-               f"{res.metrics['iterations']} iterations; "
-               f"flow alignment {fa:.3f}; "
-               + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {res.vgg_source}"))
-    write_image(out / "comparison.png", comparison_grid(rows, style_np, caption).astype(np.float32) / 255.0)
-    loss_curves(out / "loss_curves.png", res.log, res.vgg_random)
-
-    # orbit video
-    video_note = None
-    frames = []
-    with torch.no_grad():
-        for cam in orbit_path(inp.cameras, cfg.orbit_frames):
-            frames.append(render(g, cam, bg).color.clamp(0, 1).cpu().numpy())
-    if frames:
-        try:
-            video_note = write_video(out / "orbit.mp4", frames, cfg.orbit_fps)
-            if video_note:
-                print(video_note)
-        except RuntimeError as e:  # no working encoder (a full disk is a WriteError and stops the run)
-            video_note = f"orbit.mp4 not written ({e}); frames are in orbit_frames/"
-            for k, f in enumerate(frames):
-                write_image(out / "orbit_frames" / f"frame_{k:04d}.png", f)
-            print(video_note)
+            jobs += [pool.submit(save_compressed_ply, g_cpu, out / "stylized.compressed.ply"),
+                     pool.submit(save_spz, g_cpu, out / "stylized.spz")]
+        write_json(out / "cameras.json", cameras_json(SimpleNamespace(cameras=inp.cameras, names=inp.names)))
+        pick = set(np.linspace(0, len(inp.cameras) - 1, min(cfg.comparison_views, len(inp.cameras))).round().astype(int))
+        views = []
+        with torch.no_grad():
+            for i, cam in enumerate(inp.cameras):
+                sty = render(g, cam, bg).color.clamp(0, 1).cpu()
+                fld = res.fields[i][..., :2].numpy() if res.fields else None
+                views.append(pool.submit(_write_view, out, i, sty, res.originals[i], inp.photos[i].detach().cpu(), fld))
+            frames = [render(g, cam, bg).color.clamp(0, 1).cpu().numpy() for cam in orbit_path(inp.cameras, cfg.orbit_frames)]
+        video = pool.submit(_write_orbit, out, frames, cfg.orbit_fps) if frames else None
+        style_np = inp.style.detach().cpu().numpy()
+        s_theta, s_coh, _ = res.style_field
+        jobs += [pool.submit(write_image, out / "style.png", style_np),
+                 pool.submit(lambda: write_image(out / "stroke_field.png",
+                                                 field_picture(res.style_work.numpy(), s_theta, s_coh))),
+                 pool.submit(loss_curves, out / "loss_curves.png", res.log, res.vgg_random)]
+        done = [v.result() for v in views]  # (stylized, original, photo, score, original's score)
+        scores = [d[3] for d in done if d[3] is not None]
+        scores_orig = [d[4] for d in done if d[4] is not None]
+        fa = float(np.mean(scores)) if scores else 0.0
+        caption = (f"config: style={cfg.loss.style_loss}, luminance_only={cfg.loss.luminance_only}, "
+                   f"lock_xyz={cfg.geometry.lock_xyz}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
+                   f"{res.metrics['iterations']} iterations; "
+                   f"flow alignment {fa:.3f}; "
+                   + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {res.vgg_source}"))
+        rows = [(d[2], d[1], d[0]) for i, d in enumerate(done) if i in pick]
+        write_image(out / "comparison.png", comparison_grid(rows, style_np, caption).astype(np.float32) / 255.0)
+        video_note = video.result() if video is not None else None
+        for j in jobs:
+            j.result()
+    web = {f"bytes_out_{k}": os.path.getsize(out / f"stylized.{k.replace('_', '.')}")
+           for k in ("compressed_ply", "spz")} if cfg.web_formats else {}
 
     m = dict(res.metrics)
     out_bytes = os.path.getsize(out / "stylized.ply")
