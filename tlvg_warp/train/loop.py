@@ -115,11 +115,11 @@ class Phase:
 
 
 def photometric_loss(img: torch.Tensor, ref: torch.Tensor, lam: float = 0.2) -> torch.Tensor:
-    """(1 − λ)·L1 + λ·(1 − SSIM) (3DGS; λ 0.2 is SPEC §3's 0.8·L1 + 0.2·(1 − SSIM))."""
-    from ..losses import ssim
+    """(1 − λ)·L1 + λ·(1 − SSIM) (3DGS; λ 0.2 is SPEC §3's 0.8·L1 + 0.2·(1 − SSIM)): one fused op for λ > 0
+    (losses.fit_loss: the L1 and the SSIM in the same Warp kernels)."""
+    from ..losses import fit_loss
 
-    l1 = (img - ref).abs().mean()
-    return l1 if lam == 0 else (1.0 - lam) * l1 + lam * (1.0 - ssim(img, ref))
+    return (img - ref).abs().mean() if lam == 0 else fit_loss(img, ref, lam)
 
 
 class Fit(Phase):
