@@ -26,12 +26,15 @@ last-good snapshot and resume alike.
 Several ranks (``dist``, torch.distributed): a step draws ``views_per_step × world`` views; rank r renders
 ``dist.rank_slice(batch)``; its loss is the mean over its views; the gradients are averaged over the ranks
 before the optimizer step (and its hooks); density statistics are summed before each densify decision.
-Every rank then holds the same parameters; only the main rank writes (the others wait at a barrier).
+Every rank then holds the same parameters; only the main rank writes (the others wait at a barrier). A
+checkpoint records its views per step (ranks × views_per_step); a run resumed with another number (other ranks,
+another views_per_step) continues with its own, after a one-line note on stderr: iterations count steps.
 """
 from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass
 
@@ -234,9 +237,13 @@ class Run:
               "rng": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "phase_time": dict(self.phase_time),
               "counts": dict(self.counts), "log_len": len(self.log)}
         if checkpoint:
-            sd.update({"format": self.fmt, "log": list(self.log),
+            sd.update({"format": self.fmt, "log": list(self.log), "step_views": self.step_views(),
                        "phases": {p.name: p.state_dict() for p in self.phases}, **(self.extra() if self.extra else {})})
         return sd
+
+    def step_views(self) -> dict:
+        """The views of a step: ranks x views_per_step (a checkpoint records them)."""
+        return {"ranks": self.dist.world, "per_rank": self.settings.views_per_step}
 
     def load_state_dict(self, sd: dict) -> None:
         from .optim import GaussianOptimizer, GaussianParams
@@ -247,6 +254,8 @@ class Run:
         opt.hooks = self.opt.hooks
         self.params, self.opt = params, opt
         self.density.load_state_dict(sd["density"], from_checkpoint="format" in sd)
+        if "format" in sd and sd.get("step_views") and self.dist.is_main:
+            _note_views(sd["step_views"], self.step_views())
         self.step, self.order = int(sd["iteration"]), list(sd["order"])
         self.gen.set_state(sd["rng"])
         torch.set_rng_state(sd["torch_rng"])
@@ -285,6 +294,17 @@ class Run:
                 "time_per_phase_s": {p: round(t, 3) for p, t in self.phase_time.items()},
                 "train_time_s": round(sum(self.phase_time.values()), 3), "stage_split": self.timer.summary(),
                 "densify_events": list(self.density.events)}
+
+
+def _note_views(was: dict, now: dict) -> None:
+    """A resumed run continues with its own views per step, also when the checkpoint's differ (another number of
+    ranks or views_per_step): one line on stderr says so. (A checkpoint from before they were recorded: none.)"""
+    a, b = was["ranks"] * was["per_rank"], now["ranks"] * now["per_rank"]
+    if a != b:
+        def how(v):
+            return f"{v['ranks']} rank{'s' if v['ranks'] != 1 else ''} x views_per_step {v['per_rank']}"
+        print(f"note: views per step changed from {a} ({how(was)}, the checkpoint's) to {b} ({how(now)}); "
+              "iterations keep counting steps", file=sys.stderr, flush=True)
 
 
 # --- the loop ---------------------------------------------------------------------------------------------------
