@@ -117,6 +117,7 @@ class FusedPhotometricFn(torch.autograd.Function):
         return value.mean()
 
     @staticmethod
+    @torch.autograd.function.once_differentiable  # (a double backward raises instead of returning zeros)
     def backward(ctx, g):
         img, y, dS = ctx.saved_tensors
         a, b, n = ctx.coefs
