@@ -351,3 +351,28 @@ def test_no_host_reads_in_a_step_outside_the_schedule(demo, monkeypatch):
     outside = [r for r in reads if r[2] not in ("densify_and_prune", "prune_mask", "_apply", "fit_budget")]
     assert outside == [], outside
     assert any(r[2] == "densify_and_prune" for r in reads)  # the counter works: densify steps do read
+
+
+def test_stage_timer_spreads_rare_work_over_every_step(monkeypatch):
+    """A fake clock: every step spends 1 ms in "a"; steps 100, 111 (a sampled one) and 200 also 50 ms in density
+    (rare work). The split must say a = 1 ms and density = 3 x 50 / 200 = 0.75 ms per step. Catches rare work
+    averaged over the samples (as the loop did: every fifth sample was a densify step, 20x its share; here 5 ms),
+    rare work counted only when sampled (0.25 ms) or counted twice on a sampled step (1.0 ms)."""
+    import tlvg_warp.runs as runs_mod
+
+    clock = [0.0]
+    monkeypatch.setattr(runs_mod.time, "perf_counter", lambda: clock[0])
+    t = runs_mod.StageTimer(torch.device("cpu"), ("a", "density"), every=20)
+    for step in range(1, 201):
+        t.begin(step)
+        clock[0] += 1e-3
+        t.mark("a")
+        if step % 100 == 0 or step == 111:
+            start = t.timed()
+            clock[0] += 50e-3
+            t.done("density", start)
+        t.end()
+    s = t.summary()
+    assert s["samples"] == 10 and s["rare_events"] == {"density": 3}
+    assert s["ms_per_iteration"]["a"] == pytest.approx(1.0)
+    assert s["ms_per_iteration"]["density"] == pytest.approx(0.75)

@@ -167,11 +167,18 @@ def read_checkpoint(path, fmt: str, what: str) -> dict:
 class StageTimer:
     """Per-stage time split of a training loop, sampled every ``every`` iterations: CUDA events on the GPU
     (read once, at the end: no sync in the loop), perf_counter on the CPU. ``mark(stage)`` closes ``stage``;
-    stages not run in an iteration count as zero."""
+    stages not run in an iteration count as zero.
+
+    The sampled steps are those with ``step % every == every // 2 + 1``: off the round multiples on which
+    periodic work (densify every 100 steps) falls, which sampling on multiples of ``every`` over-counted (every
+    fifth sample was a densify step: 20x its share). Rare work is timed whenever it runs instead
+    (``timed(stage)`` … ``done(stage, start)``) and enters the split as its total over all steps."""
 
     def __init__(self, device: torch.device, stages: tuple, every: int = 20):
         self.cuda, self.every, self.samples, self.marks = device.type == "cuda", max(1, every), [], None
         self.stages = tuple(stages)
+        self.offset = (self.every // 2 + 1) % self.every
+        self.steps, self.rare = 0, {}  # steps begun; stage -> [(start, end)] of rare work
 
     def _now(self):
         if self.cuda:
@@ -180,13 +187,27 @@ class StageTimer:
             return e
         return time.perf_counter()
 
+    def _ms(self, a, b) -> float:
+        return a.elapsed_time(b) if self.cuda else (b - a) * 1e3
+
     def begin(self, step):
-        self.marks = {"_start": self._now()} if step % self.every == 0 else None
+        self.steps += 1
+        self.marks = {"_start": self._now()} if step % self.every == self.offset else None
         self._last = "_start"
 
     def mark(self, stage):
         if self.marks is not None:
             self.marks[stage] = (self._last, self._now())
+            self._last = stage
+
+    def timed(self):
+        """The start of rare work (timed whenever it runs); pass the result to ``done``."""
+        return self._now()
+
+    def done(self, stage, start) -> None:
+        self.rare.setdefault(stage, []).append((start, self._now()))
+        if self.marks is not None:  # a sampled step: the next mark starts after the rare work
+            self.marks[stage] = (self._last, self.rare[stage][-1][1])
             self._last = stage
 
     def end(self):
@@ -195,19 +216,23 @@ class StageTimer:
             self.marks = None
 
     def summary(self) -> dict:
-        if not self.samples:
+        if not self.samples and not self.rare:
             return {}
         if self.cuda:
             torch.cuda.synchronize()
         tot = dict.fromkeys(self.stages, 0.0)
         for m in self.samples:
             for s in self.stages:
-                if s in m:
+                if s in m and s not in self.rare:
                     prev, e = m[s]
                     p = m[prev] if prev == "_start" else m[prev][1]
-                    tot[s] += p.elapsed_time(e) if self.cuda else (e - p) * 1e3
-        n = len(self.samples)
-        return {"ms_per_iteration": {s: round(t / n, 4) for s, t in tot.items()}, "samples": n}
+                    tot[s] += self._ms(p, e)
+        n = max(1, len(self.samples))
+        split = {s: t / n for s, t in tot.items()}
+        for s, spans in self.rare.items():  # every occurrence, spread over every step
+            split[s] = split.get(s, 0.0) + sum(self._ms(a, b) for a, b in spans) / max(1, self.steps)
+        return {"ms_per_iteration": {s: round(t, 4) for s, t in split.items()}, "samples": len(self.samples),
+                "rare_events": {s: len(v) for s, v in self.rare.items()}}
 
 
 def run_sources(run) -> dict:

@@ -457,8 +457,12 @@ class _Loop:
         r.opt.step()
         r.opt.zero_grad()
         t.mark("optimizer")
-        if dens and r.density.step(r.opt, k + 1, phase.steps, {"step": step, "phase": phase.name}):
-            t.mark("density")
+        if dens:
+            rare = r.density.is_densify_step(k + 1, phase.steps) or r.density.is_reset_step(k + 1, phase.steps)
+            t0 = t.timed() if rare else None
+            r.density.step(r.opt, k + 1, phase.steps, {"step": step, "phase": phase.name})
+            if rare:
+                t.done("density", t0)
         t.end()
         info = {"step": step, "phase": phase.name, "view": mine[0][0] if n == 1 else [vi for vi, _ in mine],
                 "n": r.params.num, **phase.row(k)}
