@@ -104,6 +104,18 @@ def _blender(root):
     return rgba
 
 
+
+def test_images_in_threads_equal_opencv_in_view_order(tmp_path):
+    """``images()`` (decoded in a thread pool) returns every view in order, each equal to OpenCV's own decode of
+    its file, and fills the cache ``image(i)`` returns. Catches results gathered in completion order."""
+    _llff(tmp_path, n=7, folder="images", size=(40, 30), full=(40, 30), focal=30.0)
+    ds = load_dataset(tmp_path)
+    got = ds.images()
+    assert len(got) == 7
+    for i, img in enumerate(got):
+        src = cv2.imread(str(tmp_path / "images" / f"img{i:03d}.png"))[:, :, ::-1].astype(np.float32) / 255
+        assert np.array_equal(img.numpy(), src) and ds.image(i) is img
+
 def test_blender(tmp_path):
     rgba = _blender(tmp_path)
     ds = load_dataset(tmp_path)

@@ -163,7 +163,7 @@ def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool, dist=None):
         else:
             g, in_bytes = _fit_first(ds, cfg, out, quiet, dist)
             sources["scene"] = str(out / "reconstruct" / "point_cloud.ply")
-    photos = [ds.image(i) for i in range(len(ds.cameras))]
+    photos = ds.images()
     return StylizeInputs(g, list(ds.cameras), list(ds.names), photos, style, bg, dict(sources)), in_bytes
 
 

@@ -14,6 +14,7 @@ unreadable or wrongly sized photo is reported by load_dataset, not halfway throu
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,6 +62,15 @@ class Dataset:
                                  f"its camera says {cam.width}x{cam.height}", self.root)
             self._cache[i] = torch.from_numpy(np.clip(img, 0.0, 1.0))
         return self._cache[i]
+
+    def images(self) -> list:
+        """Every view's ``image(i)``, decoded in a few threads (OpenCV releases the GIL: a stylization's setup
+        read fern's 20 PNGs one by one); a bad file raises as ``image`` would, the first in view order."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
+            futures = [pool.submit(self.image, i) for i in range(len(self.cameras))]
+            return [f.result() for f in futures]
 
 
 @dataclass
