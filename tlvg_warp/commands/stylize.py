@@ -256,18 +256,22 @@ def run(args) -> int:
     dist = Dist.from_env(str(device))  # torchrun: one rank per GPU, data-parallel over the views of a step
     if dist.world > 1:
         device = torch.device(dist.device)
+    t_vgg = time.perf_counter()
     vgg = load_vgg(cfg.vgg_weights, device)  # InputError (how to get the weights) before anything is written
+    t_vgg = time.perf_counter() - t_vgg
     # the main rank owns the folder (locked; bad input leaves nothing behind); the others only read
     folder = run_folder(out, args.overwrite, ck is not None, RUN_FILES) if dist.is_main else contextlib.nullcontext()
     with folder:
-        return _run(args, cfg, sources, out, device, vgg, wall0, dist)
+        return _run(args, cfg, sources, out, device, vgg, wall0, dist, t_vgg)
 
 
-def _run(args, cfg, sources, out, device, vgg, wall0, dist) -> int:
+def _run(args, cfg, sources, out, device, vgg, wall0, dist, t_vgg=0.0) -> int:
     from ..stylize import StylizeDiverged, run_stylize
     from ..stylize.outputs import RANDOM_VGG_NOTE, write_outputs
 
+    t_in = time.perf_counter()
     inp, in_bytes = build_inputs(args, cfg, sources, out, args.quiet, dist)
+    t_in = time.perf_counter() - t_in
     quiet = args.quiet or not dist.is_main
     if not quiet:
         c = inp.cameras[0]
@@ -290,6 +294,7 @@ def _run(args, cfg, sources, out, device, vgg, wall0, dist) -> int:
         raise
     if not dist.is_main:
         return 0  # every rank holds the same result; the main rank writes it
+    res.metrics["load_split_s"] = {"vgg": round(t_vgg, 3), "inputs": round(t_in, 3)}  # before run_stylize
     m = write_outputs(out, res, input_bytes=in_bytes, wall_start=wall0)
     tp = m["time_per_phase_s"]
     print(f"{out}: flow alignment {m['flow_alignment']:.3f} (original {m['flow_alignment_original']:.3f}), "

@@ -34,7 +34,7 @@ _FOLDERS = ("images", "images_2", "images_4", "images_8")
 class Dataset:
     """Cameras, names, lazily decoded photos (cached) and optional SfM points."""
 
-    def __init__(self, root, cameras, names, load_fn, points=None, kind="", bounds=None):
+    def __init__(self, root, cameras, names, load_fn, points=None, kind="", bounds=None, threaded=True):
         self.root = Path(root)
         self.cameras: list[Camera] = list(cameras)
         self.names: list[str] = list(names)
@@ -42,6 +42,7 @@ class Dataset:
         self.kind = kind
         self.bounds = bounds  # [N, 2] LLFF near/far per view, else None
         self._load = load_fn  # index -> float32 numpy [H, W, 3]
+        self.threaded = threaded  # load_fn may run in several threads at once (file decoding; not a renderer)
         self._cache: dict[int, torch.Tensor] = {}
 
     def __len__(self) -> int:
@@ -68,6 +69,8 @@ class Dataset:
         read fern's 20 PNGs one by one); a bad file raises as ``image`` would, the first in view order."""
         from concurrent.futures import ThreadPoolExecutor
 
+        if not self.threaded:  # e.g. the demo's photos are renders: Warp launches are not thread-safe
+            return [self.image(i) for i in range(len(self.cameras))]
         with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
             futures = [pool.submit(self.image, i) for i in range(len(self.cameras))]
             return [f.result() for f in futures]

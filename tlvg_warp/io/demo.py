@@ -177,7 +177,7 @@ def demo_dataset(seed: int = 0, n_views: int = 24, width: int = 160, height: int
     sub = torch.arange(0, g.num, 8)
     rgb = (g.sh[sub, 0] * SH_C0 + 0.5).clamp(0, 1)
     ds = Dataset(Path("<demo>"), [cams[i] for i in keep], [names[i] for i in keep], load,
-                 (g.means[sub].clone(), rgb), kind="demo")
+                 (g.means[sub].clone(), rgb), kind="demo", threaded=False)  # its photos are Warp renders
     ds.gaussians, ds.background = g, background
     return ds
 

@@ -212,6 +212,12 @@ def _write_view(out: Path, i: int, sty: torch.Tensor, org: torch.Tensor, photo: 
     return sty.numpy(), org.numpy(), photo.numpy(), score, score_orig
 
 
+def _timed(fn, *args) -> tuple:
+    """(fn(*args), its wall seconds)."""
+    t = time.perf_counter()
+    return fn(*args), time.perf_counter() - t
+
+
 def _write_orbit(out: Path, frames: list, fps: int) -> str | None:
     """orbit.mp4; PNG frames in orbit_frames/ when no encoder works. Returns the note to show (or None)."""
     try:
@@ -253,14 +259,15 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
                      pool.submit(save_spz, g_cpu, out / "stylized.spz")]
         write_json(out / "cameras.json", cameras_json(SimpleNamespace(cameras=inp.cameras, names=inp.names)))
         pick = set(np.linspace(0, len(inp.cameras) - 1, min(cfg.comparison_views, len(inp.cameras))).round().astype(int))
-        views = []
+        views, t = [], time.perf_counter()
         with torch.no_grad():
             for i, cam in enumerate(inp.cameras):
                 sty = render(g, cam, bg).color.clamp(0, 1).cpu()
                 fld = res.fields[i][..., :2].numpy() if res.fields else None
                 views.append(pool.submit(_write_view, out, i, sty, res.originals[i], inp.photos[i].detach().cpu(), fld))
             frames = [render(g, cam, bg).color.clamp(0, 1).cpu().numpy() for cam in orbit_path(inp.cameras, cfg.orbit_frames)]
-        video = pool.submit(_write_orbit, out, frames, cfg.orbit_fps) if frames else None
+        split = {"renders": time.perf_counter() - t}  # the GPU's part (views and orbit frames), in this thread
+        video = pool.submit(_timed, _write_orbit, out, frames, cfg.orbit_fps) if frames else None
         style_np = inp.style.detach().cpu().numpy()
         s_theta, s_coh, _ = res.style_field
         jobs += [pool.submit(write_image, out / "style.png", style_np),
@@ -278,7 +285,8 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
                    + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {res.vgg_source}"))
         rows = [(d[2], d[1], d[0]) for i, d in enumerate(done) if i in pick]
         write_image(out / "comparison.png", comparison_grid(rows, style_np, caption).astype(np.float32) / 255.0)
-        video_note = video.result() if video is not None else None
+        split["views_done"] = time.perf_counter() - t0  # every view's files written and scored
+        video_note, split["video"] = video.result() if video is not None else (None, 0.0)
         for j in jobs:
             j.result()
     web = {f"bytes_out_{k}": os.path.getsize(out / f"stylized.{k.replace('_', '.')}")
@@ -299,6 +307,7 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         "orbit": video_note or "orbit.mp4",
         "vgg_note": RANDOM_VGG_NOTE if res.vgg_random else "pretrained",
         "outputs_time_s": round(time.perf_counter() - t0, 3),
+        "outputs_split_s": {k: round(v, 3) for k, v in split.items()},  # renders; views written by; video encode
     })
     if wall_start is not None:
         m["wall_time_s"] = round(time.perf_counter() - wall_start, 3)

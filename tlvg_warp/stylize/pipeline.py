@@ -375,11 +375,15 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         runs.start_run_dir(out, overwrite, ck is not None, RUN_FILES)
         write_text(out / "config.yaml", config_yaml(cfg))
     announce = vgg is None  # a caller that passes the network has already said where it came from
+    split, t = {}, time.perf_counter()  # the setup's wall time by part (metrics: setup_split_s)
     vgg = (vgg if vgg is not None else load_vgg(cfg.vgg_weights, device)).to(device)
     if device.type == "cuda" and cfg.vgg_channels_last:
         vgg.set_precision(channels_last=True)
+    split["vgg"], t = time.perf_counter() - t, time.perf_counter()
     tg = prepare(inp, cfg, vgg, device, tuple(cfg.background))
+    split["targets"], t = time.perf_counter() - t, time.perf_counter()
     run = build_run(inp, cfg, tg, vgg, device, dist, out)
+    split["build"] = time.perf_counter() - t
     if ck is not None:
         run.load_state_dict(ck)
     start_step = run.step
@@ -404,6 +408,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         "vgg_random": bool(vgg.is_random), "vgg_source": vgg.source,
     }
     metrics["setup_time_s"] = round(time.perf_counter() - t_start - metrics["train_time_s"], 3)
+    metrics["setup_split_s"] = {k: round(v, 3) for k, v in split.items()}
     return StylizeResult(final, inp, cfg, tg.style_work, tg.style_field, [f.cpu() for f in sty.fields], run.log,
                          metrics, metrics["vgg_random"], vgg.source, tg.originals)
 
