@@ -111,7 +111,6 @@ def _targets_kernel(scalar_name: str):
         target: wp.array(dtype=vec2),  # [N] out: (cos 2θ, sin 2θ) at the projected center (0 where inactive)
         active: wp.array(dtype=wp.int32),  # [N] out
         w: wp.array(dtype=scalar),  # [N] out: coherence x weight, 0 where inactive
-        wsum: wp.array(dtype=scalar),  # [1] out (zeroed by the caller): Σ w
     ):
         i = wp.tid()
         target[i] = vec2(scalar(0.0), scalar(0.0))
@@ -150,9 +149,8 @@ def _targets_kernel(scalar_name: str):
             return
         target[i] = vec2(vx / coh, vy / coh)
         active[i] = 1
-        wi = wp.max(coh * weights[i], scalar(0.0))
-        w[i] = wi
-        wp.atomic_add(wsum, 0, wi)
+        w[i] = wp.max(coh * weights[i], scalar(0.0))  # Σ w is torch's sum: one address for every thread's
+        # atomic add made this kernel 0.56 ms of a fern stylize step on the H200
 
     return flow_targets_kernel
 
@@ -174,7 +172,6 @@ class FlowEnergiesFn(torch.autograd.Function):
         target = torch.empty(n, 2, dtype=dt, device=dev)
         active = torch.empty(n, dtype=torch.int32, device=dev)
         w = torch.empty(n, dtype=dt, device=dev)
-        wsum = torch.zeros(1, dtype=dt, device=dev)
         fld = field if (field.dtype == dt and field.is_contiguous()) else field.to(dt).contiguous()
         wts = weights.detach()
         wts = wts if (wts.dtype == dt and wts.is_contiguous()) else wts.to(dt).contiguous()
@@ -183,8 +180,7 @@ class FlowEnergiesFn(torch.autograd.Function):
             if n:
                 wp.launch(T, dim=n, inputs=[to_warp(means, K.vec3), to_warp(log_scales, K.vec3), wp.from_torch(wts),
                                             wp.from_torch(fld), *cargs[:8], cargs[8], K.scalar(COHERENCE_MIN)],
-                          outputs=[to_warp(target, K.vec2), wp.from_torch(active), wp.from_torch(w),
-                                   wp.from_torch(wsum)], device=wdev)
+                          outputs=[to_warp(target, K.vec2), wp.from_torch(active), wp.from_torch(w)], device=wdev)
             ins = [to_warp(means, K.vec3, grads[0]), to_warp(quats, K.vec4, grads[1]),
                    to_warp(log_scales, K.vec3, grads[2]), to_warp(target, K.vec2), to_warp(active, wp.int32)]
             outs = [to_warp(e[0], K.scalar, e[2]), to_warp(e[1], K.scalar, e[3])]
@@ -193,7 +189,7 @@ class FlowEnergiesFn(torch.autograd.Function):
                 with tape:
                     wp.launch(K.flow_terms, dim=n, inputs=ins + [cargs[0], cargs[1], cargs[2], cargs[3], cam.width,
                                                                  cam.height], outputs=outs, device=wdev)
-        inv = wsum.clamp_min(1e-12).reciprocal()
+        inv = w.sum().clamp_min(1e-12).reciprocal()
         ctx.state = (tape, e, w, inv, grads, dev)
         ctx.save_for_backward(means, quats, log_scales)  # autograd's in-place check on the inputs
         return torch.mv(e[:2], w) * inv
