@@ -36,6 +36,10 @@ def test_orbit_video_is_h264_that_browsers_play(tmp_path, size):
     assert err < VIDEO_MEAN_ERR
     data = path.read_bytes()
     assert data.index(b"moov") < data.index(b"mdat")  # +faststart: a browser can start before the download ends
+    # frames already in uint8 (the stylization converts its renders on the GPU) encode to the same file; the
+    # oracle is numpy's own rounding of the float frames. Catches a second scaling (x255 twice) or a lost rounding.
+    u8 = [np.clip(f * 255.0 + 0.5, 0, 255).astype(np.uint8) for f in frames]
+    assert write_video(tmp_path / "u8.mp4", u8, 24) is None and (tmp_path / "u8.mp4").read_bytes() == data
 
 
 @pytest.mark.parametrize("mask", [0o022, 0o027, 0o002])
@@ -52,3 +56,16 @@ def test_outputs_get_the_mode_the_umask_allows(tmp_path, mask):
     assert plain == 0o666 & ~mask
     assert os.stat(tmp_path / "atomic.txt").st_mode & 0o777 == plain
     assert os.stat(tmp_path / "sub" / "m.json").st_mode & 0o777 == plain
+
+
+def test_u8_of_a_tensor_equals_numpys_rounding():
+    """Renders are converted to uint8 where they are (torch); the oracle is the numpy path on the same values,
+    NaN, out-of-range and exact halves included. Catches a missing +0.5 (truncation) or a clamp after scaling."""
+    import torch
+
+    from tlvg_warp.stylize.outputs import _u8
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(17, 23, 3, generator=g) * 1.4 - 0.2
+    x[0, 0, 0], x[0, 1, 0], x[1, 0, 1] = float("nan"), 0.5 / 255.0, 254.5 / 255.0
+    assert _u8(x).dtype == np.uint8 and np.array_equal(_u8(x), _u8(x.numpy()))

@@ -98,11 +98,12 @@ def _json_default(o):
 
 
 def write_image(path, rgb) -> None:
-    """Save an [H,W,3] float image in [0,1] (numpy or torch) as 8-bit PNG/JPEG."""
+    """Save an [H,W,3] float image in [0,1] (numpy or torch), or one already in uint8, as 8-bit PNG/JPEG."""
     import cv2
 
     a = rgb.detach().cpu().numpy() if hasattr(rgb, "detach") else np.asarray(rgb)
-    a = np.clip(np.nan_to_num(a, nan=0.0) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if a.dtype != np.uint8:
+        a = np.clip(np.nan_to_num(a, nan=0.0) * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if a.ndim == 3:
         a = cv2.cvtColor(a, cv2.COLOR_RGB2BGR)
     ok, buf = cv2.imencode(Path(path).suffix or ".png", a)

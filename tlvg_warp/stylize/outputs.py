@@ -22,8 +22,10 @@ MIN_TILE_WIDTH = 240  # comparison tiles are upscaled (nearest) to at least this
 
 
 def _u8(img) -> np.ndarray:
-    a = img.detach().cpu().numpy() if isinstance(img, torch.Tensor) else np.asarray(img)
-    return np.clip(np.nan_to_num(a) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if isinstance(img, torch.Tensor):  # on its device (the GPU for renders): 4x less to copy, no numpy pass
+        return (img.detach().nan_to_num(0.0).clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+    a = np.asarray(img)
+    return a if a.dtype == np.uint8 else np.clip(np.nan_to_num(a) * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
 def _fit_painting(style: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -260,14 +262,14 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         write_json(out / "cameras.json", cameras_json(SimpleNamespace(cameras=inp.cameras, names=inp.names)))
         pick = set(np.linspace(0, len(inp.cameras) - 1, min(cfg.comparison_views, len(inp.cameras))).round().astype(int))
         views, t = [], time.perf_counter()
-        with torch.no_grad():
+        with torch.no_grad():  # the orbit first: its encoding is the longest job
+            frames = [_u8(render(g, cam, bg).color) for cam in orbit_path(inp.cameras, cfg.orbit_frames)]  # uint8
+            video = pool.submit(_timed, _write_orbit, out, frames, cfg.orbit_fps) if frames else None
             for i, cam in enumerate(inp.cameras):
                 sty = render(g, cam, bg).color.clamp(0, 1).cpu()
                 fld = res.fields[i][..., :2].numpy() if res.fields else None
                 views.append(pool.submit(_write_view, out, i, sty, res.originals[i], inp.photos[i].detach().cpu(), fld))
-            frames = [render(g, cam, bg).color.clamp(0, 1).cpu().numpy() for cam in orbit_path(inp.cameras, cfg.orbit_frames)]
-        split = {"renders": time.perf_counter() - t}  # the GPU's part (views and orbit frames), in this thread
-        video = pool.submit(_timed, _write_orbit, out, frames, cfg.orbit_fps) if frames else None
+        split = {"renders": time.perf_counter() - t}  # the GPU's part (orbit frames and views), in this thread
         style_np = inp.style.detach().cpu().numpy()
         s_theta, s_coh, _ = res.style_field
         jobs += [pool.submit(write_image, out / "style.png", style_np),
