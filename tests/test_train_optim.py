@@ -137,3 +137,48 @@ def test_hook_handle_removes():
     h.remove()
     opt.step()
     assert calls == [torch.Size([8, 3])]
+
+
+def test_functional_adam_equals_torch_adam_and_imports_no_dynamo():
+    """FunctionalAdam (GaussianOptimizer's Adam) against torch.optim.Adam itself, the oracle: five steps with
+    the learning rates changed between them and a group without gradient, bit-identical parameters and
+    moments. Catches other betas/eps, a bias correction off by one step, a moment not carried over. And the
+    reason it exists: a fresh process that builds and steps a GaussianOptimizer never imports torch._dynamo."""
+    import subprocess
+    import sys
+
+    from tlvg_warp.train.optim import FunctionalAdam
+
+    gen = torch.Generator().manual_seed(3)
+    a = [torch.randn(7, 3, generator=gen).requires_grad_(), torch.randn(5, generator=gen).requires_grad_(),
+         torch.randn(2, 4, generator=gen).requires_grad_()]
+    b = [t.detach().clone().requires_grad_() for t in a]
+    ours = FunctionalAdam([{"params": [t], "lr": 0.01 * (i + 1), "name": str(i)} for i, t in enumerate(a)], 0.0,
+                          1e-15, False)
+    ref = torch.optim.Adam([{"params": [t], "lr": 0.01 * (i + 1)} for i, t in enumerate(b)], lr=0.0, eps=1e-15)
+    for step in range(5):
+        for x, y in zip(a, b):
+            if step == 2 and x is a[1]:
+                x.grad = y.grad = None  # no gradient this step: neither moves it
+                continue
+            x.grad = torch.randn(x.shape, generator=gen)
+            y.grad = x.grad.clone()
+        for go, gr in zip(ours.param_groups, ref.param_groups):
+            go["lr"] = gr["lr"] = gr["lr"] * 0.7
+        ours.step()
+        ref.step()
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)
+        for k in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(ours.state[x][k], ref.state[y][k]), k
+    code = ("import sys, torch; from tlvg_warp.train.optim import GaussianOptimizer, GaussianParams; "
+            "from tlvg_warp import Gaussians; g = Gaussians(torch.zeros(3, 3), torch.ones(3, 4), torch.zeros(3, 3), "
+            "torch.zeros(3), torch.zeros(3, 1, 3)); p = GaussianParams(g, 0); o = GaussianOptimizer(p); "
+            "p.means.grad = torch.ones(3, 3); o.step(); print('torch._dynamo' in sys.modules)")
+    import os
+    from pathlib import Path
+
+    repo = str(Path(__file__).resolve().parents[1])
+    env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.stdout.strip().splitlines()[-1] == "False", out.stderr[-2000:]

@@ -1,8 +1,8 @@
 """Trainable Gaussian parameters, Adam with per-group learning rates (SPEC §3) and post-step hooks.
 
 ``GaussianParams`` holds the parameters as leaf tensors (``requires_grad=True``), with the SH split into
-the DC band and the rest (they have different learning rates). ``GaussianOptimizer`` is one
-``torch.optim.Adam`` (eps 1e-15) with one group per field, the exponential xyz decay, and hooks called
+the DC band and the rest (they have different learning rates). ``GaussianOptimizer`` is one Adam
+(``torch.optim.Adam``'s update, ``FunctionalAdam``; eps 1e-15) with one group per field, the exponential xyz decay, and hooks called
 after every step. Density control adds and removes Gaussians through ``GaussianOptimizer.rebuild`` which
 keeps Adam's ``exp_avg`` / ``exp_avg_sq`` aligned with the parameters (kept rows sliced, new rows zero).
 
@@ -119,6 +119,52 @@ class GaussianParams:
         return ok
 
 
+class FunctionalAdam:
+    """``torch.optim.Adam``'s update through its functional form (``torch.optim.adam.adam``, fused on CUDA)
+    without ``torch.optim.Optimizer``, whose constructor imports ``torch._dynamo``: 2.5-3.8 s of every run's
+    setup (the largest part of a fern stylization's). The same arithmetic, the same state per parameter
+    (``step``, ``exp_avg``, ``exp_avg_sq``), ``param_groups`` and ``defaults``; betas (0.9, 0.999), no weight
+    decay, no amsgrad (what 3DGS uses)."""
+
+    BETAS = (0.9, 0.999)
+
+    def __init__(self, groups: list, lr: float, eps: float, fused: bool):
+        self.defaults = {"lr": lr, "betas": self.BETAS, "eps": eps, "weight_decay": 0.0, "amsgrad": False,
+                         "fused": bool(fused)}
+        self.param_groups = [{"lr": lr, **g, "params": list(g["params"])} for g in groups]
+        self.state: dict = {}  # parameter -> {"step", "exp_avg", "exp_avg_sq"}, created at its first step
+
+    def _state(self, p: torch.Tensor) -> dict:
+        st = self.state.get(p)
+        if not st:  # as torch.optim.Adam: the step on the device when fused, a CPU scalar otherwise
+            fused = self.defaults["fused"]
+            st = self.state[p] = {
+                "step": torch.zeros((), dtype=torch.float32, device=p.device) if fused else torch.tensor(0.0),
+                "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
+                "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format)}
+        return st
+
+    @torch.no_grad()
+    def step(self) -> None:
+        from torch.optim.adam import adam
+
+        d = self.defaults
+        for g in self.param_groups:
+            ps = [p for p in g["params"] if p.grad is not None]
+            if not ps:
+                continue
+            st = [self._state(p) for p in ps]
+            adam(ps, [p.grad for p in ps], [s["exp_avg"] for s in st], [s["exp_avg_sq"] for s in st], [],
+                 [s["step"] for s in st], foreach=None, fused=d["fused"] or None, amsgrad=False,
+                 beta1=self.BETAS[0], beta2=self.BETAS[1], lr=g["lr"], weight_decay=0.0, eps=d["eps"],
+                 maximize=False)
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for g in self.param_groups:
+            for p in g["params"]:
+                p.grad = None
+
+
 class GaussianOptimizer:
     """Adam (eps 1e-15) with one parameter group per field, xyz decay and post-step hooks.
 
@@ -134,7 +180,7 @@ class GaussianOptimizer:
                   for f in params.trainable()]
         # fused: one kernel for every group on CUDA instead of a dozen launches per group each step
         fused = all(g["params"][0].is_cuda for g in groups) and len(groups) > 0
-        self.adam = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=fused or None)
+        self.adam = FunctionalAdam(groups, lr=0.0, eps=1e-15, fused=fused)
         self.hooks: list = []  # (fn, fields)
 
     # learning rates ------------------------------------------------------------------------------
