@@ -34,6 +34,7 @@ Decisions (beyond the spec, documented):
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -363,6 +364,13 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     cfg = cfg.validate()
     inp.check()
     dist = dist or Dist()
+    if dist.world > 1 and cfg.loss.fast_refresh > 1:
+        # a view's reused FAST projection lives on the rank that computed it, and a view is not rendered by the
+        # same rank every time: N ranks equal one process with N views per step (and resume) only without reuse
+        if dist.is_main:
+            print(f"note: loss.fast_refresh {cfg.loss.fast_refresh} -> 1 on {dist.world} ranks (each rank would keep "
+                  "its own FAST cache)", file=sys.stderr, flush=True)
+        cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, fast_refresh=1))
     device = torch.device(dist.device) if dist.world > 1 else resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     out = Path(out_dir) if out_dir is not None else None
