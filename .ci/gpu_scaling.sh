@@ -24,7 +24,7 @@ R=/tmp/tlvg-runs; S=$R/scaling; L=$S/logs; mkdir -p "$L"; D=/tmp/tlvg-data  # lo
 ITS=${ITS:-1000}; STUDY_ITS=${STUDY_ITS:-600}
 TR="python3 -m torch.distributed.run --standalone --nproc-per-node 2"
 FERN="--scene $R/fern/point_cloud.ply --data $D/fern_llff --downscale 2 --style $D/styles/starry_night.jpg"
-QUICK="--quiet --overwrite --set orbit_frames=0 --set comparison_views=1 --set checkpoint_seconds=0"
+QUICK="--quiet --overwrite --set orbit_frames=0 --set comparison_views=1 --set checkpoint_seconds=0 --set loss.fast_refresh=1"  # reuse off: ranks do not share it
 now() { date +%s.%N; }
 [ $# -eq 0 ] && set -- fit stylize nccl study table
 # staging as .ci/gpu_study.sh: a call that carries .gpu/vgg or .gpu/data copies it to /tmp (kept while warm)
