@@ -22,6 +22,8 @@ export TLVG_VGG_WEIGHTS=${TLVG_VGG_WEIGHTS:-/tmp/tlvg-gpu/vgg16_hed.pt}
 OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
 R=/tmp/tlvg-runs; S=$R/scaling; L=$S/logs; mkdir -p "$L"; D=/tmp/tlvg-data  # logs in $L; $OUT gets 3 files
 ITS=${ITS:-1000}; STUDY_ITS=${STUDY_ITS:-600}
+# STUDY_JOBS=8: two ablations more (4 configs x 2 paintings), so that fixed launch costs weigh less
+STUDY_MORE=""; [ "${STUDY_JOBS:-4}" = 8 ] && STUDY_MORE=", no_density: $PWD/configs/ablation_no_density.yaml, rgb_loss: $PWD/configs/ablation_rgb_loss.yaml"
 TR="python3 -m torch.distributed.run --standalone --nproc-per-node 2"
 FERN="--scene $R/fern/point_cloud.ply --data $D/fern_llff --downscale 2 --style $D/styles/starry_night.jpg"
 QUICK="--quiet --overwrite --set orbit_frames=0 --set comparison_views=1 --set checkpoint_seconds=0 --set loss.fast_refresh=1"  # reuse off: ranks do not share it
@@ -92,7 +94,7 @@ device: cuda
 iterations: $STUDY_ITS
 max_views: 8
 set: [orbit_frames=0, comparison_views=1, checkpoint_seconds=0]
-configs: {tlvg: $PWD/configs/tlvg.yaml, abcgs: $PWD/configs/abcgs.yaml}
+configs: {tlvg: $PWD/configs/tlvg.yaml, abcgs: $PWD/configs/abcgs.yaml$STUDY_MORE}
 ours: tlvg
 baseline: abcgs
 scenes: {fern: {data: $D/fern_llff, downscale: 2}}
