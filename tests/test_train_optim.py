@@ -182,3 +182,31 @@ def test_functional_adam_equals_torch_adam_and_imports_no_dynamo():
     env = dict(os.environ, PYTHONPATH=repo + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
     assert out.stdout.strip().splitlines()[-1] == "False", out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-14), (torch.float32, 2e-6)])  # a few float ops per value
+def test_tangential_kernel_equals_its_torch_twin(dtype, tol):
+    """The Warp hook against tangential_hook_torch on the same step: random rotations (unnormalized), ties in
+    the log-scales (torch.argmin takes the first) and an all-zero quaternion. Catches a wrong column of R, a
+    tie broken the other way, an unnormalized quaternion."""
+    from tlvg_warp.train.optim import tangential_hook_torch
+
+    gen = torch.Generator().manual_seed(5)
+    n = 200
+    q = torch.randn(n, 4, generator=gen, dtype=dtype) * 3
+    q[0] = 0.0
+    ls = torch.randn(n, 3, generator=gen, dtype=dtype)
+    ls[1] = torch.tensor([-1.0, -1.0, 0.0])  # tie between x and y: x
+    ls[2] = torch.tensor([0.5, -2.0, -2.0])  # tie between y and z: y
+    ls[3] = torch.tensor([0.0, 0.0, 0.0])
+    before = torch.randn(n, 3, generator=gen, dtype=dtype)
+    after = before + 0.01 * torch.randn(n, 3, generator=gen, dtype=dtype)
+    outs = []
+    for make in (tangential_hook, tangential_hook_torch):
+        g = Gaussians(after.clone(), q, ls, torch.zeros(n, dtype=dtype), torch.zeros(n, 1, 3, dtype=dtype))
+        p = GaussianParams(g, 0)
+        with torch.no_grad():
+            make(0.7)(p, {"means": before})
+        outs.append(p.means.detach().clone())
+    assert (outs[0] - outs[1]).abs().max() < tol
+    assert (outs[1] - after).abs().max() > 1e-3  # the hook did change the step

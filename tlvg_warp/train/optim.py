@@ -307,7 +307,32 @@ def footprint_normals(quats: torch.Tensor, log_scales: torch.Tensor) -> torch.Te
 
 def tangential_hook(lam: float = 1.0):
     """Post-step hook (paper eq. 3): μ ← μ_before + Δμ − λ(Δμ·n)n, Δμ the Adam step just taken and n the
-    footprint normal (from the parameters after the step). λ=1 removes the normal component entirely."""
+    footprint normal (from the parameters after the step). λ=1 removes the normal component entirely. One Warp
+    kernel (kernels/tangential.py) for float32/float64 parameters; ``tangential_hook_torch`` is its twin."""
+    lam = float(lam)
+    twin = tangential_hook_torch(lam)
+
+    def hook(params: GaussianParams, before: dict) -> None:
+        from ..kernels.tangential import tangential_kernels
+        from ..ops import ct, fast_launch, init_warp, warp_on
+
+        mu, mu0 = params.means.detach(), before["means"]
+        q, ls = params.quats.detach(), params.log_scales.detach()
+        if (mu.dtype not in (torch.float32, torch.float64) or mu.device.type not in ("cpu", "cuda")
+                or any(t.dtype != mu.dtype or t.device != mu.device or not t.is_contiguous() for t in (mu, mu0, q, ls))):
+            return twin(params, before)
+        init_warp()
+        K = tangential_kernels("float32" if mu.dtype == torch.float32 else "float64")
+        with warp_on(mu.device) as wdev:  # in place on the parameter's storage (hooks run without grad)
+            fast_launch(K.kernel, mu.shape[0], [ct(mu, K.vec3), ct(mu0, K.vec3), ct(q, K.vec4), ct(ls, K.vec3),
+                                                K.scalar(lam)], wdev)
+
+    hook.fields = ("means",)
+    return hook
+
+
+def tangential_hook_torch(lam: float = 1.0):
+    """The hook in torch (``tangential_hook``'s twin, and its path for anything the kernel does not take)."""
     lam = float(lam)
 
     def hook(params: GaussianParams, before: dict) -> None:
@@ -322,4 +347,4 @@ def tangential_hook(lam: float = 1.0):
 
 
 __all__ = ["FIELDS", "LR_RENAMED", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
-           "quat_to_rotmat", "footprint_normals", "tangential_hook", "sh_coeffs"]
+           "quat_to_rotmat", "footprint_normals", "tangential_hook", "tangential_hook_torch", "sh_coeffs"]
