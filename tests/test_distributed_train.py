@@ -55,9 +55,9 @@ def one_thread():
 
 
 WORKER = """
-import json, sys
+import json, os, sys
 from tlvg_warp.cli import main
-from tlvg_warp.train.loop import Run
+from tlvg_warp.train.loop import Run, _Loop
 
 
 class Killed(BaseException):
@@ -73,9 +73,23 @@ def save_then_die(run, note=""):  # as a launch killed (SIGKILL, a preempted job
         raise Killed
 
 
+step = _Loop.step
+SIGINT_AT = [None]
+
+
+def step_then_sigint(loop, phase, k, i):  # as a Ctrl-C that reached rank 1 alone, after step SIGINT_AT
+    view = step(loop, phase, k, i)
+    if i == SIGINT_AT[0] and os.environ.get("RANK") == "1":
+        loop.intr.flag = True
+    return view
+
+
+_Loop.step = step_then_sigint
 for argv in json.loads(sys.argv[1]):
     kill = argv[0] == "--killed-after-checkpoint"
-    argv = argv[kill:]
+    sigint = argv[0] == "--sigint-rank1-after"
+    SIGINT_AT[0] = int(argv[1]) if sigint else None
+    argv = argv[kill:] if not sigint else argv[2:]
     Run.save_checkpoint = save_then_die if kill else save
     print("== " + argv[0], flush=True)
     try:
@@ -83,8 +97,11 @@ for argv in json.loads(sys.argv[1]):
     except Killed:
         continue
     sys.stdout.flush()
-    if rc or kill:
-        sys.exit(rc or 3)  # 3: a run to be killed wrote no periodic checkpoint
+    if sigint and rc == 130:  # interrupted, as it should be: the CLI's exit code for Ctrl-C
+        print(f"== rank {os.environ.get('RANK')} interrupted", flush=True)
+        continue
+    if rc or kill or sigint:
+        sys.exit(rc or 3)  # 3: a run to be killed wrote no periodic checkpoint, or one to interrupt finished
 """
 
 
@@ -130,6 +147,7 @@ def resume_here(*argv) -> tuple[int, str]:
     return rc, err.getvalue()
 
 
+SIGINT_AT = 3  # a Ctrl-C on rank 1 alone after this step; both ranks stop at the next log point, step 4
 STOP = 5  # the killed stylization's checkpoint: Stylize phase (steps 3-10 of 12), between its densify steps 4 and 6
 
 
@@ -164,7 +182,9 @@ def runs(tmp_path_factory):
                    # into another folder: s2k keeps the checkpoint at STOP for the one-process resumes below
                    ["stylize", "--quiet", "--resume", root / "s2k", "--out", root / "s2r"],
                    ["reconstruct", *RECON, "--iterations", 8, "--out", root / "r2", "--set", "views_per_step=1"],
-                   ["reconstruct", "demo", "--device", "cpu", "--quiet", "--resume", root / "r2", "--iterations", 12])
+                   ["reconstruct", "demo", "--device", "cpu", "--quiet", "--resume", root / "r2", "--iterations", 12],
+                   # Ctrl-C on rank 1 alone after step 3 (log points are the even steps)
+                   ["--sigint-rank1-after", SIGINT_AT, *sty, "--out", root / "s2i", "--set", "views_per_step=1"])
     ck = torch.load(root / "s2k" / "checkpoint.pt", map_location="cpu", weights_only=False)
     assert (ck["iteration"], ck["note"], ck["step_views"]) == (STOP, "periodic", {"ranks": 2, "per_rank": 1})
     resumed = {out: resume_here("stylize", "--quiet", "--resume", root / "s2k", "--out", root / out, *extra)
@@ -175,7 +195,7 @@ def runs(tmp_path_factory):
 def test_stylize_two_ranks_equal_one_rank_with_two_views_per_step(runs):
     root, log, _ = runs
     assert log.count("flow alignment") == 2  # s2 and s2r (the killed run: none), by the main rank alone
-    assert log.count("note: loss.fast_refresh 4 -> 1 on 2 ranks") == 2  # s2 and s2k (s2r resumes with 1)
+    assert log.count("note: loss.fast_refresh 4 -> 1 on 2 ranks") == 3  # s2, s2k and s2i (s2r resumes with 1)
     assert_same_run(root / "s1", root / "s2")
     m1, m2 = (json.loads((root / r / "metrics.json").read_text()) for r in ("s1", "s2"))
     assert m2["densify_events"] == m1["densify_events"]
@@ -238,3 +258,15 @@ def test_resume_with_other_views_per_step_continues_with_a_note(runs):
     assert (m["iterations"], m["resumed_from"]) == (12, STOP)
     rows = [json.loads(line) for line in (root / "s1m" / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == list(range(1, 13))
+
+
+def test_ctrl_c_on_one_rank_stops_both_at_the_next_log_point(runs):
+    """A Ctrl-C that reaches rank 1 alone after step 3 stops both ranks together at step 4, the next log point,
+    with one checkpoint of that step and the log up to it; both exit 130. Catches a rank that acts on its own
+    flag at once: it flushes alone (a collective the other rank never joins), and the launch fails or hangs."""
+    root, log, _ = runs
+    assert log.count("== rank 0 interrupted") == 1 and log.count("== rank 1 interrupted") == 1
+    ck = torch.load(root / "s2i" / "checkpoint.pt", map_location="cpu", weights_only=False)
+    assert (ck["iteration"], ck["note"]) == (SIGINT_AT + 1, "interrupted")
+    rows = [json.loads(line) for line in (root / "s2i" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == list(range(1, SIGINT_AT + 2))

@@ -369,6 +369,7 @@ class _Loop:
         self.pbar = self.phase = self.t0 = None
         self.last_good = run.state_dict()
         self.last_ck = time.perf_counter()
+        self.stop_agreed = False  # several ranks: some rank was interrupted (combined at the last flush)
 
     # phases ---------------------------------------------------------------------------------------------------
     def open_phase(self, phase: Phase, k: int) -> None:
@@ -418,14 +419,18 @@ class _Loop:
             if self.interrupt_at is not None and step == self.interrupt_at:
                 self.intr.flag = True
             ck_due = self.checkpoint_due(step)
-            if step % r.settings.log_every == 0 or k + 1 == phase.steps or self.intr.flag or ck_due:
+            # one rank alone: stop at once; several: Ctrl-C reaches the ranks at different steps, so they stop
+            # together at the next log point, where flush() combines their flags (a rank that flushed alone
+            # would enter a collective the others never join)
+            stop_now = self.intr.flag and r.dist.world == 1
+            if step % r.settings.log_every == 0 or k + 1 == phase.steps or stop_now or ck_due:
                 self.flush(step, phase, view)
                 if k + 1 == phase.steps or step % (r.settings.log_every * 10) == 0 or ck_due:
                     r.write_log()
             if ck_due:
                 r.save_checkpoint("periodic")
                 self.last_ck = time.perf_counter()
-            if self.intr.flag:
+            if stop_now or self.stop_agreed:
                 raise KeyboardInterrupt
 
     def step(self, phase: Phase, k: int, step: int) -> View:
@@ -490,9 +495,14 @@ class _Loop:
         r = self.run_
         buf, self.buf = self.buf, []
         ok_flag = r.params.all_finite().float().reshape(1)
-        flat = torch.cat([v for _, _, v in buf] + [ok_flag])
+        flags = [ok_flag]
+        if r.dist.world > 1:  # and whether any rank was interrupted (the mean of the flags is > 0)
+            flags.append(torch.full((1,), float(self.intr.flag), dtype=ok_flag.dtype, device=ok_flag.device))
+        flat = torch.cat([v for _, _, v in buf] + flags)
         r.dist.all_reduce_mean_([flat])  # the log shows the mean over every rank's views
         vals = flat.cpu().tolist()
+        if r.dist.world > 1:
+            self.stop_agreed = vals.pop() > 0
         ok = vals[-1] == 1.0
         i = 0
         for info, names, _ in buf:
