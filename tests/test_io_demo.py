@@ -115,3 +115,14 @@ def test_builtin_painting():
         src = cv2.imread(str(root / "styles" / "starry_night.jpg"))[:, :, ::-1].astype(np.float32) / 255
         ref = cv2.resize(src, (p.shape[1], 256), interpolation=cv2.INTER_AREA)
         assert np.abs(ref - p.numpy()).mean() < PAINTING_TOL
+
+
+def test_demo_photos_through_images_equal_one_by_one():
+    """``Dataset.images()`` (what stylize's setup calls) on the demo, whose photos are Warp renders: every view
+    equals a fresh dataset's ``image(i)`` taken one at a time. Catches the demo decoded in the thread pool:
+    concurrent Warp launches share their recorded launch descriptors (it crashed the CLI demo once)."""
+    a, b = demo_dataset(n_views=6, width=32, height=24), demo_dataset(n_views=6, width=32, height=24)
+    got = a.images()
+    assert len(got) == len(b.cameras) == 6
+    for i, img in enumerate(got):
+        assert torch.equal(img, b.image(i))
