@@ -292,6 +292,8 @@ def test_one_rank_two_views_equals_two_ranks_one_view(demo):
             "density.start": 4, "density.interval": 4, "density.max_gaussians": 0, "lr.means": 1e-3}
     g1, m1 = fit_scene(ds, fit_config({**over, "views_per_step": 2}).validate(), None, demo.gaussians, progress=False)
     assert any(e["cloned"] + e["split"] for e in m1["densify_events"])  # density control acted
+    # and the stage timer timed each of those steps (rare work: timed whenever it runs, not when sampled)
+    assert m1["time_split"]["rare_events"] == {"density": len(m1["densify_events"])}
     group, out = _Group(2), {}
 
     def rank(r):

@@ -186,6 +186,10 @@ class DensityControl:
         return (c.opacity_reset_interval > 0 and self.accumulating(s) and s % c.opacity_reset_interval == 0
                 and (n is None or s < n))
 
+    def acts_at(self, s: int, n: int | None = None) -> bool:
+        """Whether ``step(opt, s, n)`` densifies or resets the opacities (the loop times those steps)."""
+        return self.is_densify_step(s, n) or self.is_reset_step(s, n)
+
     def wants_weights(self, s: int) -> bool:
         """Whether the render of step ``s`` should return Σ αT: only in the steps that hold the last window of
         views before each densify step (the weights cost an atomic add per contribution)."""

@@ -463,7 +463,7 @@ class _Loop:
         r.opt.zero_grad()
         t.mark("optimizer")
         if dens:
-            rare = r.density.is_densify_step(k + 1, phase.steps) or r.density.is_reset_step(k + 1, phase.steps)
+            rare = r.density.acts_at(k + 1, phase.steps)
             t0 = t.timed() if rare else None
             r.density.step(r.opt, k + 1, phase.steps, {"step": step, "phase": phase.name})
             if rare:
