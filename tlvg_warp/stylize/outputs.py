@@ -198,9 +198,10 @@ def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
 OUTPUT_WORKERS = min(8, os.cpu_count() or 1)  # threads that encode and score the outputs beside the GPU renders
 
 
-def _write_view(out: Path, i: int, sty: torch.Tensor, org: torch.Tensor, photo: torch.Tensor, fld) -> tuple:
+def _write_view(out: Path, i: int, sty: torch.Tensor, org: torch.Tensor, photo: torch.Tensor, fld, keep: bool) -> tuple:
     """One view's renders/, originals/, photos/ and fields/ files, and the flow alignment of the stylized and
-    the original render to its target field (None without fields)."""
+    the original render to its target field (None without fields); the three images as numpy when ``keep``
+    (a row of comparison.png), else None (no view's render outlives its job)."""
     from ..losses import flow_alignment_score
 
     write_image(out / "renders" / f"view_{i:03d}.png", sty)
@@ -211,7 +212,7 @@ def _write_view(out: Path, i: int, sty: torch.Tensor, org: torch.Tensor, photo: 
         with atomic_path(out / "fields" / f"view_{i:03d}.npy") as tmp:
             np.save(tmp, fld.astype(np.float32))
         score, score_orig = flow_alignment_score(sty.numpy(), fld), flow_alignment_score(org.numpy(), fld)
-    return sty.numpy(), org.numpy(), photo.numpy(), score, score_orig
+    return (sty.numpy(), org.numpy(), photo.numpy()) if keep else None, score, score_orig
 
 
 def _timed(fn, *args) -> tuple:
@@ -268,7 +269,8 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
             for i, cam in enumerate(inp.cameras):
                 sty = render(g, cam, bg).color.clamp(0, 1).cpu()
                 fld = res.fields[i][..., :2].numpy() if res.fields else None
-                views.append(pool.submit(_write_view, out, i, sty, res.originals[i], inp.photos[i].detach().cpu(), fld))
+                views.append(pool.submit(_write_view, out, i, sty, res.originals[i], inp.photos[i].detach().cpu(), fld,
+                                         i in pick))
         split = {"renders": time.perf_counter() - t}  # the GPU's part (orbit frames and views), in this thread
         style_np = inp.style.detach().cpu().numpy()
         s_theta, s_coh, _ = res.style_field
@@ -276,16 +278,16 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
                  pool.submit(lambda: write_image(out / "stroke_field.png",
                                                  field_picture(res.style_work.numpy(), s_theta, s_coh))),
                  pool.submit(loss_curves, out / "loss_curves.png", res.log, res.vgg_random)]
-        done = [v.result() for v in views]  # (stylized, original, photo, score, original's score)
-        scores = [d[3] for d in done if d[3] is not None]
-        scores_orig = [d[4] for d in done if d[4] is not None]
+        done = [v.result() for v in views]  # ((stylized, original, photo) or None, score, original's score)
+        scores = [d[1] for d in done if d[1] is not None]
+        scores_orig = [d[2] for d in done if d[2] is not None]
         fa = float(np.mean(scores)) if scores else 0.0
         caption = (f"config: style={cfg.loss.style_loss}, luminance_only={cfg.loss.luminance_only}, "
                    f"lock_xyz={cfg.geometry.lock_xyz}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
                    f"{res.metrics['iterations']} iterations; "
                    f"flow alignment {fa:.3f}; "
                    + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {res.vgg_source}"))
-        rows = [(d[2], d[1], d[0]) for i, d in enumerate(done) if i in pick]
+        rows = [(ph, org, sty) for (sty, org, ph), _, _ in (d for d in done if d[0] is not None)]
         write_image(out / "comparison.png", comparison_grid(rows, style_np, caption).astype(np.float32) / 255.0)
         split["views_done"] = time.perf_counter() - t0  # every view's files written and scored
         video_note, split["video"] = video.result() if video is not None else (None, 0.0)
