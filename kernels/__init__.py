@@ -12,7 +12,8 @@ def blend_min_blocks() -> tuple[int, int]:
     __launch_bounds__ (0: the compiler's choice), which caps their registers at 65536 / (256 · blocks):
     ``TLVG_WARP_BLEND_BLOCKS=fwd,bwd`` overrides the default (for A/B runs on the GPU), as
     ``TLVG_WARP_BLEND_SLAB=scalar`` does the shared-memory layout of the blending batches (default "vector") and
-    ``TLVG_WARP_BLEND_LOOP=for`` the forward's walk over a batch (default "while")."""
+    ``TLVG_WARP_BLEND_LOOP=for`` the forward's walk over a batch (default "while") and ``TLVG_WARP_BLEND_WARP=16x2``
+    the pixels of one warp (default "8x4")."""
     v = os.environ.get("TLVG_WARP_BLEND_BLOCKS", "")
     if not v:
         return BLEND_MIN_BLOCKS
@@ -42,7 +43,8 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
     flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d)
     forward, backward = make_blend(scalar, module_name(scalar), blend_min_blocks(),
                                    os.environ.get("TLVG_WARP_BLEND_SLAB", "vector"),
-                                   os.environ.get("TLVG_WARP_BLEND_LOOP", "while"))
+                                   os.environ.get("TLVG_WARP_BLEND_LOOP", "while"),
+                                   os.environ.get("TLVG_WARP_BLEND_WARP", "8x4"))
     return SimpleNamespace(
         scalar=scalar,
         vec2=wp.types.vector(2, scalar),

@@ -1,6 +1,6 @@
 """Tile binning (SPEC §2): the Gaussians are first put in depth order (one radix sort of N float32 depths);
-then one int32 key per (Gaussian, touched 16x16 tile) = the tile id is emitted in that order and stably
-radix sorted on the tile bits only, which leaves each tile's list in depth order, and the [start, end) range
+then one int32 key per (Gaussian, touched 16x16 tile) = the tile id is placed in that order (each Gaussian's keys
+at its depth rank's offset; the threads still take the Gaussians in index order) and stably radix sorted on the tile bits only, which leaves each tile's list in depth order, and the [start, end) range
 of each tile is found in the sorted list. Sorting N depths plus ~12-bit tile keys moves far fewer bytes than
 sorting (tile << 32 | depth) int64 keys, and the key buffers take 16 instead of 24 bytes per intersection.
 float32 inputs only (the float64 path passes float32 copies), so one module serves both scalar types; nothing
@@ -312,12 +312,12 @@ def count_tiles_kernel(
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
 def emit_keys_kernel(
-    order: wp.array(dtype=wp.int32),  # [N] Gaussian ids in depth order
     means2d: wp.array(dtype=wp.vec2),  # [N]
     radii: wp.array(dtype=wp.int32),  # [N]
     conic: wp.array(dtype=wp.vec3),  # [N]
     opacity: wp.array(dtype=float),  # [N]
-    offsets: wp.array(dtype=wp.int32),  # [N] exclusive prefix sum of the counts in depth order (offsets[j]: order[j])
+    ends: wp.array(dtype=wp.int32),  # [N] one past each Gaussian's last key: the inclusive prefix sum of the
+    # counts taken in depth order, stored per Gaussian (so the keys land in depth order)
     counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian (Gaussian order)
     n: int,
     tiles_x: int,
@@ -328,21 +328,21 @@ def emit_keys_kernel(
     keys: wp.array(dtype=wp.int32),  # [2M] out tile id (radix sort needs 2x room)
     values: wp.array(dtype=wp.int32),  # [2M] out Gaussian index
 ):
-    # thread j: the Gaussian at depth rank j (threads past N join the warp's collectives only). The same tiles
-    # as count_tiles_kernel; the bound keeps memory safe even if the GPU compiler contracted the two kernels'
+    # thread g: Gaussian g (threads past N join the warp's collectives only), in Gaussian order as counted: a warp
+    # of depth neighbours would hold all the large background splats at once and keep the kernel waiting on it
+    # (4x slower on fitted fern); where the keys go keeps them in depth order. The same tiles as
+    # count_tiles_kernel; the bound keeps memory safe even if the GPU compiler contracted the two kernels'
     # arithmetic differently at a borderline tile, and no reserved slot is left unwritten (sentinels below).
-    j = wp.tid()
-    g = int(0)
+    g = wp.tid()
     geo = geo_t()
     rect = wp.vec4i()
     items = int(0)
     start = int(0)
     stop = int(0)
-    if j < n:
-        g = order[j]
+    if g < n:
         geo, rect, items = bin_setup(means2d[g], radii[g], conic[g], opacity[g], tiles_x, tiles_y, all_tiles)
-        start = offsets[j]
-        stop = start + counts[g]
+        stop = ends[g]
+        start = stop - counts[g]
     chunks = chunks_of(rect)
     k = start
     if items <= SOLO_ITEMS:

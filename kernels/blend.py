@@ -15,23 +15,48 @@ T_MIN = 1e-4  # stop before a Gaussian that would drop transmittance below this
 
 
 # Warp-level primitives as native snippets; on the CPU (one lane per block) they reduce to the identity.
-WARP_SUM = """
+WARP_ANY = """
 #if defined(__CUDA_ARCH__)
-    for (int o = 16; o > 0; o >>= 1) x += __shfl_xor_sync(0xffffffff, x, o);
-#endif
+    return __any_sync(0xffffffff, x);
+#else
     return x;
-"""
-WARP_MAX = """
-#if defined(__CUDA_ARCH__)
-    for (int o = 16; o > 0; o >>= 1) x = max(x, __shfl_xor_sync(0xffffffff, x, o));
 #endif
-    return x;
 """
-LEAD_LANE = """
+# The blending backward's per-Gaussian sums over a warp, 16 values at once (10 used): instead of a butterfly per
+# value (5 shuffles each), each stage sends half of a lane's values to its partner and keeps the other half, so
+# after the stages at offsets 16, 8, 4, 2 a lane holds one value's partial sum (value lane / 2) and the stage at
+# offset 1 completes it: 8 + 4 + 2 + 1 + 1 = 16 shuffles for up to 16 values (a butterfly: 50 for 10), and the
+# atomics that follow come from 10 lanes in one instruction instead of 10 in a row from one lane. The CPU
+# (one lane per warp) never calls it.
+def _transpose_sum_source() -> str:
+    """WARP_TRANSPOSE_SUM's CUDA, written out with constant indices (a loop whose trip count halves per stage is
+    not unrolled, and an indexed array then lives in local memory)."""
+    lines = ["#if defined(__CUDA_ARCH__)", "    const int lane = threadIdx.x & 31;"]
+    lines += [f"    {{ctype}} v{i} = x[{i}];" for i in range(16)]
+    c = 8
+    for o in (16, 8, 4, 2):  # partner offset; c: values kept after the stage (a lane with bit o keeps the upper half)
+        lines.append(f"    {{{{ const bool up = (lane & {o}) != 0;")
+        for i in range(c):
+            lines.append(f"      v{i} = (up ? v{i + c} : v{i}) + __shfl_xor_sync(0xffffffff, up ? v{i} : v{i + c}, {o});")
+        lines.append("    }}")
+        c //= 2
+    lines += ["    return v0 + __shfl_xor_sync(0xffffffff, v0, 1);", "#else", "    return x[0];", "#endif", ""]
+    return "\n" + "\n".join(lines)
+
+
+WARP_TRANSPOSE_SUM = _transpose_sum_source()
+WARP_LANES = """
 #if defined(__CUDA_ARCH__)
-    return (threadIdx.x & 31) == 0 ? 1 : 0;
+    return 32;
 #else
     return 1;
+#endif
+"""
+WARP_LANE = """
+#if defined(__CUDA_ARCH__)
+    return threadIdx.x & 31;
+#else
+    return 0;
 #endif
 """
 
@@ -131,10 +156,6 @@ def slab_vec_source(n: int, ctype: str, slots: int) -> str:
     return SLAB_VEC_ANY.format(n=n, ctype=ctype, slots=slots, unpack_e=unpack_e)
 
 
-@wp.func_native(WARP_MAX)
-def warp_max(x: int) -> int: ...
-
-
 @wp.func_native(LANE)
 def lane_id() -> int: ...
 
@@ -159,21 +180,34 @@ def block_max(x: int) -> int: ...
 def slab_id(slot: int, lane: int, x: int, write: int) -> int: ...
 
 
-@wp.func_native(LEAD_LANE)
-def lead_lane(tid: int) -> int: ...
+@wp.func_native(WARP_ANY)
+def warp_any(x: int) -> int: ...
 
 
-def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vector", loop_kind: str = "while"):
+@wp.func_native(WARP_LANES)
+def warp_lanes() -> int: ...
+
+
+@wp.func_native(WARP_LANE)
+def warp_lane() -> int: ...
+
+
+def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vector", loop_kind: str = "while",
+               warp_shape: str = "8x4"):
     """(forward, backward) kernels for ``scalar``; ``min_blocks``: CUDA __launch_bounds__ minimum resident blocks
     per SM of each (0: none), which caps their registers (65536 / (256 · blocks) per thread); ``slab_layout``:
     how a batch is staged in shared memory ("vector" or "scalar", see below); ``loop_kind``: the forward's walk over
-    a batch, "while" (a saturated pixel leaves it, fewer registers) or "for" (the compiler unrolls it)."""
+    a batch, "while" (a saturated pixel leaves it, fewer registers) or "for" (the compiler unrolls it);
+    ``warp_shape``: the pixels of one 32-lane warp within the 16x16 tile, "8x4" (a squarer patch: a small splat
+    meets fewer warps, so the backward does fewer per-warp sums) or "16x2" (two rows, gsplat's layout)."""
     vec2 = wp.types.vector(2, scalar)
     vec3 = wp.types.vector(3, scalar)
     vec4 = wp.types.vector(4, scalar)
+    vec16 = wp.types.vector(16, scalar)
     ctype = "double" if scalar == wp.float64 else "float"
     bounds = [{"launch_bounds": (TILE * TILE, b)} if b else {} for b in min_blocks]
-    use_while = int(loop_kind == "while")  # a compile-time constant of the kernel
+    use_while = int(loop_kind == "while")  # compile-time constants of the kernels
+    warp_w = {"16x2": 16, "8x4": 8}[warp_shape]  # pixels per warp row
 
     @wp.func
     def pixel_of(tid: int, tiles_x: int) -> wp.vec3i:
@@ -181,7 +215,15 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
         local = tid - tile * (TILE * TILE)
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
-        return wp.vec3i(tx * TILE + local % TILE, ty * TILE + local // TILE, tile)
+        # local = warp * 32 + lane; the tile is a (16 / warp_w) x (32 * warp_w / 256) grid of warp_w x (32 / warp_w)
+        # patches (16x2: plain row-major)
+        w = local // 32
+        lane = local - w * 32
+        wx = w % (TILE // warp_w)
+        wy = w // (TILE // warp_w)
+        lx = lane % warp_w
+        ly = lane // warp_w
+        return wp.vec3i(tx * TILE + wx * warp_w + lx, ty * TILE + wy * (32 // warp_w) + ly, tile)
 
     @wp.func
     def splat_power(a: vec4, qc: scalar, px: scalar, py: scalar) -> scalar:
@@ -359,16 +401,40 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
             out_T[p[1], p[0]] = T
             out_last[p[1], p[0]] = last
 
-    @wp.func_native(WARP_SUM)
-    def warp_sum(x: scalar) -> scalar: ...
+    @wp.func_native(WARP_TRANSPOSE_SUM.format(ctype=ctype))
+    def warp_transpose_sum(x: vec16) -> scalar: ...
 
     @wp.func
-    def warp_sum2(v: vec2) -> vec2:
-        return vec2(warp_sum(v[0]), warp_sum(v[1]))
+    def add_grads(g: int, n: int, v: vec16, want_depth: int, grad_kept: wp.array(dtype=scalar),
+                  grad_geo: wp.array(dtype=scalar)):
+        """Every value of Gaussian g from one lane (constant indices: a dynamic index would put v in local memory)."""
+        wp.atomic_add(grad_kept, 2 * g, v[0])
+        wp.atomic_add(grad_kept, 2 * g + 1, v[1])
+        wp.atomic_add(grad_geo, 3 * g, v[2])
+        wp.atomic_add(grad_geo, 3 * g + 1, v[3])
+        wp.atomic_add(grad_geo, 3 * g + 2, v[4])
+        wp.atomic_add(grad_geo, 3 * n + g, v[5])
+        wp.atomic_add(grad_kept, 2 * n + 3 * g, v[6])
+        wp.atomic_add(grad_kept, 2 * n + 3 * g + 1, v[7])
+        wp.atomic_add(grad_kept, 2 * n + 3 * g + 2, v[8])
+        if want_depth != 0:
+            wp.atomic_add(grad_geo, 4 * n + g, v[9])
 
     @wp.func
-    def warp_sum3(v: vec3) -> vec3:
-        return vec3(warp_sum(v[0]), warp_sum(v[1]), warp_sum(v[2]))
+    def add_grad(k: int, g: int, n: int, value: scalar, grad_kept: wp.array(dtype=scalar),
+                 grad_geo: wp.array(dtype=scalar)):
+        """Adds value k of Gaussian g: 0-1 screen mean, 2-4 conic, 5 opacity, 6-8 color, 9 depth; ``grad_kept`` is
+        [means2d (N, 2) | color (N, 3)] and ``grad_geo`` [conic (N, 3) | opacity (N) | depth (N)], flat."""
+        if k < 2:
+            wp.atomic_add(grad_kept, 2 * g + k, value)
+        elif k < 5:
+            wp.atomic_add(grad_geo, 3 * g + k - 2, value)
+        elif k == 5:
+            wp.atomic_add(grad_geo, 3 * n + g, value)
+        elif k < 9:
+            wp.atomic_add(grad_kept, 2 * n + 3 * g + k - 6, value)
+        else:
+            wp.atomic_add(grad_geo, 4 * n + g, value)
 
     @wp.kernel(enable_backward=False, module=module, **bounds[1])
     def blend_backward_kernel(
@@ -390,11 +456,8 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
         g_color: wp.array2d(dtype=vec3),  # [H, W] upstream dL/dcolor
         g_alpha: wp.array2d(dtype=scalar),  # [H, W] upstream dL/dalpha
         g_depth: wp.array2d(dtype=scalar),  # [H, W] upstream dL/ddepth (read only if want_depth)
-        d_means2d: wp.array(dtype=vec2),  # [N] accumulated dL/d(screen mean)
-        d_conic: wp.array(dtype=vec3),  # [N]
-        d_opacity: wp.array(dtype=scalar),  # [N]
-        d_color: wp.array(dtype=vec3),  # [N]
-        d_depth: wp.array(dtype=scalar),  # [N] (written only if want_depth)
+        grad_kept: wp.array(dtype=scalar),  # [5N] accumulated dL/d(screen mean) [N, 2], then dL/dcolor [N, 3]
+        grad_geo: wp.array(dtype=scalar),  # [5N] accumulated dL/d(conic) [N, 3], then opacity [N], depth [N]
     ):
         # On the GPU all lanes of a block walk the same Gaussians in lockstep (the loop runs from the block's
         # furthest last contributor; lanes past their own skip), so each Gaussian's gradient is summed over
@@ -422,6 +485,8 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
                 gD = g_depth[p[1], p[0]]
                 gS = gD / A
                 gA = gA - gD * out_depth[p[1], p[0]] / A
+        n = means2d.shape[0]
+        n_values = 9 + want_depth  # the sums per Gaussian (add_grad's numbering)
         # everything behind the current Gaussian, as seen through it: starts with the background term
         behind = T * (wp.dot(gC, background) - gA)
         # the block walks back from its furthest last contributor, a batch of Gaussians at a time (as forward)
@@ -465,21 +530,18 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
                         gp = g_alpha_k * raw
                         d_q = vec3(scalar(-0.5) * dx * dx * gp, -dx * dy * gp, scalar(-0.5) * dy * dy * gp)
                         d_m = vec2(gp * (a4[2] * dx + a4[3] * dy), gp * (a4[3] * dx + co[0] * dy))
-                if warp_max(wp.where(valid, 1, 0)) > 0:
-                    d_m = warp_sum2(d_m)
-                    d_q = warp_sum3(d_q)
-                    d_o = warp_sum(d_o)
-                    d_c = warp_sum3(d_c)
-                    if want_depth != 0:
-                        d_z = warp_sum(d_z)
-                    if lead_lane(tid) != 0:
-                        g = slab_id(0, j, 0, 0)
-                        wp.atomic_add(d_means2d, g, d_m)
-                        wp.atomic_add(d_conic, g, d_q)
-                        wp.atomic_add(d_opacity, g, d_o)
-                        wp.atomic_add(d_color, g, d_c)
-                        if want_depth != 0:
-                            wp.atomic_add(d_depth, g, d_z)
+                if warp_any(wp.where(valid, 1, 0)) != 0:
+                    g = slab_id(0, j, 0, 0)
+                    v = vec16(d_m[0], d_m[1], d_q[0], d_q[1], d_q[2], d_o, d_c[0], d_c[1], d_c[2], d_z,
+                              zero, zero, zero, zero, zero, zero)
+                    if warp_lanes() == 1:  # the CPU: the lane is the warp
+                        add_grads(g, n, v, want_depth, grad_kept, grad_geo)
+                    else:
+                        total = warp_transpose_sum(v)  # value lane / 2, in lanes 2k and 2k + 1
+                        lane_w = warp_lane()
+                        k = lane_w // 2
+                        if lane_w % 2 == 0 and k < n_values:
+                            add_grad(k, g, n, total, grad_kept, grad_geo)
             sync_block(0)  # the next batch overwrites the slab
 
     return blend_forward_kernel, blend_backward_kernel

@@ -116,7 +116,7 @@ def make_sh(scalar, mod: str):
         sh_degree: int,
         g_color: wp.array(dtype=vec3),  # [N] dL/dcolor
         g_rgb: wp.array(dtype=vec3),  # [N] out dL/d(SH sum) (0 when culled); may alias g_color
-        g_means: wp.array(dtype=vec3),  # [N] out, plain store: runs before the projection adjoint adds to it
+        g_means: wp.array(dtype=vec3),  # [N] adds to it: runs after the projection adjoint (one thread per row)
     ):
         # Hand-written: Warp's generated adjoint turns every array read into an atomic add, which made SH the
         # bulk of the projection backward. This pass gives the direction (mean) gradient and dL/d(SH sum);
@@ -179,7 +179,7 @@ def make_sh(scalar, mod: str):
             n = wp.length(mu - cam_center)
             if n > zero:
                 gd = vec3(gx, gy, gz)
-                g_means[i] = (gd - dot3(gd, d) * d) / n
+                g_means[i] = g_means[i] + (gd - dot3(gd, d) * d) / n
 
     @wp.kernel(enable_backward=False, module=mod)
     def sh_coeff_grad_kernel(

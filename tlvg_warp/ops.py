@@ -301,16 +301,16 @@ def shade(K, args, pouts, center, sh_degree: int, n: int, device):
         fast_launch(K.sh_color, n, [args[0], args[4], pouts[5], center, sh_degree, pouts[4]], wp.device_from_torch(device))
 
 
-def shade_backward(K, args, pouts, center, sh_degree: int, n: int, g_color, g_means, g_sh, device):
-    """The SH backward: dL/dcolor -> dL/d(SH coefficients) and the view-direction part of dL/dmeans, which it
-    stores (run it before the projection adjoint, which adds to it). dL/d(SH sum) overwrites ``g_color``."""
+def shade_backward(K, args, radii, center, sh_degree: int, n: int, g_color, g_means, g_sh, device):
+    """The SH backward: dL/dcolor -> dL/d(SH coefficients) and the view-direction part of dL/dmeans, which it adds
+    to ``g_means`` (``radii``: the projection's descriptor). dL/d(SH sum) overwrites ``g_color``."""
     if n:
         wdev = wp.device_from_torch(device)
-        sh_args = [args[0], args[4], pouts[5], center, sh_degree]
+        sh_args = [args[0], args[4], radii, center, sh_degree]
         c = ct(g_color, K.vec3)
         fast_launch(K.sh_backward, n, sh_args + [c, c, ct(g_means, K.vec3)], wdev)
         n_coeffs = (sh_degree + 1) ** 2
-        fast_launch(K.sh_coeff_grad, n * n_coeffs, [args[0], pouts[5], center, n_coeffs, c, ct(g_sh, K.vec3)], wdev)
+        fast_launch(K.sh_coeff_grad, n * n_coeffs, [args[0], radii, center, n_coeffs, c, ct(g_sh, K.vec3)], wdev)
 
 
 def binning_geometry(proj: Projected):
@@ -394,16 +394,18 @@ def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, so
     sort_pairs(depth_keys, order, n)
     del depth_keys
     order = order[:n]
-    sorted_counts = counts[order]  # [N] in depth order
-    starts = (torch.cumsum(sorted_counts, 0, dtype=torch.int32) - sorted_counts)  # exclusive, < 2**31 (checked)
+    ends = torch.empty_like(counts)  # [N] per Gaussian: the inclusive sum in depth order (< 2**31, checked)
+    ends[order] = torch.cumsum(counts[order], 0, dtype=torch.int32)
     keys = torch.empty(2 * total, dtype=torch.int32, device=device)
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
-    fast_launch(K.emit_keys, warp_padded(n), [ct(order), *geometry, ct(starts), ct(counts), n, tiles_x, tiles_y, width,
-                                              height, int(all_tiles), ct(keys), ct(ids)], wdev)
+    fast_launch(K.emit_keys, warp_padded(n), [*geometry, ct(ends), ct(counts), n, tiles_x, tiles_y, width, height,
+                                              int(all_tiles), ct(keys), ct(ids)], wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
     sort_pairs(keys, ids, total, 0, tile_bits)  # stable: each tile stays in depth order
     fast_launch(K.tile_ranges, total, [ct(keys), total, ct(ranges)], wdev)
-    return ranges, ids[:total].clone(), tiles_x, tiles_y  # the copy frees the sort's second half
+    # a view: the sort's second half lives until the blending backward has run (no copy per render; the
+    # backward's peak comes later, at the SH gradients, after these are freed)
+    return ranges, ids[:total], tiles_x, tiles_y
 
 
 def blend(K, proj: Projected, pouts, counts, total: int, geometry, sort_buffers, cam: Camera, settings: dict):
@@ -437,11 +439,12 @@ class RasterizeFn(torch.autograd.Function):
 
     ``means2d_probe`` is a zero tensor whose gradient receives dL/d(screen mean) for density control.
 
-    The backward runs the blending backward, the SH backward and the projection's Warp-generated adjoint in
-    that order, on array descriptors (no wp.Tape, no wp.array per render). Memory: the binning and per-pixel
-    state (sorted ids, T, last) is dropped after the blending backward, before the input gradients are
-    allocated, so the backward's peak never holds both. A second backward through the same graph (retain_graph,
-    gradcheck) rebuilds that state from the kept projection."""
+    The backward runs the blending backward, the projection's Warp-generated adjoint and the SH backward in that
+    order, on array descriptors (no wp.Tape, no wp.array per render). Memory: the binning and per-pixel state
+    (sorted ids, T, last) is dropped after the blending backward, before the input gradients are allocated, and
+    the projection with its geometric gradients before the SH coefficients' gradient (the largest) is: the
+    backward's peak holds one stage's buffers at a time. A second backward through the same graph
+    (retain_graph, gradcheck) rebuilds what the first freed (projection, binning) from the saved inputs."""
 
     @staticmethod
     def forward(ctx, means, quats, log_scales, opacity_logits, sh, means2d_probe, cam, settings):
@@ -458,7 +461,8 @@ class RasterizeFn(torch.autograd.Function):
             shade(K, args, pouts, center, settings["sh_degree"], n, device)
             color, alpha, depth, weights, first = blend(K, proj, pouts, *binning, cam, settings)
             del binning
-        ctx.state = (proj, pouts, args, {"blend": first}, cam, cam_values, center, settings)
+        ctx.state = {"proj": proj, "pouts": pouts, "blend": first, "args": args, "cam": cam, "cam_values": cam_values,
+                     "center": center, "settings": settings}
         # the inputs are read by the adjoints: saving them lets autograd refuse a backward after an in-place
         # change (torch's version counter) instead of returning stale gradients
         ctx.save_for_backward(means, quats, log_scales, opacity_logits, sh)
@@ -467,32 +471,45 @@ class RasterizeFn(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
-        proj, pouts, args, kept, cam, cam_values, center, settings = ctx.state
+        state = ctx.state
+        args, cam, cam_values, center, settings = (state[k] for k in ("args", "cam", "cam_values", "center", "settings"))
         inputs = ctx.saved_tensors  # (raises if an input changed in place since the forward)
-        K = kernels_for(proj.depth.dtype)
-        device, dtype, n = proj.depth.device, proj.depth.dtype, proj.depth.shape[0]
+        means = inputs[0]
+        K = kernels_for(means.dtype)
+        device, dtype, n = means.device, means.dtype, means.shape[0]
         H, W = cam.height, cam.width
-        # gradient buffers exist only from here on (fresh per call, so a second backward through the same
-        # graph, e.g. gradcheck or retain_graph, never sees the first call's sums)
-        out_grads = packed_zeros([t.shape for t in (proj.means2d, proj.conic, proj.depth, proj.opacity, proj.color)],
-                                 dtype, device)
-        # an absent upstream gradient is a broadcast zero (stride 0 over rows): no [H, W] buffer, no memset
-        ups = [g.contiguous() if g is not None else _zeros(shape[-1], dtype, device).expand(shape)
-               for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
         with warp_on(device) as wdev:
+            proj, pouts = state.pop("proj", None), state.pop("pouts", None)
+            if proj is None:  # a second backward through the same graph: the first freed the projection
+                proj, pouts = project(K, args, cam, cam_values, n, dtype, device)
+                shade(K, args, pouts, center, settings["sh_degree"], n, device)
+            # gradient buffers exist only from here on (fresh per call, so a second backward through the same
+            # graph, e.g. gradcheck or retain_graph, never sees the first call's sums); dL/dcolor and the screen
+            # mean's (the probe's gradient) outlive the geometric ones, so they get buffers of their own
+            kept_flat = torch.zeros(5 * n, dtype=dtype, device=device)  # [means2d (N, 2) | color (N, 3)]
+            geo_flat = torch.zeros(5 * n, dtype=dtype, device=device)  # [conic (N, 3) | opacity (N) | depth (N)]
+            g_means2d, g_rgb = kept_flat[:2 * n].view(n, 2), kept_flat[2 * n:].view(n, 3)
+            g_conic, g_opacity, g_depth_n = geo_flat[:3 * n].view(n, 3), geo_flat[3 * n:4 * n], geo_flat[4 * n:]
+            # an absent upstream gradient is a broadcast zero (stride 0 over rows): no [H, W] buffer, no memset
+            ups = [g.contiguous() if g is not None else _zeros(shape[-1], dtype, device).expand(shape)
+                   for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
             # the sorted ids, T and last go when this block ends (stream-ordered: safe with the launch queued);
             # a second backward through the same graph rebuilds them
-            st = kept.pop("blend", None) or blend(
+            st = state.pop("blend", None) or blend(
                 K, proj, pouts, *count_intersections(K, proj, W, H, settings["all_tiles"]), cam, settings)[4]
             fast_launch(K.blend_backward, st["threads"],
                         st["args"] + st["saved"] + [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
-                        + [ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[3]),  # the kernel's order:
-                           ct(out_grads[4], K.vec3), ct(out_grads[2])], wdev, block_dim=TILE * TILE)  # ..., color, depth
-            del st, ups
-            sh = inputs[4]
-            sh_full = (settings["sh_degree"] + 1) ** 2 == sh.shape[1]  # sh_backward then stores every entry
+                        + [ct(kept_flat), ct(geo_flat)], wdev, block_dim=TILE * TILE)
+            del st, ups, geo_flat
+            # memory: the projection adjoint first, then the projection and its geometric gradients go before the
+            # SH coefficients' gradient (the largest buffer, 48 floats a Gaussian at degree 3) is allocated
             grads = packed_zeros([t.shape for t in inputs[:4]], dtype, device)
+            project_adjoint(K, args, pouts, grads, (g_means2d, g_conic, g_depth_n, g_opacity), cam, cam_values, n,
+                            device)
+            radii = pouts[5]
+            del proj, pouts, g_conic, g_depth_n, g_opacity
+            sh = inputs[4]
+            sh_full = (settings["sh_degree"] + 1) ** 2 == sh.shape[1]  # sh_coeff_grad then stores every entry
             g_sh = torch.empty_like(sh) if sh_full else torch.zeros_like(sh)
-            shade_backward(K, args, pouts, center, settings["sh_degree"], n, out_grads[4], grads[0], g_sh, device)
-            project_adjoint(K, args, pouts, grads, out_grads, cam, cam_values, n, device)
-        return (*grads, g_sh, out_grads[0], None, None)
+            shade_backward(K, args, radii, center, settings["sh_degree"], n, g_rgb, grads[0], g_sh, device)
+        return (*grads, g_sh, g_means2d, None, None)

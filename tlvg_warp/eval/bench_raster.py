@@ -158,9 +158,8 @@ def ours_views(g: Gaussians, depth: bool = False):
             with torch.no_grad():
                 return render(gp, cam, depth=depth).color
 
-        def fwd_bwd():
-            out = render(gp, cam, depth=depth)
-            (out.color * up).sum().backward()
+        def fwd_bwd():  # holds no output through the backward, as the peers' steps hold none
+            (render(gp, cam, depth=depth).color * up).sum().backward()
 
         return fwd, fwd_bwd, fwd
 
