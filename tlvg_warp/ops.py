@@ -8,6 +8,7 @@ torch-allocated gradient buffers as its adjoint arguments (``project_adjoint``).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import math
 import os
 import weakref
@@ -91,45 +92,119 @@ def ct(t: torch.Tensor, dtype=None):
     """A bare array descriptor for launches outside the tape: what ``wp.from_torch(t, dtype, return_ctype=True)``
     builds, without its per-call checks (a few microseconds each, dozens per render). Callers pass tensors whose
     dtype matches and whose vector dimension is innermost and contiguous."""
-    elem = t.element_size()
     shape, strides = t.shape, t.stride()
-    if dtype is not None and hasattr(dtype, "_shape_"):  # vector dtype: the last torch dim is the vector
-        shape, strides = shape[:-1] or (1,), strides[:-1] or (1,)
-    a = warp_array_ctype()(t.data_ptr(), 0, len(shape), tuple(shape), tuple(x * elem for x in strides))
+    vec = dtype is not None and hasattr(dtype, "_shape_")
+    key = (shape, strides, t.element_size(), vec)
+    template = _templates.get(key)
+    if template is None:
+        if len(_templates) > 4096:  # shapes vary per render (the sorted ids): keep the cache bounded
+            _templates.clear()
+        elem = key[2]
+        if vec:  # vector dtype: the last torch dim is the vector
+            shape, strides = shape[:-1] or (1,), strides[:-1] or (1,)
+        template = _templates[key] = warp_array_ctype()(0, 0, len(shape), tuple(shape), tuple(x * elem for x in strides))
+    a = _ARRAY_T.from_buffer_copy(template)  # (array_t's own constructor fills the fields in Python: 3x slower)
+    a.data = t.data_ptr()
     a._ref = t  # keeps the memory alive as long as the descriptor
     return a
 
 
-_launches: dict = {}  # (kernel, device, block_dim) -> a recorded wp.Launch, its parameters reset per call
+_templates: dict = {}  # (shape, strides, element size, vector dtype) -> a descriptor with a null data pointer
+
+
+class _Site:
+    """One recorded ``wp.Launch`` per (kernel, device, block_dim, forward/adjoint) and how to refill it: per
+    parameter slot a setter kind (descriptor, ctypes scalar, vector/matrix copied by bytes), found once; the
+    launch's dimensions, reset only when they change (``Launch.set_dim`` validates in Python each time)."""
+
+    __slots__ = ("launch", "dim", "kinds", "addrs", "sizes", "hook", "smem")
+
+    def __init__(self, launch, dim: int, adjoint: bool):
+        self.launch, self.dim = launch, dim
+        params = launch.params  # [0] is the launch bounds; the slots are never replaced (written in place)
+        self.kinds = [_slot_kind(p) for p in params]
+        self.addrs = [ctypes.addressof(p) for p in params]
+        self.sizes = [ctypes.sizeof(p) for p in params]
+        hooks = launch.hooks
+        self.hook, self.smem = ((hooks.backward, hooks.backward_smem_bytes) if adjoint
+                                else (hooks.forward, hooks.forward_smem_bytes))
+
+
+def _slot_kind(p) -> int:
+    if isinstance(p, (ctypes.Structure, ctypes.Array)):
+        return _BYTES  # an array descriptor, a vector or a matrix: its bytes copied into the slot
+    return _SCALAR  # a ctypes scalar: its .value set
+
+
+_BYTES, _SCALAR = 1, 2
+_sites: dict = {}  # (kernel, device alias, block_dim, adjoint) -> _Site
 
 
 def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, adj_args=None) -> None:
     """``wp.launch(kernel, dim, inputs=args, device=device, block_dim=block_dim, record_tape=False)`` for the
     per-render launches, with less host time: the first call per (kernel, device, block_dim, forward/adjoint)
-    records a ``wp.Launch``; later calls only overwrite its parameters (array descriptors from ``ct``,
-    ``wp.array``s, scalars, vectors) and launch it, skipping ``wp.launch``'s per-argument checks and packing (a
-    render's host time bounds small steps). ``adj_args``: launch the kernel's adjoint with these adjoint
-    arguments (None for an array: no gradient). The Launch keeps no tensor alive between renders: it stores bare
-    copies of the descriptors; the caller's own references cover the enqueue (the allocator is stream-ordered)."""
+    records a ``wp.Launch``; later calls write its parameter slots directly (array descriptors from ``ct``,
+    ``wp.array``s, scalars, vectors) and, on CUDA, enqueue it through Warp's runtime, skipping ``wp.launch``'s
+    per-argument checks and packing and ``Launch``'s per-call bookkeeping (a render's host time bounds its
+    forward: the GPU waits on the host for most of it). ``adj_args``: launch the kernel's adjoint with these
+    adjoint arguments (None for an array: no gradient). The Launch keeps no tensor alive between renders: it
+    stores bare copies of the descriptors; the caller's own references cover the enqueue (the allocator is
+    stream-ordered)."""
     if dim <= 0:
         return
-    bare = [_bare(a) for a in args]  # `args` (and the tensors its descriptors hold) stays alive through the launch
     adjoint = adj_args is not None
-    bare_adj = [_bare(a) if a is not None else _null_array() for a in adj_args] if adjoint else []
     key = (kernel, device.alias, block_dim, adjoint)
-    launch = _launches.get(key)
-    if launch is None:
+    site = _sites.get(key)
+    if site is None:
+        bare = [_bare(a) for a in args]
+        bare_adj = [_bare(a) if a is not None else _null_array() for a in adj_args] if adjoint else []
         launch = wp.launch(kernel, dim=dim, inputs=bare, adj_inputs=bare_adj, adjoint=adjoint, device=device,
                            block_dim=block_dim, record_tape=False, record_cmd=True)
-        _launches[key] = launch
-    else:
-        for i, a in enumerate(bare):
-            launch.set_param_at_index_from_ctype(i, a)
-        for i, a in enumerate(bare_adj):
-            launch.set_param_at_index_from_ctype(i, a, adjoint=True)
+        site = _sites[key] = _Site(launch, dim, adjoint)
+        launch.launch()
+        return
+    launch = site.launch
+    _fill(site, 1, args)
+    if adjoint:
+        _fill(site, len(args) + 1, [a if a is not None else _null_array() for a in adj_args])
+    if dim != site.dim:
         launch.set_dim(dim)
-    launch.launch()
+        site.dim = dim
+    if device.is_cuda:
+        if _runtime().core.wp_cuda_launch_kernel(device.context, site.hook, launch.bounds.size, launch.max_blocks,
+                                                 launch.block_dim, int(launch.grid_stride), launch.cluster_dim,
+                                                 site.smem, launch.params_addr, device.stream.cuda_stream, None):
+            launch.launch()  # the failure again, through Warp's own error report
+    else:
+        launch.launch()
     del args, adj_args
+
+
+def _fill(site: _Site, first: int, values) -> None:
+    """Write the arguments into the launch's own parameter slots (by value: the launch keeps no reference to
+    them, so no tensor outlives its render through a descriptor's ``_ref``)."""
+    params, kinds, addrs, sizes = site.launch.params, site.kinds, site.addrs, site.sizes
+    for i, a in enumerate(values, first):
+        if kinds[i] == _SCALAR:
+            params[i].value = a
+        else:
+            if isinstance(a, wp.array):
+                a = a.__ctype__()
+            ctypes.memmove(addrs[i], ctypes.addressof(a), sizes[i])
+
+
+_RUNTIME = None
+
+
+def _runtime():
+    global _RUNTIME
+    if _RUNTIME is None:
+        try:
+            from warp._src.context import runtime
+        except ImportError:  # Warp before 1.10
+            from warp.context import runtime
+        _RUNTIME = runtime
+    return _RUNTIME
 
 
 def _null_array():
