@@ -267,14 +267,20 @@ def test_private_warp_array_descriptor_is_still_what_from_torch_builds():
 
     from tlvg_warp.ops import ct, warp_array_ctype
 
-    t = torch.arange(12, dtype=torch.float32).reshape(4, 3)
-    ref = wp.from_torch(t, dtype=wp.vec3, return_ctype=True)
-    assert type(ref) is warp_array_ctype()
-    ours = ct(t, wp.vec3)
-    for f in ("data", "grad", "ndim"):
-        assert getattr(ours, f) == getattr(ref, f), f
-    assert tuple(ours.shape)[:ours.ndim] == tuple(ref.shape)[:ref.ndim]
-    assert tuple(ours.strides)[:ours.ndim] == tuple(ref.strides)[:ref.ndim]
+    base = torch.arange(48, dtype=torch.float32)
+    # ct caches one template per layout: the same layouts come twice over other storage, and must still carry each
+    # tensor's own data pointer; a strided view and int32 / float64 tensors check the strides and element sizes
+    cases = [(base[:12].reshape(4, 3), wp.vec3), (base[12:24].reshape(4, 3), wp.vec3), (base[:12], None),
+             (base[24:36], None), (base.reshape(6, 8)[:, ::2], None), (base.reshape(8, 6).T, None),
+             (torch.arange(10, dtype=torch.int32), None), (torch.zeros(5, 2, dtype=torch.float64), wp.vec2d)]
+    for t, dtype in cases:
+        ref = wp.from_torch(t, dtype=dtype, return_ctype=True)
+        assert type(ref) is warp_array_ctype()
+        ours = ct(t, dtype)
+        for f in ("data", "grad", "ndim"):
+            assert getattr(ours, f) == getattr(ref, f), (f, t.shape, t.stride())
+        assert tuple(ours.shape)[:ours.ndim] == tuple(ref.shape)[:ref.ndim]
+        assert tuple(ours.strides)[:ours.ndim] == tuple(ref.strides)[:ref.ndim]
 
 
 def test_backward_after_an_in_place_change_is_refused():
