@@ -7,7 +7,7 @@ Threads are laid out tile-major (one 16x16 tile = 256 consecutive threads = one 
 stages its tile's Gaussians in shared memory a batch at a time (see the block primitives below)."""
 import warp as wp
 
-from .binning import TILE
+from .binning import TILE, warp_lane, warp_lanes
 
 ALPHA_MAX = 0.99  # α clamp: a single splat never makes a pixel fully opaque (keeps 1/(1-α) bounded)
 ALPHA_MIN = 1.0 / 255.0  # contributions below one 8-bit level are skipped
@@ -45,20 +45,6 @@ def _transpose_sum_source() -> str:
 
 
 WARP_TRANSPOSE_SUM = _transpose_sum_source()
-WARP_LANES = """
-#if defined(__CUDA_ARCH__)
-    return 32;
-#else
-    return 1;
-#endif
-"""
-WARP_LANE = """
-#if defined(__CUDA_ARCH__)
-    return threadIdx.x & 31;
-#else
-    return 0;
-#endif
-"""
 
 
 # Block-level primitives for the batched blending loops. On the GPU a block (one 16x16 tile, 256 threads) loads
@@ -183,13 +169,6 @@ def slab_id(slot: int, lane: int, x: int, write: int) -> int: ...
 @wp.func_native(WARP_ANY)
 def warp_any(x: int) -> int: ...
 
-
-@wp.func_native(WARP_LANES)
-def warp_lanes() -> int: ...
-
-
-@wp.func_native(WARP_LANE)
-def warp_lane() -> int: ...
 
 
 def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vector", loop_kind: str = "while",
