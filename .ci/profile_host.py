@@ -50,8 +50,11 @@ def wrap(mod, name, label=None):
 
 wrap(ops, "fast_launch", lambda a: f"launch {a[0].key[:36]}")
 wrap(ops, "sort_pairs", lambda a: f"sort {a[2]}")
-for name in ("project", "count_intersections", "shade", "bin_tiles", "blend", "shade_backward", "project_adjoint"):
+for name in ("project", "count_intersections", "bin_tiles", "blend", "project_adjoint"):
     wrap(ops, name)
+for fn in (ops.ShadeFn, ops.RasterizeFn):  # the two autograd ops, forward and backward
+    for phase in ("forward", "backward"):
+        wrap(fn, phase, (lambda t: lambda a: t)(f"{fn.__name__}.{phase}"))
 wrap(renderer, "check_inputs")
 orig_item = torch.Tensor.item
 

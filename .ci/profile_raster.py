@@ -27,7 +27,6 @@ def timed(name, fn):
 
 ops.project = timed("project", ops.project)
 ops.count_intersections = timed("count_intersections", ops.count_intersections)
-ops.shade = timed("shade", ops.shade)
 ops.bin_tiles = timed("bin_tiles", ops.bin_tiles)
 wp.utils.radix_sort_pairs = timed("  radix_sort", wp.utils.radix_sort_pairs)
 orig_launch = wp.launch

@@ -51,14 +51,11 @@ def make_sh(scalar, mod: str):
     def sh_color_kernel(
         means: wp.array(dtype=vec3),  # [N]
         sh: wp.array2d(dtype=vec3),  # [N, K]
-        radii: wp.array(dtype=wp.int32),  # [N] from project_kernel; 0 = culled (color stays 0)
         cam_center: vec3,
         sh_degree: int,
-        color: wp.array(dtype=vec3),  # [N] out max(SH(d) + 0.5, 0)
+        color: wp.array(dtype=vec3),  # [N] out max(SH(d) + 0.5, 0) (every Gaussian: culled ones are never blended)
     ):
         i = wp.tid()
-        if radii[i] <= 0:
-            return
         rgb = eval_sh(sh, i, sh_degree, view_dir(means[i], cam_center)) + vec3(scalar(0.5), scalar(0.5), scalar(0.5))
         color[i] = vec3(wp.max(rgb[0], scalar(0.0)), wp.max(rgb[1], scalar(0.0)), wp.max(rgb[2], scalar(0.0)))
 
@@ -111,10 +108,9 @@ def make_sh(scalar, mod: str):
     def sh_backward_kernel(
         means: wp.array(dtype=vec3),  # [N]
         sh: wp.array2d(dtype=vec3),  # [N, K]
-        radii: wp.array(dtype=wp.int32),  # [N]
         cam_center: vec3,
         sh_degree: int,
-        g_color: wp.array(dtype=vec3),  # [N] dL/dcolor
+        g_color: wp.array(dtype=vec3),  # [N] dL/dcolor (exactly 0 for the Gaussians no pixel saw, culled ones too)
         g_rgb: wp.array(dtype=vec3),  # [N] out dL/d(SH sum) (0 when culled); may alias g_color
         g_means: wp.array(dtype=vec3),  # [N] adds to it: runs after the projection adjoint (one thread per row)
     ):
@@ -123,13 +119,13 @@ def make_sh(scalar, mod: str):
         # sh_coeff_grad_kernel expands the latter to the coefficients.
         i = wp.tid()
         zero = scalar(0.0)
-        if radii[i] <= 0:
-            g_rgb[i] = vec3(zero, zero, zero)
+        gc0 = g_color[i]
+        if gc0[0] == zero and gc0[1] == zero and gc0[2] == zero:  # nothing to pass back: also keeps a culled
+            g_rgb[i] = gc0  # Gaussian's non-finite mean out of every gradient (0 · NaN)
             return
         mu = means[i]
         d = view_dir(mu, cam_center)
         rgb = eval_sh(sh, i, sh_degree, d) + vec3(scalar(0.5), scalar(0.5), scalar(0.5))
-        gc0 = g_color[i]
         # color = max(rgb, 0): the gradient passes where rgb > 0 (torch's clamp passes it at 0 too: measure zero)
         gc = vec3(wp.where(rgb[0] >= zero, gc0[0], zero), wp.where(rgb[1] >= zero, gc0[1], zero),
                   wp.where(rgb[2] >= zero, gc0[2], zero))
@@ -184,7 +180,6 @@ def make_sh(scalar, mod: str):
     @wp.kernel(enable_backward=False, module=mod)
     def sh_coeff_grad_kernel(
         means: wp.array(dtype=vec3),  # [N]
-        radii: wp.array(dtype=wp.int32),  # [N]
         cam_center: vec3,
         n_coeffs: int,  # (degree + 1)²
         g_rgb: wp.array(dtype=vec3),  # [N] from sh_backward_kernel
@@ -197,9 +192,10 @@ def make_sh(scalar, mod: str):
         i = tid / n_coeffs
         k = tid - i * n_coeffs
         zero = scalar(0.0)
-        if radii[i] <= 0:
-            g_sh[i, k] = vec3(zero, zero, zero)
+        gr = g_rgb[i]
+        if gr[0] == zero and gr[1] == zero and gr[2] == zero:  # as sh_backward: no 0 · NaN from a culled mean
+            g_sh[i, k] = gr
             return
-        g_sh[i, k] = sh_basis(k, view_dir(means[i], cam_center)) * g_rgb[i]
+        g_sh[i, k] = sh_basis(k, view_dir(means[i], cam_center)) * gr
 
     return sh_color_kernel, sh_backward_kernel, sh_coeff_grad_kernel

@@ -348,12 +348,13 @@ def camera_center(K, values):
     return K.vec3(*map(K.scalar, values[2]))
 
 
-def project(K, args, cam: Camera, cam_values, n: int, dtype, device):
+def project(K, args, colors: torch.Tensor, cam: Camera, cam_values, n: int, dtype, device):
     """Launch the projection: returns (Projected, its output descriptors [means2d, conic, depth, opacity, color,
-    radii]). The color is filled by ``shade``; the adjoint is launched by ``project_adjoint``."""
-    means2d, conic, depth, opacity, color = packed_zeros([(n, 2), (n, 3), (n,), (n,), (n, 3)], dtype, device)
-    proj = Projected(means2d, None, conic, depth, opacity, color, torch.zeros(n, dtype=torch.int32, device=device))
-    outs = [ct(means2d, K.vec2), ct(conic, K.vec3), ct(depth), ct(opacity), ct(color, K.vec3), ct(proj.radii)]
+    radii]); the colors (``ShadeFn``'s output, ``args[4]``) pass through. The adjoint is launched by
+    ``project_adjoint``."""
+    means2d, conic, depth, opacity = packed_zeros([(n, 2), (n, 3), (n,), (n,)], dtype, device)
+    proj = Projected(means2d, None, conic, depth, opacity, colors, torch.zeros(n, dtype=torch.int32, device=device))
+    outs = [ct(means2d, K.vec2), ct(conic, K.vec3), ct(depth), ct(opacity), args[4], ct(proj.radii)]
     fast_launch(K.project, n, args[:4] + camera_args(cam, K, cam_values) + outs[:4] + outs[5:], wp.device_from_torch(device))
     return proj, outs
 
@@ -368,24 +369,6 @@ def project_adjoint(K, args, pouts, grads, out_grads, cam: Camera, cam_values, n
     fast_launch(K.project, n, args[:4] + cam_args + pouts[:4] + pouts[5:], wp.device_from_torch(device),
                 adj_args=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))] + adj_cam
                 + [ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[2]), ct(out_grads[3]), None])
-
-
-def shade(K, args, pouts, center, sh_degree: int, n: int, device):
-    """Launch the SH color of the projected Gaussians."""
-    if n:
-        fast_launch(K.sh_color, n, [args[0], args[4], pouts[5], center, sh_degree, pouts[4]], wp.device_from_torch(device))
-
-
-def shade_backward(K, args, radii, center, sh_degree: int, n: int, g_color, g_means, g_sh, device):
-    """The SH backward: dL/dcolor -> dL/d(SH coefficients) and the view-direction part of dL/dmeans, which it adds
-    to ``g_means`` (``radii``: the projection's descriptor). dL/d(SH sum) overwrites ``g_color``."""
-    if n:
-        wdev = wp.device_from_torch(device)
-        sh_args = [args[0], args[4], radii, center, sh_degree]
-        c = ct(g_color, K.vec3)
-        fast_launch(K.sh_backward, n, sh_args + [c, c, ct(g_means, K.vec3)], wdev)
-        n_coeffs = (sh_degree + 1) ** 2
-        fast_launch(K.sh_coeff_grad, n * n_coeffs, [args[0], radii, center, n_coeffs, c, ct(g_sh, K.vec3)], wdev)
 
 
 def binning_geometry(proj: Projected):
@@ -509,45 +492,81 @@ def blend(K, proj: Projected, pouts, counts, total: int, geometry, sort_buffers,
     return color, alpha, depth if want_depth else None, weights, state
 
 
+class ShadeFn(torch.autograd.Function):
+    """(means, sh) -> colors [N, 3] = max(SH up to ``degree`` (view direction from the camera center) + 0.5, 0),
+    for every Gaussian (a culled one's color is never blended).
+
+    Its own op, before the raster op (gsplat's stage split): autograd runs its backward after the raster op's,
+    when the image gradient and the raster state are gone, so the SH coefficients' gradient (48 floats a Gaussian at
+    degree 3, the largest buffer of a backward) never coexists with them. Backward by hand: the direction part of
+    dL/dmeans and the coefficient gradients (Warp's generated adjoint would add atomically per coefficient read)."""
+
+    @staticmethod
+    def forward(ctx, means, sh, cam_values, degree: int):
+        K = kernels_for(means.dtype)
+        device, n = means.device, means.shape[0]
+        colors = torch.empty(n, 3, dtype=means.dtype, device=device)
+        center = camera_center(K, cam_values)
+        with warp_on(device) as wdev:
+            fast_launch(K.sh_color, n, [input_ct(means, K.vec3), input_ct(sh, K.vec3), center, degree,
+                                        ct(colors, K.vec3)], wdev)
+        ctx.save_for_backward(means, sh)
+        ctx.center, ctx.degree = center, degree
+        return colors
+
+    @staticmethod
+    def backward(ctx, g_colors):
+        means, sh = ctx.saved_tensors
+        K = kernels_for(means.dtype)
+        device, n = means.device, means.shape[0]
+        n_coeffs = (ctx.degree + 1) ** 2
+        g_means = torch.zeros_like(means)  # sh_backward adds the direction part where dL/dcolor is not 0
+        g_rgb = torch.empty(n, 3, dtype=means.dtype, device=device)  # dL/d(SH sum), the clamp applied
+        g_sh = torch.empty_like(sh) if n_coeffs == sh.shape[1] else torch.zeros_like(sh)  # degree < stored: rest 0
+        with warp_on(device) as wdev:
+            m = input_ct(means, K.vec3)
+            rgb = ct(g_rgb, K.vec3)
+            fast_launch(K.sh_backward, n, [m, input_ct(sh, K.vec3), ctx.center, ctx.degree,
+                                           ct(g_colors.contiguous(), K.vec3), rgb, ct(g_means, K.vec3)], wdev)
+            fast_launch(K.sh_coeff_grad, n * n_coeffs, [m, ctx.center, n_coeffs, rgb, ct(g_sh, K.vec3)], wdev)
+        return g_means, g_sh, None, None
+
+
 class RasterizeFn(torch.autograd.Function):
-    """(means, quats, log_scales, opacity_logits, sh, means2d_probe) -> color, alpha, depth, radii, weights.
+    """(means, quats, log_scales, opacity_logits, colors, means2d_probe) -> color, alpha, depth, radii, weights.
 
-    ``means2d_probe`` is a zero tensor whose gradient receives dL/d(screen mean) for density control.
+    ``colors`` [N, 3] come from ``ShadeFn``; ``means2d_probe`` is a zero tensor whose gradient receives dL/d(screen
+    mean) for density control.
 
-    The backward runs the blending backward, the projection's Warp-generated adjoint and the SH backward in that
-    order, on array descriptors (no wp.Tape, no wp.array per render). Memory: the binning and per-pixel state
-    (sorted ids, T, last) is dropped after the blending backward, before the input gradients are allocated, and
-    the projection with its geometric gradients before the SH coefficients' gradient (the largest) is: the
-    backward's peak holds one stage's buffers at a time. A second backward through the same graph
+    The backward runs the blending backward and the projection's Warp-generated adjoint, on array descriptors (no
+    wp.Tape, no wp.array per render). Memory: the binning and per-pixel state (sorted ids, T, last) and the
+    projection are dropped after the blending backward, before the input gradients are allocated: the backward's
+    peak holds one stage's buffers at a time (the SH stage is ShadeFn's). A second backward through the same graph
     (retain_graph, gradcheck) rebuilds what the first freed (projection, binning) from the saved inputs."""
 
     @staticmethod
-    def forward(ctx, means, quats, log_scales, opacity_logits, sh, means2d_probe, cam, settings):
+    def forward(ctx, means, quats, log_scales, opacity_logits, colors, means2d_probe, cam, cam_values, settings):
         K = kernels_for(means.dtype)
         device, n = means.device, means.shape[0]
         with warp_on(device):
-            inputs = (means, quats, log_scales, opacity_logits, sh)
-            args = [input_ct(t, ty) for t, ty in zip(inputs, (K.vec3, K.vec4, K.vec3, None, K.vec3))]
-            cam_values = camera_values(cam)
-            proj, pouts = project(K, args, cam, cam_values, n, means.dtype, device)
-            center = camera_center(K, cam_values)  # ready before the sync
+            args = [input_ct(t, ty) for t, ty in zip((means, quats, log_scales, opacity_logits),
+                                                      (K.vec3, K.vec4, K.vec3, None))] + [ct(colors, K.vec3)]
+            proj, pouts = project(K, args, colors, cam, cam_values, n, means.dtype, device)
             binning = count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"])
-            # the SH launch goes right after the sync: the GPU shades while the host prepares the binning
-            shade(K, args, pouts, center, settings["sh_degree"], n, device)
             color, alpha, depth, weights, first = blend(K, proj, pouts, *binning, cam, settings)
             del binning
         ctx.state = {"proj": proj, "pouts": pouts, "blend": first, "args": args, "cam": cam, "cam_values": cam_values,
-                     "center": center, "settings": settings}
+                     "settings": settings}
         # the inputs are read by the adjoints: saving them lets autograd refuse a backward after an in-place
         # change (torch's version counter) instead of returning stale gradients
-        ctx.save_for_backward(means, quats, log_scales, opacity_logits, sh)
+        ctx.save_for_backward(means, quats, log_scales, opacity_logits, colors)
         ctx.mark_non_differentiable(proj.radii, weights)
         return color, alpha, depth, proj.radii, weights if settings["weights"] else None  # depth None if not asked
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
         state = ctx.state
-        args, cam, cam_values, center, settings = (state[k] for k in ("args", "cam", "cam_values", "center", "settings"))
+        args, cam, cam_values, settings = (state[k] for k in ("args", "cam", "cam_values", "settings"))
         inputs = ctx.saved_tensors  # (raises if an input changed in place since the forward)
         means = inputs[0]
         K = kernels_for(means.dtype)
@@ -556,14 +575,15 @@ class RasterizeFn(torch.autograd.Function):
         with warp_on(device) as wdev:
             proj, pouts = state.pop("proj", None), state.pop("pouts", None)
             if proj is None:  # a second backward through the same graph: the first freed the projection
-                proj, pouts = project(K, args, cam, cam_values, n, dtype, device)
-                shade(K, args, pouts, center, settings["sh_degree"], n, device)
+                proj, pouts = project(K, args, inputs[4], cam, cam_values, n, dtype, device)
             # gradient buffers exist only from here on (fresh per call, so a second backward through the same
-            # graph, e.g. gradcheck or retain_graph, never sees the first call's sums); dL/dcolor and the screen
-            # mean's (the probe's gradient) outlive the geometric ones, so they get buffers of their own
-            kept_flat = torch.zeros(5 * n, dtype=dtype, device=device)  # [means2d (N, 2) | color (N, 3)]
+            # graph, e.g. gradcheck or retain_graph, never sees the first call's sums). What outlives this op (the
+            # probe's dL/d(screen mean), dL/dcolor for ShadeFn, dL/dmeans until ShadeFn adds its part) shares one
+            # buffer; the geometric gradients go with this op, the other inputs' once autograd has accumulated them
+            kept_flat = torch.zeros(8 * n, dtype=dtype, device=device)  # [means2d (N, 2) | color (N, 3) | means (N, 3)]
             geo_flat = torch.zeros(5 * n, dtype=dtype, device=device)  # [conic (N, 3) | opacity (N) | depth (N)]
-            g_means2d, g_rgb = kept_flat[:2 * n].view(n, 2), kept_flat[2 * n:].view(n, 3)
+            g_means2d, g_rgb = kept_flat[:2 * n].view(n, 2), kept_flat[2 * n:5 * n].view(n, 3)
+            g_means = kept_flat[5 * n:].view(n, 3)
             g_conic, g_opacity, g_depth_n = geo_flat[:3 * n].view(n, 3), geo_flat[3 * n:4 * n], geo_flat[4 * n:]
             # an absent upstream gradient is a broadcast zero (stride 0 over rows): no [H, W] buffer, no memset
             ups = [g.contiguous() if g is not None else _zeros(shape[-1], dtype, device).expand(shape)
@@ -575,16 +595,8 @@ class RasterizeFn(torch.autograd.Function):
             fast_launch(K.blend_backward, st["threads"],
                         st["args"] + st["saved"] + [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
                         + [ct(kept_flat), ct(geo_flat)], wdev, block_dim=TILE * TILE)
-            del st, ups, geo_flat
-            # memory: the projection adjoint first, then the projection and its geometric gradients go before the
-            # SH coefficients' gradient (the largest buffer, 48 floats a Gaussian at degree 3) is allocated
-            grads = packed_zeros([t.shape for t in inputs[:4]], dtype, device)
+            del st, ups, proj
+            grads = [g_means] + packed_zeros([t.shape for t in inputs[1:4]], dtype, device)
             project_adjoint(K, args, pouts, grads, (g_means2d, g_conic, g_depth_n, g_opacity), cam, cam_values, n,
                             device)
-            radii = pouts[5]
-            del proj, pouts, g_conic, g_depth_n, g_opacity
-            sh = inputs[4]
-            sh_full = (settings["sh_degree"] + 1) ** 2 == sh.shape[1]  # sh_coeff_grad then stores every entry
-            g_sh = torch.empty_like(sh) if sh_full else torch.zeros_like(sh)
-            shade_backward(K, args, radii, center, settings["sh_degree"], n, g_rgb, grads[0], g_sh, device)
-        return (*grads, g_sh, g_means2d, None, None)
+        return (*grads, g_rgb, g_means2d, None, None, None)
