@@ -9,7 +9,6 @@ FILE: any scene the project reads (INRIA .ply, .compressed.ply, .spz), with the 
 layout when one lies beside it. Serves on 127.0.0.1 (--host / --port) until Ctrl-C."""
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
@@ -125,10 +124,15 @@ def open_viewer(content: dict, host: str, port: int, up=None):
     return v
 
 
-def serve_forever(v, quiet=False) -> int:
-    if not quiet:
-        print("press Ctrl-C to stop", flush=True)
+def serve_forever(v, quiet=False, lines=()) -> int:
+    """Print ``lines``, then wait for Ctrl-C and stop the server. The printing is inside the wait's ``try``: a
+    Ctrl-C that arrives while the address is being printed (a caller that reads the address and signals at once)
+    must still stop viser, whose threads would otherwise keep the process alive."""
     try:
+        for line in lines:
+            print(line, flush=True)
+        if not quiet:
+            print("press Ctrl-C to stop", flush=True)
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:
@@ -142,8 +146,5 @@ def run(args) -> int:
     content = load_view(args.path, args.original, args.cameras)
     v = open_viewer(content, args.host, args.port, args.up)
     shown = ", ".join(f"{n} ({g.num:,} Gaussians)" for n, g in content["scenes"].items())
-    print(f"viewer: {v.address}  ({shown}; {len(content['cameras'])} training cameras)", flush=True)
-    for n in content["notes"]:
-        print(f"  {n}", flush=True)
-    sys.stdout.flush()
-    return serve_forever(v)
+    return serve_forever(v, lines=[f"viewer: {v.address}  ({shown}; {len(content['cameras'])} training cameras)"]
+                         + [f"  {n}" for n in content["notes"]])
