@@ -210,6 +210,39 @@ def test_screen_space_gradient_is_mean2d_gradient():
     assert out.means2d.grad[out.radii > 0].abs().sum() > 0
 
 
+def test_shade_op_matches_its_torch_twin():
+    """The SH stage is its own autograd op (ops.ShadeFn): colours and both gradients against reference.shade_reference
+    in float64, at the stored degree and a lower one (the higher coefficients get exactly zero). Gaussians whose
+    colour gradient is zero (no pixel saw them; the kernels skip them) get zero gradients, even with a non-finite
+    mean, which the twin turns into NaN."""
+    from tlvg_warp.ops import ShadeFn, camera_values
+    from tlvg_warp.reference import shade_reference
+
+    g = random_scene(40, 3, seed=11)
+    g.means.data[7, 1] = torch.nan
+    cam = camera()
+    gen = torch.Generator().manual_seed(3)
+    for degree in (3, 1):
+        m1, s1, m2, s2 = (t.detach().clone().requires_grad_(True) for t in (g.means, g.sh, g.means, g.sh))
+        ours = ShadeFn.apply(m1, s1, camera_values(cam), degree)
+        ref = shade_reference(m2, s2, cam, degree)
+        up = torch.randn(ref.shape, generator=gen, dtype=ref.dtype)
+        up[::5] = 0.0  # rows 0, 5, 10, ...: unseen Gaussians, row 7 among the seen ones but NaN: zero it too
+        up[7] = 0.0
+        seen = up.abs().sum(1) > 0
+        finite = torch.isfinite(g.means).all(1)
+        assert_close(ours[finite], ref[finite], F64_TOL, f"colours at degree {degree}")
+        ga = torch.autograd.grad((ours * up).sum(), [m1, s1])
+        gb = torch.autograd.grad((ref * up).sum(), [m2, s2])
+        for name, a, b in zip(("means", "sh"), ga, gb):
+            assert torch.isfinite(a).all(), f"d/d{name} at degree {degree}"
+            assert_close(a[finite], b[finite], F64_TOL, f"d/d{name} at degree {degree}")
+            assert a[~seen].abs().max() == 0, f"d/d{name} of unseen Gaussians at degree {degree}"
+        assert gb[1][seen].abs().sum() > 0
+        if degree < 3:
+            assert ga[1][:, (degree + 1) ** 2:].abs().max() == 0
+
+
 def test_second_backward_through_the_graph_rebuilds_the_freed_state():
     # the first backward frees the sorted ids and per-pixel state; a retained graph's second backward must
     # rebuild them and give the same gradients as the reference (each call's sums start from zero)

@@ -45,6 +45,14 @@ def sh_basis(d: torch.Tensor, degree: int) -> torch.Tensor:  # [N, 3] unit dirs 
     return torch.stack(cols, -1)
 
 
+def shade_reference(means: torch.Tensor, sh: torch.Tensor, cam: Camera, degree: int) -> torch.Tensor:
+    """ops.ShadeFn's twin: max(SH up to ``degree`` (unit direction from the camera center) + 0.5, 0).  # [N, 3]"""
+    dirs = means - cam.center.to(means.dtype).to(means.device)
+    dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-30)
+    k = (degree + 1) ** 2
+    return (torch.einsum("nk,nkc->nc", sh_basis(dirs, degree), sh[:, :k]) + 0.5).clamp_min(0)
+
+
 def project_reference(g: Gaussians, cam: Camera, sh_degree: int | None = None) -> Projected:
     dt, dev = g.dtype, g.device
     R = cam.R.to(dt).to(dev)
@@ -78,11 +86,7 @@ def project_reference(g: Gaussians, cam: Camera, sh_degree: int | None = None) -
     u = cam.fx * p[:, 0] / zs + cam.cx
     v = cam.fy * p[:, 1] / zs + cam.cy
     ok = ok & (~((u + r <= 0) | (u - r >= cam.width) | (v + r <= 0) | (v - r >= cam.height)) & (r <= 1e7))
-    dirs = means - cam.center.to(dt).to(dev)
-    dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-30)
-    degree = g.sh_degree if sh_degree is None else sh_degree
-    k = (degree + 1) ** 2
-    rgb = (torch.einsum("nk,nkc->nc", sh_basis(dirs, degree), g.sh[:, :k]) + 0.5).clamp_min(0)
+    rgb = shade_reference(means, g.sh, cam, g.sh_degree if sh_degree is None else sh_degree)
     okf = ok.to(dt)
     return Projected(
         means2d=torch.stack([u, v], -1) * okf[:, None],
