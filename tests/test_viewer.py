@@ -258,12 +258,19 @@ def test_browser_draws_the_splats_and_switches_scene(tmp_path):
     assert time.monotonic() - t0 < 120
 
 
-def test_cli_view_prints_the_address_and_stops_on_ctrl_c(tmp_path):
+def _deaf_to_sigint():  # as a parent that ignores and blocks SIGINT (both are inherited through exec)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
+
+@pytest.mark.parametrize("parent", ["plain", "sigint_ignored_and_blocked"])
+def test_cli_view_prints_the_address_and_stops_on_ctrl_c(tmp_path, parent):
     run = _make_run(tmp_path)
     port = _free_port()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     p = subprocess.Popen([sys.executable, "-m", "tlvg_warp", "view", str(run), "--port", str(port)],
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                         preexec_fn=_deaf_to_sigint if parent != "plain" else None)
     try:
         line = ""
         t0 = time.monotonic()
@@ -275,8 +282,17 @@ def test_cli_view_prints_the_address_and_stops_on_ctrl_c(tmp_path):
         import urllib.request
         html = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10).read()
         assert b"<html" in html.lower()
+        masks = [ln for ln in Path(f"/proc/{p.pid}/status").read_text().splitlines()
+                 if ln.startswith(("SigBlk", "SigIgn", "SigCgt"))] if Path(f"/proc/{p.pid}/status").exists() else []
         p.send_signal(signal.SIGINT)
-        assert p.wait(20) == 0
+        try:
+            rc = p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            rest = p.stdout.read()
+            raise AssertionError(f"view did not stop on SIGINT within 30 s; signal masks before: {masks}; "
+                                 f"its output: {rest[-2000:]!r}") from None
+        assert rc == 0
     finally:
         if p.poll() is None:
             p.kill()

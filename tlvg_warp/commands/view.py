@@ -9,6 +9,8 @@ FILE: any scene the project reads (INRIA .ply, .compressed.ply, .spz), with the 
 layout when one lies beside it. Serves on 127.0.0.1 (--host / --port) until Ctrl-C."""
 from __future__ import annotations
 
+import signal
+import threading
 import time
 from pathlib import Path
 
@@ -128,6 +130,11 @@ def serve_forever(v, quiet=False, lines=()) -> int:
     """Print ``lines``, then wait for Ctrl-C and stop the server. The printing is inside the wait's ``try``: a
     Ctrl-C that arrives while the address is being printed (a caller that reads the address and signals at once)
     must still stop viser, whose threads would otherwise keep the process alive."""
+    if threading.current_thread() is threading.main_thread():
+        # "press Ctrl-C" must hold whatever the parent left: a SIGINT blocked or ignored in the launching process
+        # is inherited, and would leave the server running
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         for line in lines:
             print(line, flush=True)
