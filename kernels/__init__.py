@@ -60,5 +60,6 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
         blend_backward=backward,
         count_tiles=binning.count_tiles_kernel,
         emit_keys=binning.emit_keys_kernel,
+        depth_rank=binning.depth_rank_kernel,
         tile_ranges=binning.tile_ranges_kernel,
     )

@@ -316,8 +316,9 @@ def emit_keys_kernel(
     radii: wp.array(dtype=wp.int32),  # [N]
     conic: wp.array(dtype=wp.vec3),  # [N]
     opacity: wp.array(dtype=float),  # [N]
-    ends: wp.array(dtype=wp.int32),  # [N] one past each Gaussian's last key: the inclusive prefix sum of the
-    # counts taken in depth order, stored per Gaussian (so the keys land in depth order)
+    rank: wp.array(dtype=wp.int32),  # [N] each Gaussian's position in depth order (depth_rank_kernel)
+    ends: wp.array(dtype=wp.int32),  # [N] in depth order: one past each Gaussian's last key (the inclusive prefix
+    # sum of the counts in depth order, so the keys land in depth order)
     counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian (Gaussian order)
     n: int,
     tiles_x: int,
@@ -341,7 +342,7 @@ def emit_keys_kernel(
     stop = int(0)
     if g < n:
         geo, rect, items = bin_setup(means2d[g], radii[g], conic[g], opacity[g], tiles_x, tiles_y, all_tiles)
-        stop = ends[g]
+        stop = ends[rank[g]]
         start = stop - counts[g]
     chunks = chunks_of(rect)
     k = start
@@ -384,6 +385,20 @@ def emit_keys_kernel(
         keys[k] = tiles_x * tiles_y
         values[k] = g
         k += 1
+
+
+@wp.kernel(enable_backward=False, module="tlvg_binning")
+def depth_rank_kernel(
+    order: wp.array(dtype=wp.int32),  # [N] Gaussian ids in depth order (the depth sort's values)
+    counts: wp.array(dtype=wp.int32),  # [N] keys per Gaussian (Gaussian order)
+    sorted_counts: wp.array(dtype=wp.int32),  # [N] out: the counts in depth order (the scan's input)
+    rank: wp.array(dtype=wp.int32),  # [N] out: the inverse permutation, each Gaussian's depth rank
+):
+    # one launch for what took a gather and a scatter in torch (each a launch and its host time)
+    j = wp.tid()
+    g = order[j]
+    sorted_counts[j] = counts[g]
+    rank[g] = j
 
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")

@@ -416,14 +416,16 @@ def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: 
     is the one host sync per render (it sizes the key buffers). Only the projection runs before it."""
     n = proj.depth.shape[0]
     device = proj.depth.device
-    counts = torch.empty(n, dtype=torch.int32, device=device)
     geometry = binning_geometry(proj)
     if n == 0:
-        return counts, 0, geometry, None
+        return torch.empty(0, dtype=torch.int32, device=device), 0, geometry, None
     tiles_x, tiles_y = tile_grid(width, height)
     total = torch.zeros(1, dtype=torch.int64, device=device)
-    depth_keys = torch.empty(2 * n, dtype=torch.float32, device=device)
-    order = torch.empty(2 * n, dtype=torch.int32, device=device)
+    # the binning's per-Gaussian int32 and float32 buffers as views of one allocation (host time, not memory,
+    # bounds a render): counts [N], depth sort keys and values [2N] each, counts in depth order and depth ranks [N]
+    counts, depth_keys, order, sorted_counts, rank = torch.empty(7 * n, dtype=torch.int32, device=device).split(
+        [n, 2 * n, 2 * n, n, n])
+    depth_keys = depth_keys.view(torch.float32)
     ranges = torch.empty(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)  # zeroed by the kernel
     fast_launch(K.count_tiles, warp_padded(max(n, tiles_x * tiles_y)),
                 [*geometry, ct(proj.depth.float()), n, tiles_x, tiles_y, width, height, int(all_tiles), ct(counts),
@@ -431,7 +433,7 @@ def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: 
     total = int(total.item())
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
-    return counts, total, geometry, (depth_keys, order, ranges)
+    return counts, total, geometry, (depth_keys, order, ranges, sorted_counts, rank)
 
 
 def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, sort_buffers, width: int, height: int,
@@ -445,19 +447,18 @@ def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, so
     if sort_buffers is None:  # no Gaussians: nothing was counted
         return torch.zeros(tiles_x * tiles_y, 2, dtype=torch.int32, device=device), \
             torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
-    depth_keys, order, ranges = sort_buffers
+    depth_keys, order, ranges, sorted_counts, rank = sort_buffers
     if total == 0:
         return ranges, torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
     # depth order (culled Gaussians sort anywhere: they emit no keys)
     sort_pairs(depth_keys, order, n)
     del depth_keys
     order = order[:n]
-    ends = torch.empty_like(counts)  # [N] per Gaussian: the inclusive sum in depth order (< 2**31, checked)
-    ends[order] = torch.cumsum(counts[order], 0, dtype=torch.int32)
-    keys = torch.empty(2 * total, dtype=torch.int32, device=device)
-    ids = torch.empty(2 * total, dtype=torch.int32, device=device)
-    fast_launch(K.emit_keys, warp_padded(n), [*geometry, ct(ends), ct(counts), n, tiles_x, tiles_y, width, height,
-                                              int(all_tiles), ct(keys), ct(ids)], wdev)
+    fast_launch(K.depth_rank, n, [ct(order), ct(counts), ct(sorted_counts), ct(rank)], wdev)
+    ends = torch.cumsum(sorted_counts, 0, dtype=torch.int32)  # [N] inclusive, in depth order; < 2**31 (checked)
+    keys, ids = torch.empty(4 * total, dtype=torch.int32, device=device).split(2 * total)  # each with the sort's room
+    fast_launch(K.emit_keys, warp_padded(n), [*geometry, ct(rank), ct(ends), ct(counts), n, tiles_x, tiles_y, width,
+                                              height, int(all_tiles), ct(keys), ct(ids)], wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
     sort_pairs(keys, ids, total, 0, tile_bits)  # stable: each tile stays in depth order
     fast_launch(K.tile_ranges, total, [ct(keys), total, ct(ranges)], wdev)
