@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# Issue 15, fifth round, after the binning launch merge (depth ranks in one Warp launch, packed allocations): the CUDA tests;
+# SPZ copies of round 6's fits, .gpu/fits) and a random 1M against gsplat 1.5.3, for the previous commit (the commit before the binning launch merge,
+# carried as .gpu/prev9) and this code, each in its own process with gsplat in it; the host/GPU timeline of one
+# fern view; fern fitted 7000 iterations; fern stylized 3000 iterations by this code twice and the previous once.
+# On the device: source /tmp/tlvg-gpu/env.sh && bash .ci/gpu_round9.sh [tests] [raster] [host] [fit] [stylize]
+set -uo pipefail
+OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
+export TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1
+R=/tmp/tlvg-runs; mkdir -p "$R"; D=/tmp/tlvg-data; F=$PWD/.gpu/fits
+[ $# -eq 0 ] && set -- tests raster host fit stylize
+nvidia-smi --query-gpu=name --format=csv,noheader
+python3 -m compileall -q -j 16 /tmp/tlvg-gpu/site tlvg_warp kernels .gpu/prev9 > /dev/null 2>&1  # as an install would
+metrics() { python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print({k: m.get(k) for k in sys.argv[2:]})" "$@"; }
+SCENES="--scene $F/fern.spz:$D/fern_llff:images_4 --scene $F/beer.spz:$D/beer_colmap:images"
+for job in "$@"; do
+  case "$job" in
+    tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py 2>&1 | tail -n 2;;
+    raster)
+      for v in "prev:$PWD/.gpu/prev9" "now:$PWD"; do
+        IFS=: read -r name root <<< "$v"
+        echo "== bench raster: $name"
+        ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root timeout 300 python3 -m tlvg_warp bench raster \
+            --sizes 1000000 --garden "" --peers tlvg_warp,gsplat $SCENES --repeats 10 --out "$R/bench_$name" \
+            > "$R/bench_$name.log" 2>&1 )
+        grep -v "^Module\|^{" "$R/bench_$name.log" | grep "^|" | tail -n 22
+      done
+      tar -czf "$OUT/bench_logs9.tgz" -C "$R" $(cd "$R" && ls -d bench_* 2>/dev/null);;
+    host)
+      python3 .ci/profile_host.py "$F/fern.spz:$D/fern_llff:images_4" fwd 2>&1 | grep -v "^Module" | tail -n 45
+      python3 .ci/profile_host.py "$F/fern.spz:$D/fern_llff:images_4" fwd_bwd 2>&1 | grep -v "^Module" | tail -n 48;;
+    fit)
+      /usr/bin/time -f "fern fit wall %e s" python3 -m tlvg_warp reconstruct $D/fern_llff --images images_4 \
+        --iterations 7000 --out "$R/fern" --overwrite --quiet > "$R/fit.log" 2>&1; tail -n 1 "$R/fit.log"
+      metrics "$R/fern/metrics.json" psnr ssim num_gaussians train_time_s wall_time_s;;
+    stylize)
+      FERN="--scene $R/fern/point_cloud.ply --data $D/fern_llff --downscale 2 --style $D/styles/starry_night.jpg"
+      for v in "now:$PWD" "prev:$PWD/.gpu/prev9" "now2:$PWD"; do
+        IFS=: read -r name root <<< "$v"
+        ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root /usr/bin/time -f "fern stylize $name 3000 wall %e s" \
+            python3 -m tlvg_warp stylize $FERN --out "$R/fern_$name" --overwrite --quiet > "$R/fern_$name.log" 2>&1 )
+        tail -n 1 "$R/fern_$name.log"
+        metrics "$R/fern_$name/metrics.json" wall_time_s setup_time_s train_time_s outputs_time_s stage_split
+      done;;
+  esac
+done
