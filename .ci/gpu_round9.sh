@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Issue 15, fifth round, after the binning launch merge (depth ranks in one Warp launch, packed allocations): the CUDA tests;
-# SPZ copies of round 6's fits, .gpu/fits) and a random 1M against gsplat 1.5.3, for the previous commit (the commit before the binning launch merge,
-# carried as .gpu/prev9) and this code, each in its own process with gsplat in it; the host/GPU timeline of one
-# fern view; fern fitted 7000 iterations; fern stylized 3000 iterations by this code twice and the previous once.
+# Issue 15, fifth round, after the binning launch merge (depth ranks in one Warp launch, packed allocations):
+# the CUDA tests; `bench raster` on fern and beer (the SPZ copies of round 6's fits, .gpu/fits) and a random 1M
+# against gsplat 1.5.3, for the commit before the merge (carried as .gpu/prev9) and this code, each in its own process
+# with gsplat in it; the host/GPU timeline of one fern view; fern fitted 7000 iterations; fern stylized 3000
+# iterations by this code twice and the previous once.
 # On the device: source /tmp/tlvg-gpu/env.sh && bash .ci/gpu_round9.sh [tests] [raster] [host] [fit] [stylize]
 set -uo pipefail
 OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
