@@ -421,8 +421,9 @@ def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: 
         return torch.empty(0, dtype=torch.int32, device=device), 0, geometry, None
     tiles_x, tiles_y = tile_grid(width, height)
     total = torch.zeros(1, dtype=torch.int64, device=device)
-    # the binning's per-Gaussian int32 and float32 buffers as views of one allocation (host time, not memory,
-    # bounds a render): counts [N], depth sort keys and values [2N] each, counts in depth order and depth ranks [N]
+    # the binning's per-Gaussian int32 and float32 buffers as views of one allocation (host time bounds a render's
+    # forward; all of them go when the forward ends): counts [N], depth sort keys and values [2N] each, counts in
+    # depth order and depth ranks [N]
     counts, depth_keys, order, sorted_counts, rank = torch.empty(7 * n, dtype=torch.int32, device=device).split(
         [n, 2 * n, 2 * n, n, n])
     depth_keys = depth_keys.view(torch.float32)
@@ -456,7 +457,10 @@ def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, so
     order = order[:n]
     fast_launch(K.depth_rank, n, [ct(order), ct(counts), ct(sorted_counts), ct(rank)], wdev)
     ends = torch.cumsum(sorted_counts, 0, dtype=torch.int32)  # [N] inclusive, in depth order; < 2**31 (checked)
-    keys, ids = torch.empty(4 * total, dtype=torch.int32, device=device).split(2 * total)  # each with the sort's room
+    # two allocations, not one: the sorted ids outlive the keys until the blending backward, and on a wide image
+    # (beer, 720x1280) that stage holds the backward's peak
+    keys = torch.empty(2 * total, dtype=torch.int32, device=device)  # each with the radix sort's 2x room
+    ids = torch.empty(2 * total, dtype=torch.int32, device=device)
     fast_launch(K.emit_keys, warp_padded(n), [*geometry, ct(rank), ct(ends), ct(counts), n, tiles_x, tiles_y, width,
                                               height, int(all_tiles), ct(keys), ct(ids)], wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
