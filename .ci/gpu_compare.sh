@@ -1,23 +1,27 @@
 #!/usr/bin/env bash
-# Issue 15, fifth round, after the SH stage became its own op: the CUDA tests; `bench raster` on fern and beer (the
-# SPZ copies of round 6's fits, .gpu/fits) and a random 1M against gsplat 1.5.3, for the previous commit (336b7e5,
-# carried as .gpu/prev8) and this code, each in its own process with gsplat in it; the host/GPU timeline of one
-# fern view; fern fitted 7000 iterations; fern stylized 3000 iterations by this code twice and the previous once.
-# On the device: source /tmp/tlvg-gpu/env.sh && bash .ci/gpu_round8.sh [tests] [raster] [host] [fit] [stylize]
+# Issue 15, fifth round: this code against an earlier one in one call on one GPU (nvidia-h200). The CUDA tests;
+# `bench raster` on fern and beer (the SPZ copies of round 6's fits, carried as .gpu/fits) and a random 1M against
+# gsplat 1.5.3, for the earlier code (PREV: a `git archive` of it, carried) and this code, each in its own process
+# with gsplat in it; the host/GPU timeline of one fern view; fern fitted 7000 iterations; fern stylized 3000
+# iterations by this code twice and the earlier code once, interleaved (process wall).
+# On the device: source /tmp/tlvg-gpu/env.sh && PREV=.gpu/prev9 bash .ci/gpu_compare.sh [tests] [raster] [host] [fit] [stylize]
+# The fifth session's calls: PREV=.gpu/old15 (efe8cbc, "round 7"), .gpu/prev8 (336b7e5, "round 8"), .gpu/prev9 (the
+# commit before the binning launch merge, "round 9"); they ran as copies of this script named gpu_round7/8/9.sh.
 set -uo pipefail
+PREV=${PREV:?set PREV to the folder of the earlier code (a git archive under .gpu/)}
 OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
 export TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1
 R=/tmp/tlvg-runs; mkdir -p "$R"; D=/tmp/tlvg-data; F=$PWD/.gpu/fits
 [ $# -eq 0 ] && set -- tests raster host fit stylize
 nvidia-smi --query-gpu=name --format=csv,noheader
-python3 -m compileall -q -j 16 /tmp/tlvg-gpu/site tlvg_warp kernels .gpu/prev8 > /dev/null 2>&1  # as an install would
+python3 -m compileall -q -j 16 /tmp/tlvg-gpu/site tlvg_warp kernels "$PREV" > /dev/null 2>&1  # as an install would
 metrics() { python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print({k: m.get(k) for k in sys.argv[2:]})" "$@"; }
 SCENES="--scene $F/fern.spz:$D/fern_llff:images_4 --scene $F/beer.spz:$D/beer_colmap:images"
 for job in "$@"; do
   case "$job" in
     tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py 2>&1 | tail -n 2;;
     raster)
-      for v in "prev:$PWD/.gpu/prev8" "now:$PWD"; do
+      for v in "prev:$PWD/$PREV" "now:$PWD"; do
         IFS=: read -r name root <<< "$v"
         echo "== bench raster: $name"
         ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root timeout 300 python3 -m tlvg_warp bench raster \
@@ -25,7 +29,7 @@ for job in "$@"; do
             > "$R/bench_$name.log" 2>&1 )
         grep -v "^Module\|^{" "$R/bench_$name.log" | grep "^|" | tail -n 22
       done
-      tar -czf "$OUT/bench_logs8.tgz" -C "$R" $(cd "$R" && ls -d bench_* 2>/dev/null);;
+      tar -czf "$OUT/bench_logs.tgz" -C "$R" $(cd "$R" && ls -d bench_* 2>/dev/null);;
     host)
       python3 .ci/profile_host.py "$F/fern.spz:$D/fern_llff:images_4" fwd 2>&1 | grep -v "^Module" | tail -n 45
       python3 .ci/profile_host.py "$F/fern.spz:$D/fern_llff:images_4" fwd_bwd 2>&1 | grep -v "^Module" | tail -n 48;;
@@ -35,7 +39,7 @@ for job in "$@"; do
       metrics "$R/fern/metrics.json" psnr ssim num_gaussians train_time_s wall_time_s;;
     stylize)
       FERN="--scene $R/fern/point_cloud.ply --data $D/fern_llff --downscale 2 --style $D/styles/starry_night.jpg"
-      for v in "now:$PWD" "prev:$PWD/.gpu/prev8" "now2:$PWD"; do
+      for v in "now:$PWD" "prev:$PWD/$PREV" "now2:$PWD"; do
         IFS=: read -r name root <<< "$v"
         ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root /usr/bin/time -f "fern stylize $name 3000 wall %e s" \
             python3 -m tlvg_warp stylize $FERN --out "$R/fern_$name" --overwrite --quiet > "$R/fern_$name.log" 2>&1 )
