@@ -121,7 +121,7 @@ def _check_compressed_layout(path, order, elements):
     """Validate the header; returns (n_chunks, n, chunk prop count, sh coefficient count per channel)."""
     if order != "<":
         raise InputError("compressed PLY must be binary_little_endian", path)
-    (cname, nchunk, cprops), (_, n, vprops) = elements[0], elements[1]
+    (_, nchunk, cprops), (_, n, vprops) = elements[0], elements[1]
     cnames = [p for p, _ in cprops]
     if cnames not in (CHUNK_PROPS[:12], CHUNK_PROPS) or any(t != "f4" for _, t in cprops):
         raise InputError("compressed PLY chunk element must hold 12 or 18 float min/max properties", path)
