@@ -384,26 +384,11 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
     def warp_transpose_sum(x: vec16) -> scalar: ...
 
     @wp.func
-    def add_grads(g: int, n: int, v: vec16, want_depth: int, grad_kept: wp.array(dtype=scalar),
-                  grad_geo: wp.array(dtype=scalar)):
-        """Every value of Gaussian g from one lane (constant indices: a dynamic index would put v in local memory)."""
-        wp.atomic_add(grad_kept, 2 * g, v[0])
-        wp.atomic_add(grad_kept, 2 * g + 1, v[1])
-        wp.atomic_add(grad_geo, 3 * g, v[2])
-        wp.atomic_add(grad_geo, 3 * g + 1, v[3])
-        wp.atomic_add(grad_geo, 3 * g + 2, v[4])
-        wp.atomic_add(grad_geo, 3 * n + g, v[5])
-        wp.atomic_add(grad_kept, 2 * n + 3 * g, v[6])
-        wp.atomic_add(grad_kept, 2 * n + 3 * g + 1, v[7])
-        wp.atomic_add(grad_kept, 2 * n + 3 * g + 2, v[8])
-        if want_depth != 0:
-            wp.atomic_add(grad_geo, 4 * n + g, v[9])
-
-    @wp.func
     def add_grad(k: int, g: int, n: int, value: scalar, grad_kept: wp.array(dtype=scalar),
                  grad_geo: wp.array(dtype=scalar)):
-        """Adds value k of Gaussian g: 0-1 screen mean, 2-4 conic, 5 opacity, 6-8 color, 9 depth; ``grad_kept`` is
-        [means2d (N, 2) | color (N, 3)] and ``grad_geo`` [conic (N, 3) | opacity (N) | depth (N)], flat."""
+        """Adds value k of Gaussian g: 0-1 screen mean, 2-4 conic, 5 opacity, 6-8 color, 9 depth; ``grad_kept`` starts
+        [means2d (N, 2) | color (N, 3)] and ``grad_geo`` is [conic (N, 3) | opacity (N) | depth (N)], flat. The one
+        place that maps a value to its address."""
         if k < 2:
             wp.atomic_add(grad_kept, 2 * g + k, value)
         elif k < 5:
@@ -414,6 +399,16 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
             wp.atomic_add(grad_kept, 2 * n + 3 * g + k - 6, value)
         else:
             wp.atomic_add(grad_geo, 4 * n + g, value)
+
+    @wp.func
+    def add_grads(g: int, n: int, v: vec16, want_depth: int, grad_kept: wp.array(dtype=scalar),
+                  grad_geo: wp.array(dtype=scalar)):
+        """Every value of Gaussian g from one lane. The loop has a constant trip count, so Warp unrolls it and each
+        v[k] is a constant index (a dynamic one would put v in local memory)."""
+        for k in range(9):
+            add_grad(k, g, n, v[k], grad_kept, grad_geo)
+        if want_depth != 0:
+            add_grad(9, g, n, v[9], grad_kept, grad_geo)
 
     @wp.kernel(enable_backward=False, module=module, **bounds[1])
     def blend_backward_kernel(
@@ -435,7 +430,7 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
         g_color: wp.array2d(dtype=vec3),  # [H, W] upstream dL/dcolor
         g_alpha: wp.array2d(dtype=scalar),  # [H, W] upstream dL/dalpha
         g_depth: wp.array2d(dtype=scalar),  # [H, W] upstream dL/ddepth (read only if want_depth)
-        grad_kept: wp.array(dtype=scalar),  # [5N] accumulated dL/d(screen mean) [N, 2], then dL/dcolor [N, 3]
+        grad_kept: wp.array(dtype=scalar),  # [>= 5N] accumulated dL/d(screen mean) [N, 2], then dL/dcolor [N, 3]
         grad_geo: wp.array(dtype=scalar),  # [5N] accumulated dL/d(conic) [N, 3], then opacity [N], depth [N]
     ):
         # On the GPU all lanes of a block walk the same Gaussians in lockstep (the loop runs from the block's
