@@ -112,7 +112,7 @@ def make_sh(scalar, mod: str):
         sh_degree: int,
         g_color: wp.array(dtype=vec3),  # [N] dL/dcolor (exactly 0 for the Gaussians no pixel saw, culled ones too)
         g_rgb: wp.array(dtype=vec3),  # [N] out dL/d(SH sum) (0 when culled); may alias g_color
-        g_means: wp.array(dtype=vec3),  # [N] adds to it: runs after the projection adjoint (one thread per row)
+        g_means: wp.array(dtype=vec3),  # [N] out: the view-direction part of dL/dmeans (every row stored)
     ):
         # Hand-written: Warp's generated adjoint turns every array read into an atomic add, which made SH the
         # bulk of the projection backward. This pass gives the direction (mean) gradient and dL/d(SH sum);
@@ -122,6 +122,7 @@ def make_sh(scalar, mod: str):
         gc0 = g_color[i]
         if gc0[0] == zero and gc0[1] == zero and gc0[2] == zero:  # nothing to pass back: also keeps a culled
             g_rgb[i] = gc0  # Gaussian's non-finite mean out of every gradient (0 · NaN)
+            g_means[i] = gc0
             return
         mu = means[i]
         d = view_dir(mu, cam_center)
@@ -130,6 +131,7 @@ def make_sh(scalar, mod: str):
         gc = vec3(wp.where(rgb[0] >= zero, gc0[0], zero), wp.where(rgb[1] >= zero, gc0[1], zero),
                   wp.where(rgb[2] >= zero, gc0[2], zero))
         g_rgb[i] = gc
+        g_mean = vec3(zero, zero, zero)
         if sh_degree > 0:
             x = d[0]
             y = d[1]
@@ -175,7 +177,8 @@ def make_sh(scalar, mod: str):
             n = wp.length(mu - cam_center)
             if n > zero:
                 gd = vec3(gx, gy, gz)
-                g_means[i] = g_means[i] + (gd - dot3(gd, d) * d) / n
+                g_mean = (gd - dot3(gd, d) * d) / n
+        g_means[i] = g_mean
 
     @wp.kernel(enable_backward=False, module=mod)
     def sh_coeff_grad_kernel(

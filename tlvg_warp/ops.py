@@ -525,7 +525,7 @@ class ShadeFn(torch.autograd.Function):
         K = kernels_for(means.dtype)
         device, n = means.device, means.shape[0]
         n_coeffs = (ctx.degree + 1) ** 2
-        g_means = torch.zeros_like(means)  # sh_backward adds the direction part where dL/dcolor is not 0
+        g_means = torch.empty_like(means)  # sh_backward stores every row (0 where dL/dcolor is 0)
         g_rgb = torch.empty(n, 3, dtype=means.dtype, device=device)  # dL/d(SH sum), the clamp applied
         g_sh = torch.empty_like(sh) if n_coeffs == sh.shape[1] else torch.zeros_like(sh)  # degree < stored: rest 0
         with warp_on(device) as wdev:
