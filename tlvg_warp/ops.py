@@ -1,5 +1,6 @@
-"""Bridge between torch tensors and the Warp raster kernels: one op per pipeline stage (project, bin,
-blend) and the autograd Function that carries them.
+"""Bridge between torch tensors and the Warp raster kernels: one function per pipeline stage (project, bin,
+blend) and two autograd Functions over them, ``ShadeFn`` (SH colours) and ``RasterizeFn`` (projection, binning,
+blending).
 
 Kernels get bare array descriptors of torch tensors (``ct``), launched through recorded ``wp.Launch``es
 (``fast_launch``): a render's host time, not its GPU time, bounds small and sparse scenes. Gradients: the
@@ -544,9 +545,9 @@ class RasterizeFn(torch.autograd.Function):
     mean) for density control.
 
     The backward runs the blending backward and the projection's Warp-generated adjoint, on array descriptors (no
-    wp.Tape, no wp.array per render). Memory: the binning and per-pixel state (sorted ids, T, last) and the
-    projection are dropped after the blending backward, before the input gradients are allocated: the backward's
-    peak holds one stage's buffers at a time (the SH stage is ShadeFn's). A second backward through the same graph
+    wp.Tape, no wp.array per render). Memory: the binning and per-pixel state (sorted ids, T, last) are dropped
+    after the blending backward, before the input gradients are allocated, and the projection when the op returns;
+    the backward's peak is ShadeFn's, after all of these are gone. A second backward through the same graph
     (retain_graph, gradcheck) rebuilds what the first freed (projection, binning) from the saved inputs."""
 
     @staticmethod

@@ -71,7 +71,7 @@ def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None 
         raise InputError(f"sh_degree {degree} is outside 0..{g.sh_degree} (the stored degree)")
     # a stride-0 broadcast zero: an [N, 2] leaf that owns 2 scalars; its .grad is the [N, 2] gradient
     probe = _zero_pair(g.dtype, g.device).expand(g.num, 2).detach().requires_grad_(True)
-    settings = {"sh_degree": degree, "background": bg, "weights": bool(return_weights), "all_tiles": bool(all_tiles),
+    settings = {"background": bg, "weights": bool(return_weights), "all_tiles": bool(all_tiles),
                 "depth": bool(depth)}
     cam_values = camera_values(cam)  # (R, t, center) as Python floats, read once for both ops
     colors = ShadeFn.apply(g.means, g.sh, cam_values, degree)  # [N, 3]
