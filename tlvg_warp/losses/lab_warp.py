@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import torch
 import warp as wp
 
-from ..ops import init_warp, warp_on
+from ..ops import ct, fast_launch, init_warp, warp_on
 
 _RGB2XYZ = ((0.412453, 0.357580, 0.180423),
             (0.212671, 0.715160, 0.072169),
@@ -128,8 +128,7 @@ def lab_ab_jacobian(rgb: torch.Tensor) -> torch.Tensor:
     out = torch.empty(x.shape[0], 8, dtype=x.dtype, device=x.device)
     if x.shape[0]:
         with warp_on(x.device) as wdev:
-            wp.launch(K.forward, dim=x.shape[0], inputs=[wp.from_torch(x, dtype=K.vec3)],
-                      outputs=[wp.from_torch(out, dtype=K.vec8)], device=wdev)
+            fast_launch(K.forward, x.shape[0], [ct(x, K.vec3), ct(out, K.vec8)], wdev)
     return out
 
 
@@ -160,7 +159,5 @@ class LabChromaLossFn(torch.autograd.Function):
         gs = g.reshape(1).to(out.dtype).contiguous()
         if n:
             with warp_on(out.device) as wdev:
-                wp.launch(K.backward, dim=n, inputs=[wp.from_torch(out, dtype=K.vec8), wp.from_torch(stats),
-                                                     wp.from_torch(t), wp.from_torch(gs), n],
-                          outputs=[wp.from_torch(grad, dtype=K.vec3)], device=wdev)
+                fast_launch(K.backward, n, [ct(out, K.vec8), ct(stats), ct(t), ct(gs), n, ct(grad, K.vec3)], wdev)
         return grad.reshape(ctx.shape), None
