@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 import warp as wp
 
-from .ops import camera_args, kernels_for, to_warp, warp_on
+from .ops import camera_args, ct, fast_launch, input_ct, kernels_for, to_warp, warp_on
 from .types import Camera, Gaussians
 
 COHERENCE_MIN = 1e-3  # below this the painting has no direction to follow at that spot
@@ -158,17 +158,16 @@ def _targets_kernel(scalar_name: str):
 class FlowEnergiesFn(torch.autograd.Function):
     """(means, quats, log_scales) -> (alignment, anisotropy) energies [2] of one view: Σ w_i e_i / Σ w_i with the
     targets and weights w_i = coherence x blend weight from the targets kernel (no gradient), e_i from the
-    energies kernel on a Warp tape. Backward: ∂E/∂e_i = g·w_i/Σw written straight into the tape's output
-    gradient, then the tape."""
+    energies kernel. Backward: ∂E/∂e_i = g·w_i/Σw, then the energies kernel's Warp-generated adjoint, launched by
+    hand with torch-allocated gradient buffers (as ``ops.project_adjoint``): no wp.Tape and no wp.array per call
+    (a fern stylize step spent ~1 ms of host time building them)."""
 
     @staticmethod
     def forward(ctx, means, quats, log_scales, weights, field, cam):
         K = kernels_for(means.dtype)
         T = _targets_kernel({torch.float32: "float32", torch.float64: "float64"}[means.dtype])
         n, dt, dev = means.shape[0], means.dtype, means.device
-        flat = torch.zeros(10 * n, dtype=dt, device=dev)  # the three input gradients, one memset
-        grads = [flat[:3 * n].view(n, 3), flat[3 * n:7 * n].view(n, 4), flat[7 * n:].view(n, 3)]
-        e = torch.zeros(4, n, dtype=dt, device=dev)  # align, aniso, and their gradients
+        e = torch.zeros(4, n, dtype=dt, device=dev)  # align, aniso (written where active), and their gradients
         target = torch.empty(n, 2, dtype=dt, device=dev)
         active = torch.empty(n, dtype=torch.int32, device=dev)
         w = torch.empty(n, dtype=dt, device=dev)
@@ -176,32 +175,32 @@ class FlowEnergiesFn(torch.autograd.Function):
         wts = weights.detach()
         wts = wts if (wts.dtype == dt and wts.is_contiguous()) else wts.to(dt).contiguous()
         cargs = camera_args(cam, K)
+        args = [input_ct(means, K.vec3), input_ct(quats, K.vec4), input_ct(log_scales, K.vec3), ct(target, K.vec2),
+                ct(active), *cargs[:4], cam.width, cam.height]
         with warp_on(dev) as wdev:
-            if n:
-                wp.launch(T, dim=n, inputs=[to_warp(means, K.vec3), to_warp(log_scales, K.vec3), wp.from_torch(wts),
-                                            wp.from_torch(fld), *cargs[:8], cargs[8], K.scalar(COHERENCE_MIN)],
-                          outputs=[to_warp(target, K.vec2), wp.from_torch(active), wp.from_torch(w)], device=wdev)
-            ins = [to_warp(means, K.vec3, grads[0]), to_warp(quats, K.vec4, grads[1]),
-                   to_warp(log_scales, K.vec3, grads[2]), to_warp(target, K.vec2), to_warp(active, wp.int32)]
-            outs = [to_warp(e[0], K.scalar, e[2]), to_warp(e[1], K.scalar, e[3])]
-            tape = wp.Tape()
-            if n:
-                with tape:
-                    wp.launch(K.flow_terms, dim=n, inputs=ins + [cargs[0], cargs[1], cargs[2], cargs[3], cam.width,
-                                                                 cam.height], outputs=outs, device=wdev)
+            fast_launch(T, n, [args[0], args[2], ct(wts), ct(fld), *cargs[:8], cargs[8], K.scalar(COHERENCE_MIN),
+                               args[3], args[4], ct(w)], wdev)
+            fast_launch(K.flow_terms, n, args + [ct(e[0]), ct(e[1])], wdev)
         inv = w.sum().clamp_min(1e-12).reciprocal()
-        ctx.state = (tape, e, w, inv, grads, dev)
+        ctx.state = (args, e, w, inv, cargs[:4])
         ctx.save_for_backward(means, quats, log_scales)  # autograd's in-place check on the inputs
         return torch.mv(e[:2], w) * inv
 
     @staticmethod
     def backward(ctx, g):
-        tape, e, w, inv, grads, device = ctx.state
-        ctx.saved_tensors  # noqa: B018 (raises if an input changed in place since the forward)
+        args, e, w, inv, cam_args = ctx.state
+        means, quats, log_scales = ctx.saved_tensors  # (raises if an input changed in place since the forward)
         ctx.state = None
-        torch.outer(g * inv, w, out=e[2:])  # ∂E/∂align_i, ∂E/∂aniso_i into the tape's output gradients
-        with warp_on(device):
-            tape.backward()
+        K = kernels_for(means.dtype)
+        n = means.shape[0]
+        torch.outer(g * inv, w, out=e[2:])  # ∂E/∂align_i, ∂E/∂aniso_i: the adjoint's output gradients
+        flat = torch.zeros(10 * n, dtype=means.dtype, device=means.device)  # the three input gradients, one memset
+        grads = [flat[:3 * n].view(n, 3), flat[3 * n:7 * n].view(n, 4), flat[7 * n:].view(n, 3)]
+        adj_cam = [type(a)() for a in cam_args] + [0, 0]  # no gradients for the camera
+        with warp_on(means.device) as wdev:
+            fast_launch(K.flow_terms, n, args + [ct(e[0]), ct(e[1])], wdev,
+                        adj_args=[ct(grads[0], K.vec3), ct(grads[1], K.vec4), ct(grads[2], K.vec3), None, None]
+                        + adj_cam + [ct(e[2]), ct(e[3])])
         return (*grads, None, None, None)
 
 
