@@ -43,6 +43,17 @@ def kernels_for(dtype: torch.dtype):
     return raster_kernels({torch.float32: "float32", torch.float64: "float64"}[dtype])
 
 
+_wdevs: dict = {}  # torch device -> its Warp device
+
+
+def wdevice(device: torch.device):
+    """``wp.device_from_torch(device)``, cached (a few microseconds a call, several calls a render)."""
+    d = _wdevs.get(device)
+    if d is None:
+        d = _wdevs[device] = wp.device_from_torch(device)
+    return d
+
+
 _streams: dict = {}  # torch stream handle -> its wp.Stream (wrapping one registers it with Warp: not per call)
 
 
@@ -63,7 +74,7 @@ def warp_on(device: torch.device):
         with wp.ScopedDevice(wdev):
             yield wdev
     else:
-        yield wp.device_from_torch(device)
+        yield wdevice(device)
 
 
 def warp_array_ctype():
@@ -217,6 +228,8 @@ def _bare(a):
         return a.__ctype__()
     if isinstance(a, _ARRAY_T or warp_array_ctype()):
         return type(a).from_buffer_copy(a)  # the same descriptor without its tensor reference
+    if isinstance(a, (ctypes.Array, ctypes.Structure)):  # a vector or matrix value: the recorded launch may keep the
+        return type(a).from_buffer_copy(a)  # object itself as its parameter slot, which later calls overwrite
     return a
 
 
@@ -310,7 +323,7 @@ def packed_zeros(shapes, dtype, device) -> list[torch.Tensor]:
     instead of one each (the host, not the GPU, bounds these small steps)."""
     sizes = [math.prod(s) for s in shapes]
     buf = torch.zeros(sum(sizes), dtype=dtype, device=device)
-    return [v.view(s) for v, s in zip(buf.split(sizes), shapes)]
+    return [v.view(s) for v, s in zip(buf.split_with_sizes(sizes), shapes)]  # (ATen's op: Tensor.split is Python)
 
 
 @dataclass
@@ -337,16 +350,38 @@ def camera_values(cam: Camera):
 
 def camera_args(cam: Camera, K, values=None):
     """(R, t, fx, fy, cx, cy, width, height, near, far) as kernel values (array reads would become atomics in
-    the adjoint); ``values``: ``camera_values(cam)`` when the caller already has them."""
-    s = K.scalar
+    the adjoint); ``values``: ``camera_values(cam)`` when the caller already has them. Kept per camera (by value):
+    building Warp's matrix and vector values costs more host time than the launch that takes them."""
     R, t, _ = values or camera_values(cam)
-    return [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)),
-            s(cam.fx), s(cam.fy), s(cam.cx), s(cam.cy), cam.width, cam.height, s(cam.near), s(cam.far)]
+    key = (K.scalar, *R[0], *R[1], *R[2], *t, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near, cam.far)
+    hit = _cam_args.get(key)
+    if hit is None:
+        if len(_cam_args) > 1024:  # a long orbit: keep the cache bounded
+            _cam_args.clear()
+        s = K.scalar
+        hit = _cam_args[key] = [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)), s(cam.fx), s(cam.fy),
+                                s(cam.cx), s(cam.cy), cam.width, cam.height, s(cam.near), s(cam.far)]
+    return list(hit)
+
+
+_cam_args: dict = {}  # (scalar type, camera values) -> camera_args' list
+_vec3s: dict = {}  # (scalar type, 3 floats) -> a Warp vec3 (camera centers, backgrounds)
+
+
+def kernel_vec3(K, xyz):
+    """``K.vec3(*xyz)`` in K's scalar type, kept per value (the camera center, the background)."""
+    key = (K.scalar, *xyz)
+    v = _vec3s.get(key)
+    if v is None:
+        if len(_vec3s) > 1024:
+            _vec3s.clear()
+        v = _vec3s[key] = K.vec3(*map(K.scalar, xyz))
+    return v
 
 
 def camera_center(K, values):
     """The camera position of ``camera_values`` as a kernel value."""
-    return K.vec3(*map(K.scalar, values[2]))
+    return kernel_vec3(K, values[2])
 
 
 def project(K, args, colors: torch.Tensor, cam: Camera, cam_values, n: int, dtype, device):
@@ -356,7 +391,7 @@ def project(K, args, colors: torch.Tensor, cam: Camera, cam_values, n: int, dtyp
     means2d, conic, depth, opacity = packed_zeros([(n, 2), (n, 3), (n,), (n,)], dtype, device)
     proj = Projected(means2d, None, conic, depth, opacity, colors, torch.zeros(n, dtype=torch.int32, device=device))
     outs = [ct(means2d, K.vec2), ct(conic, K.vec3), ct(depth), ct(opacity), args[4], ct(proj.radii)]
-    fast_launch(K.project, n, args[:4] + camera_args(cam, K, cam_values) + outs[:4] + outs[5:], wp.device_from_torch(device))
+    fast_launch(K.project, n, args[:4] + camera_args(cam, K, cam_values) + outs[:4] + outs[5:], wdevice(device))
     return proj, outs
 
 
@@ -367,7 +402,7 @@ def project_adjoint(K, args, pouts, grads, out_grads, cam: Camera, cam_values, n
     screen-mean one stays dL/d(screen mean))."""
     cam_args = camera_args(cam, K, cam_values)
     adj_cam = [type(a)() if not isinstance(a, int) else 0 for a in cam_args]  # no gradients for the camera
-    fast_launch(K.project, n, args[:4] + cam_args + pouts[:4] + pouts[5:], wp.device_from_torch(device),
+    fast_launch(K.project, n, args[:4] + cam_args + pouts[:4] + pouts[5:], wdevice(device),
                 adj_args=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))] + adj_cam
                 + [ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[2]), ct(out_grads[3]), None])
 
@@ -425,13 +460,13 @@ def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: 
     # the binning's per-Gaussian int32 and float32 buffers as views of one allocation (host time bounds a render's
     # forward; all of them go when the forward ends): counts [N], depth sort keys and values [2N] each, counts in
     # depth order and depth ranks [N]
-    counts, depth_keys, order, sorted_counts, rank = torch.empty(7 * n, dtype=torch.int32, device=device).split(
-        [n, 2 * n, 2 * n, n, n])
+    counts, depth_keys, order, sorted_counts, rank = torch.empty(7 * n, dtype=torch.int32, device=device) \
+        .split_with_sizes([n, 2 * n, 2 * n, n, n])
     depth_keys = depth_keys.view(torch.float32)
     ranges = torch.empty(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)  # zeroed by the kernel
     fast_launch(K.count_tiles, warp_padded(max(n, tiles_x * tiles_y)),
                 [*geometry, ct(proj.depth.float()), n, tiles_x, tiles_y, width, height, int(all_tiles), ct(counts),
-                 ct(total), ct(depth_keys), ct(order), ct(ranges)], wp.device_from_torch(device))
+                 ct(total), ct(depth_keys), ct(order), ct(ranges)], wdevice(device))
     total = int(total.item())
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
@@ -443,7 +478,7 @@ def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, so
     """Depth order, then stably tile-sorted keys -> per-tile [start, end) ranges [tiles, 2] and the sorted
     Gaussian ids [total]."""
     device = proj.depth.device
-    wdev = wp.device_from_torch(device)
+    wdev = wdevice(device)
     n = proj.depth.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
     if sort_buffers is None:  # no Gaussians: nothing was counted
@@ -485,12 +520,12 @@ def blend(K, proj: Projected, pouts, counts, total: int, geometry, sort_buffers,
     T = torch.empty(H, W, dtype=dtype, device=device)
     last = torch.empty(H, W, dtype=torch.int32, device=device)
     weights = torch.zeros(n, dtype=dtype, device=device) if settings["weights"] else _dummy(dtype, device)
-    bg = K.vec3(*map(K.scalar, settings["background"]))
+    bg = kernel_vec3(K, settings["background"])
     w_means2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pouts
     args = [ct(ranges), ct(ids), w_means2d, w_conic, w_opacity, w_color, w_depth, bg, W, H, tiles_x, int(want_depth)]
     fast_launch(K.blend_forward, tiles_x * tiles_y * TILE * TILE,
                 args + [int(settings["weights"]), ct(color, K.vec3), ct(alpha), ct(depth), ct(T), ct(last), ct(weights)],
-                wp.device_from_torch(device), block_dim=TILE * TILE)
+                wdevice(device), block_dim=TILE * TILE)
     state = {"args": args, "saved": [ct(depth), ct(T), ct(last)], "threads": tiles_x * tiles_y * TILE * TILE}
     if _capture is not None:
         _capture.update(proj=proj, counts=counts, total=total, ranges=ranges, ids=ids, last=last,
