@@ -161,3 +161,30 @@ def test_batched_features_and_precision_options(tmp_path):
     assert torch.allclose(net(img), ref, atol=1e-6) and not net._lowp
     with pytest.raises(ValueError):
         net.set_precision(torch.int8)
+
+
+GRAPH_TOL = 1e-4  # float32 convolutions: cuDNN may pick other algorithms inside a capture (sums reordered)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_cuda_graphed_features_and_gradients_match_eager():
+    """``use_cuda_graphs``: the replayed pass gives the eager features and input gradients for inputs that change
+    between calls (a graph that kept its first input, or returned a stale gradient, fails), one graph per size."""
+    dev = torch.device("cuda")
+    eager = load_vgg("random", dev).set_precision(channels_last=True)
+    graphed = load_vgg("random", dev).set_precision(channels_last=True).use_cuda_graphs(True)
+    gen = torch.Generator(device=dev).manual_seed(0)
+    for h, w in ((70, 90), (70, 90), (70, 90), (48, 64)):
+        img = torch.rand(h, w, 3, device=dev, generator=gen)
+        up = [torch.rand(768, ((h // 2) // 4) * ((w // 2) // 4), device=dev, generator=gen) for _ in range(2)]
+        grads, feats = [], []
+        for net in (eager, graphed):
+            x = img.clone().requires_grad_(True)
+            f = net.features_of([x.mean(-1, keepdim=True).expand_as(x), x], 0.5)
+            feats.append([fi.detach().clone() for fi in f])
+            ((f[0] * up[0]).sum() + (f[1] * up[1]).sum()).backward()
+            grads.append(x.grad)
+        for a, b in zip(*feats):
+            assert torch.allclose(a, b, rtol=GRAPH_TOL, atol=GRAPH_TOL * a.abs().max())
+        assert torch.allclose(grads[0], grads[1], rtol=GRAPH_TOL, atol=GRAPH_TOL * grads[0].abs().max())
+    assert len(graphed._graphed) == 2 and not eager._graphed

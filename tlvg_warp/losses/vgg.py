@@ -71,6 +71,8 @@ class VGG16Features(nn.Module):
         self.lowp_dtype: torch.dtype | None = None  # set_precision: dtype of the convolutions (None: float32)
         self.channels_last = False
         self._lowp: dict = {}  # conv index -> names of its (weight, bias) buffers in lowp_dtype
+        self.cuda_graphs = False  # use_cuda_graphs: features_of replays captured CUDA graphs
+        self._graphed: dict = {}  # (shape, dtype, device, scale, layout, precision) -> a graphed _ScaledFeatures
 
     def set_precision(self, dtype: torch.dtype | None = None, channels_last: bool = False) -> "VGG16Features":
         """Speed options for the loss features (off by default; issue 15). ``dtype`` (torch.bfloat16 or
@@ -100,6 +102,28 @@ class VGG16Features(nn.Module):
                 self.register_buffer(f"lowp_w{i}", w, persistent=False)
                 self.register_buffer(f"lowp_b{i}", b, persistent=False)
         return self
+
+    def use_cuda_graphs(self, on: bool = True) -> "VGG16Features":
+        """On CUDA, ``features_of`` with gradients replays a CUDA graph of the whole pass, forward and backward
+        (``torch.cuda.make_graphed_callables``), one per input size (at most ``MAX_GRAPHS``; eager beyond): the
+        stylize step is host-bound, and the pass's ~20 kernels a direction cost more host time than GPU time at
+        the loss's resolution. Captured on first use of a size (a few warm-up passes). The features it returns
+        live in the graph's buffers until its next replay: use them within the step (the losses do; the FAST
+        match cache keeps indices and maps computed from them, never the features themselves)."""
+        self.cuda_graphs = bool(on)
+        self._graphed = {}
+        return self
+
+    def _graphed_pass(self, x: torch.Tensor, scale: float):
+        """The graphed ``self(x, scale)`` for x's size, or None (too many sizes: the caller runs eagerly)."""
+        key = (tuple(x.shape), x.dtype, x.device, float(scale), self.channels_last, self.lowp_dtype)
+        fn = self._graphed.get(key)
+        if fn is None:
+            if len(self._graphed) >= MAX_GRAPHS:
+                return None
+            sample = x.detach().clone().requires_grad_(True)
+            fn = self._graphed[key] = torch.cuda.make_graphed_callables(_ScaledFeatures(self, scale), (sample,))
+        return fn
 
     def _prepare(self, img: torch.Tensor, scale: float) -> torch.Tensor:
         """[H,W,3] or [B,3,H,W] in [0,1] -> normalized [B,3,h,w], resized by ``scale`` (antialiased when
@@ -142,12 +166,28 @@ class VGG16Features(nn.Module):
         luminance render (style term) and RGB render (content term) cost one VGG forward and backward
         instead of two. ``images``: a list of [H,W,3] (or [1,3,H,W]) tensors; returns a list in that order."""
         xs = [im.permute(2, 0, 1).unsqueeze(0) if im.dim() == 3 else im for im in images]
-        f = self(torch.cat(xs, 0), scale)  # [B,768,h,w]
+        x = torch.cat(xs, 0)
+        graphed = (self._graphed_pass(x, scale) if self.cuda_graphs and x.is_cuda and x.requires_grad
+                   and torch.is_grad_enabled() else None)
+        f = graphed(x) if graphed is not None else self(x, scale)  # [B,768,h,w]
         return [fi.reshape(fi.shape[0], -1) for fi in f]
 
 
+class _ScaledFeatures(nn.Module):
+    """``vgg(x, scale)`` as a one-argument module: what ``make_graphed_callables`` captures (the network's
+    parameters are frozen, so the graphed backward computes the input's gradient only)."""
+
+    def __init__(self, vgg: VGG16Features, scale: float):
+        super().__init__()
+        self.vgg, self.scale = vgg, float(scale)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.vgg(x, self.scale)
 
 
+
+
+MAX_GRAPHS = 4  # input sizes with a captured CUDA graph per network (each keeps its activations' memory)
 MIN_SIDE = 16  # smallest side fed to VGG: relu3 features are then at least 4x4 cells
 
 

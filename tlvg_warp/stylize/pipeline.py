@@ -387,6 +387,8 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     vgg = (vgg if vgg is not None else load_vgg(cfg.vgg_weights, device)).to(device)
     if device.type == "cuda" and cfg.vgg_channels_last:
         vgg.set_precision(channels_last=True)
+    if device.type == "cuda" and cfg.vgg_cuda_graphs:
+        vgg.use_cuda_graphs(True)
     split["vgg"], t = time.perf_counter() - t, time.perf_counter()
     tg = prepare(inp, cfg, vgg, device, tuple(cfg.background))
     split["targets"], t = time.perf_counter() - t, time.perf_counter()
