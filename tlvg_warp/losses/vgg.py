@@ -109,7 +109,9 @@ class VGG16Features(nn.Module):
         stylize step is host-bound, and the pass's ~20 kernels a direction cost more host time than GPU time at
         the loss's resolution. Captured on first use of a size (a few warm-up passes). The features it returns
         live in the graph's buffers until its next replay: use them within the step (the losses do; the FAST
-        match cache keeps indices and maps computed from them, never the features themselves)."""
+        match cache keeps indices and maps computed from them, never the features themselves). One pass at a time
+        per size: its backward must run before the next call (the graph's saved activations are overwritten);
+        the training loop runs each view's backward before rendering the next."""
         self.cuda_graphs = bool(on)
         self._graphed = {}
         return self
