@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 import warp as wp
 
-from .ops import camera_args, ct, fast_launch, input_ct, kernels_for, to_warp, warp_on
+from .ops import camera_args, ct, fast_launch, input_ct, kernels_for, no_grad_args, to_warp, warp_on
 from .types import Camera, Gaussians
 
 COHERENCE_MIN = 1e-3  # below this the painting has no direction to follow at that spot
@@ -182,13 +182,13 @@ class FlowEnergiesFn(torch.autograd.Function):
                                args[3], args[4], ct(w)], wdev)
             fast_launch(K.flow_terms, n, args + [ct(e[0]), ct(e[1])], wdev)
         inv = w.sum().clamp_min(1e-12).reciprocal()
-        ctx.state = (args, e, w, inv, cargs[:4])
+        ctx.state = (args, e, w, inv)
         ctx.save_for_backward(means, quats, log_scales)  # autograd's in-place check on the inputs
         return torch.mv(e[:2], w) * inv
 
     @staticmethod
     def backward(ctx, g):
-        args, e, w, inv, cam_args = ctx.state
+        args, e, w, inv = ctx.state
         means, quats, log_scales = ctx.saved_tensors  # (raises if an input changed in place since the forward)
         ctx.state = None
         K = kernels_for(means.dtype)
@@ -196,11 +196,10 @@ class FlowEnergiesFn(torch.autograd.Function):
         torch.outer(g * inv, w, out=e[2:])  # ∂E/∂align_i, ∂E/∂aniso_i: the adjoint's output gradients
         flat = torch.zeros(10 * n, dtype=means.dtype, device=means.device)  # the three input gradients, one memset
         grads = [flat[:3 * n].view(n, 3), flat[3 * n:7 * n].view(n, 4), flat[7 * n:].view(n, 3)]
-        adj_cam = [type(a)() for a in cam_args] + [0, 0]  # no gradients for the camera
         with warp_on(means.device) as wdev:
             fast_launch(K.flow_terms, n, args + [ct(e[0]), ct(e[1])], wdev,
                         adj_args=[ct(grads[0], K.vec3), ct(grads[1], K.vec4), ct(grads[2], K.vec3), None, None]
-                        + adj_cam + [ct(e[2]), ct(e[3])])
+                        + no_grad_args(args[5:]) + [ct(e[2]), ct(e[3])])  # no gradients for the camera
         return (*grads, None, None, None)
 
 

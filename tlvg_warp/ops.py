@@ -353,30 +353,33 @@ def camera_args(cam: Camera, K, values=None):
     the adjoint); ``values``: ``camera_values(cam)`` when the caller already has them. Kept per camera (by value):
     building Warp's matrix and vector values costs more host time than the launch that takes them."""
     R, t, _ = values or camera_values(cam)
-    key = (K.scalar, *R[0], *R[1], *R[2], *t, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near, cam.far)
-    hit = _cam_args.get(key)
-    if hit is None:
-        if len(_cam_args) > 1024:  # a long orbit: keep the cache bounded
-            _cam_args.clear()
-        s = K.scalar
-        hit = _cam_args[key] = [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)), s(cam.fx), s(cam.fy),
-                                s(cam.cx), s(cam.cy), cam.width, cam.height, s(cam.near), s(cam.far)]
-    return list(hit)
+    s = K.scalar
+    key = (s, *R[0], *R[1], *R[2], *t, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near, cam.far)
+    return list(_kept(key, lambda: [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)), s(cam.fx),
+                                    s(cam.fy), s(cam.cx), s(cam.cy), cam.width, cam.height, s(cam.near), s(cam.far)]))
 
 
-_cam_args: dict = {}  # (scalar type, camera values) -> camera_args' list
-_vec3s: dict = {}  # (scalar type, 3 floats) -> a Warp vec3 (camera centers, backgrounds)
+def no_grad_args(values) -> list:
+    """Zero adjoints for kernel values that get no gradient (the camera's): what a by-hand adjoint launch passes."""
+    return [0 if isinstance(a, int) else type(a)() for a in values]
+
+
+_values: dict = {}  # key -> a kernel value built from it (camera arguments, camera centers, backgrounds)
+
+
+def _kept(key, make):
+    """``make()``, kept under ``key`` (bounded: a long orbit of cameras clears it now and then)."""
+    v = _values.get(key)
+    if v is None:
+        if len(_values) > 2048:
+            _values.clear()
+        v = _values[key] = make()
+    return v
 
 
 def kernel_vec3(K, xyz):
     """``K.vec3(*xyz)`` in K's scalar type, kept per value (the camera center, the background)."""
-    key = (K.scalar, *xyz)
-    v = _vec3s.get(key)
-    if v is None:
-        if len(_vec3s) > 1024:
-            _vec3s.clear()
-        v = _vec3s[key] = K.vec3(*map(K.scalar, xyz))
-    return v
+    return _kept((K.scalar, *xyz), lambda: K.vec3(*map(K.scalar, xyz)))
 
 
 def camera_center(K, values):
@@ -401,9 +404,8 @@ def project_adjoint(K, args, pouts, grads, out_grads, cam: Camera, cam_values, n
     arguments: the forward descriptors carry no gradient pointers, so no output gradient is zeroed on the way (the
     screen-mean one stays dL/d(screen mean))."""
     cam_args = camera_args(cam, K, cam_values)
-    adj_cam = [type(a)() if not isinstance(a, int) else 0 for a in cam_args]  # no gradients for the camera
     fast_launch(K.project, n, args[:4] + cam_args + pouts[:4] + pouts[5:], wdevice(device),
-                adj_args=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))] + adj_cam
+                adj_args=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))] + no_grad_args(cam_args)
                 + [ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[2]), ct(out_grads[3]), None])
 
 
