@@ -292,6 +292,9 @@ def test_bad_input_is_a_clear_error():
         render(g, cam)
     with pytest.raises(InputError, match="background"):
         render(g, camera(), background=[1.0, 2.0])
+    for bad in ((0.0, float("nan"), 0.0), torch.tensor([0.0, float("inf"), 0.0])):  # floats and a tensor
+        with pytest.raises(InputError, match="background"):
+            render(g, camera(), background=bad)
 
 
 def test_private_warp_array_descriptor_is_still_what_from_torch_builds():
@@ -500,6 +503,27 @@ def test_fast_launch_reuses_its_launch_and_keeps_no_tensor_alive():
     del k
     gc.collect()
     assert gone() is None
+
+
+def test_kept_camera_values_survive_later_launches():
+    """camera_args keeps its Warp values per camera, and fast_launch writes later calls' values into its recorded
+    launch's slots: the first call must copy value arguments, or the slot is the kept object and the next camera
+    overwrites the first camera's values (renders of the first camera would then use the second's pose)."""
+    from tlvg_warp import ops
+    from tlvg_warp.ops import camera_args, camera_values, kernels_for
+
+    ops._sites.clear()  # the first launches below record their sites (whatever ran earlier in this process)
+    ops._values.clear()
+    g = random_scene(20, seed=4)
+    cam_a, cam_b = camera(), camera(width=40, height=30, eye=(1.5, -2.0, 0.5), fov=50.0)
+    K = kernels_for(torch.float64)
+    fresh = camera_args(cam_a, K)  # built before any launch (kept from here on)
+    want = [bytes(v) for v in fresh[:2]]
+    for cam in (cam_a, cam_b, cam_a, cam_b):
+        render(g, cam)
+    R, t, _ = camera_values(cam_a)
+    assert [bytes(v) for v in camera_args(cam_a, K)[:2]] == want
+    assert bytes(K.mat33(*[K.scalar(v) for row in R for v in row])) == want[0]
 
 
 def test_runtime_radix_sort_matches_warp_utils():

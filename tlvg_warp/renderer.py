@@ -36,14 +36,13 @@ def check_inputs(g: Gaussians, cam: Camera, background) -> tuple:
         raise InputError(f"camera image size must be positive, got {cam.width}x{cam.height}")
     if background is None:
         return (0.0, 0.0, 0.0)
-    if type(background) in (tuple, list) and len(background) == 3 and all(type(v) in (float, int) for v in background):
-        if all(math.isfinite(v) for v in background):  # the training loops' case: no tensor round trip
-            return tuple(float(v) for v in background)
+    if type(background) in (tuple, list) and all(type(v) in (float, int) for v in background):
+        vals = [float(v) for v in background]  # the training loops' case: no tensor round trip
+    else:
+        vals = torch.as_tensor(background, dtype=torch.float64).detach().flatten().cpu().tolist()
+    if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
         raise InputError(f"background must be 3 finite values, got {background!r}")
-    bg = torch.as_tensor(background, dtype=torch.float64).detach().flatten().cpu()
-    if bg.numel() != 3 or not torch.isfinite(bg).all():
-        raise InputError(f"background must be 3 finite values, got {background!r}")
-    return tuple(bg.tolist())
+    return tuple(vals)
 
 
 _zero_pairs: dict = {}
