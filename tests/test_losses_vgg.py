@@ -1,5 +1,10 @@
 """VGG-16 features: torchvision-format weights load, missing/bad weights say how to get them, "random" is
 flagged, shapes, named layers, and the lookup order (path > env > TORCH_HOME cache > HED package > download)."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -188,3 +193,20 @@ def test_cuda_graphed_features_and_gradients_match_eager():
             assert torch.allclose(a, b, rtol=GRAPH_TOL, atol=GRAPH_TOL * a.abs().max())
         assert torch.allclose(grads[0], grads[1], rtol=GRAPH_TOL, atol=GRAPH_TOL * grads[0].abs().max())
     assert len(graphed._graphed) == 2 and not eager._graphed
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_cuda_graph_capture_does_not_import_sympy():
+    """The graphs are captured with a scalar backward seed: autograd given a tensor seed (make_graphed_callables)
+    imports torch.fx's symbolic shapes and sympy, 2 s of a stylize run's start. Checked in a fresh process."""
+    code = ("import sys, torch\n"
+            "from tlvg_warp.losses.vgg import load_vgg\n"
+            "net = load_vgg('random', torch.device('cuda')).use_cuda_graphs(True)\n"
+            "x = torch.rand(1, 3, 64, 64, device='cuda', requires_grad=True)\n"
+            "net.features_of([x])[0].sum().backward()\n"
+            "assert net._graphed and x.grad is not None and x.grad.abs().sum() > 0\n"
+            "print('symbolic_shapes imported:', 'torch.fx.experimental.symbolic_shapes' in sys.modules)\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().endswith("symbolic_shapes imported: False"), out.stdout

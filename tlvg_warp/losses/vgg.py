@@ -72,7 +72,7 @@ class VGG16Features(nn.Module):
         self.channels_last = False
         self._lowp: dict = {}  # conv index -> names of its (weight, bias) buffers in lowp_dtype
         self.cuda_graphs = False  # use_cuda_graphs: features_of replays captured CUDA graphs
-        self._graphed: dict = {}  # (shape, dtype, device, scale, layout, precision) -> a graphed _ScaledFeatures
+        self._graphed: dict = {}  # (shape, dtype, device, scale, layout, precision) -> its _GraphedPass
 
     def set_precision(self, dtype: torch.dtype | None = None, channels_last: bool = False) -> "VGG16Features":
         """Speed options for the loss features (off by default; issue 15). ``dtype`` (torch.bfloat16 or
@@ -105,7 +105,7 @@ class VGG16Features(nn.Module):
 
     def use_cuda_graphs(self, on: bool = True) -> "VGG16Features":
         """On CUDA, ``features_of`` with gradients replays a CUDA graph of the whole pass, forward and backward
-        (``torch.cuda.make_graphed_callables``), one per input size (at most ``MAX_GRAPHS``; eager beyond): the
+        (``_GraphedPass``), one per input size (at most ``MAX_GRAPHS``; eager beyond): the
         stylize step is host-bound, and the pass's ~20 kernels a direction cost more host time than GPU time at
         the loss's resolution. Captured on first use of a size (a few warm-up passes). The features it returns
         live in the graph's buffers until its next replay: use them within the step (the losses do; the FAST
@@ -123,8 +123,7 @@ class VGG16Features(nn.Module):
         if fn is None:
             if len(self._graphed) >= MAX_GRAPHS:
                 return None
-            sample = x.detach().clone().requires_grad_(True)
-            fn = self._graphed[key] = torch.cuda.make_graphed_callables(_ScaledFeatures(self, scale), (sample,))
+            fn = self._graphed[key] = _GraphedPass(self, scale, x)
         return fn
 
     def _prepare(self, img: torch.Tensor, scale: float) -> torch.Tensor:
@@ -175,18 +174,53 @@ class VGG16Features(nn.Module):
         return [fi.reshape(fi.shape[0], -1) for fi in f]
 
 
-class _ScaledFeatures(nn.Module):
-    """``vgg(x, scale)`` as a one-argument module: what ``make_graphed_callables`` captures (the network's
-    parameters are frozen, so the graphed backward computes the input's gradient only)."""
+class _GraphedPass:
+    """``vgg(x, scale)`` for one input size as two CUDA graphs, forward and backward, replayed through
+    ``_GraphReplayFn``: what ``torch.cuda.make_graphed_callables`` builds, captured by hand so that the backward
+    is seeded by a scalar, ``(out * grad_out).sum()``. Autograd given a tensor seed (as make_graphed_callables
+    gives it) imports torch.fx's symbolic shapes, and with them sympy: 2.2 s of the stylize run's start on the
+    H200 host (``python -X importtime``), more than the graphs save over 3000 steps. The network's parameters
+    are frozen, so the backward computes the input's gradient only. The graphs' buffers are static: the output
+    is overwritten by the next replay, and a backward must run before the next forward (``use_cuda_graphs``)."""
 
-    def __init__(self, vgg: VGG16Features, scale: float):
-        super().__init__()
-        self.vgg, self.scale = vgg, float(scale)
+    WARMUP = 3  # eager passes on a side stream before capture (cuDNN picks its algorithms, the allocator warms)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.vgg(x, self.scale)
+    def __init__(self, vgg: VGG16Features, scale: float, sample: torch.Tensor):
+        self.x = sample.detach().clone().requires_grad_(True)  # static input, [B,3,H,W]
+        side = torch.cuda.Stream(self.x.device)
+        side.wait_stream(torch.cuda.current_stream(self.x.device))
+        with torch.cuda.stream(side):
+            for _ in range(self.WARMUP):
+                out = vgg(self.x, scale)
+                torch.autograd.grad((out * torch.ones_like(out)).sum(), self.x)
+            del out
+        torch.cuda.current_stream(self.x.device).wait_stream(side)
+        pool = torch.cuda.graph_pool_handle()
+        self.forward_graph, self.backward_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.forward_graph, pool=pool):
+            self.out = vgg(self.x, scale)  # [B,768,h,w], static
+        self.grad_out = torch.zeros_like(self.out)  # static seed, written before each backward replay
+        with torch.cuda.graph(self.backward_graph, pool=pool):
+            (self.grad_x,) = torch.autograd.grad((self.out * self.grad_out).sum(), self.x)  # static
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        return _GraphReplayFn.apply(self, x)
 
 
+class _GraphReplayFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, graphed: _GraphedPass, x):
+        graphed.x.detach().copy_(x)
+        graphed.forward_graph.replay()
+        ctx.graphed = graphed
+        return graphed.out.detach()
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        graphed = ctx.graphed
+        graphed.grad_out.copy_(grad_out)
+        graphed.backward_graph.replay()
+        return None, graphed.grad_x.detach()
 
 
 MAX_GRAPHS = 4  # input sizes with a captured CUDA graph per network (each keeps its activations' memory)
