@@ -69,3 +69,27 @@ def test_u8_of_a_tensor_equals_numpys_rounding():
     x = torch.rand(17, 23, 3, generator=g) * 1.4 - 0.2
     x[0, 0, 0], x[0, 1, 0], x[1, 0, 1] = float("nan"), 0.5 / 255.0, 254.5 / 255.0
     assert _u8(x).dtype == np.uint8 and np.array_equal(_u8(x), _u8(x.numpy()))
+
+
+def test_orbit_slerp_matches_scipy():
+    """The orbit's rotations: our quaternion conversion and slerp against scipy's Rotation and Slerp (the oracle;
+    the stylize run no longer imports scipy), over random keys, including neighbours more than 180 degrees apart
+    as quaternions (the shorter arc) and repeated keys (the small-angle branch)."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from tlvg_warp.stylize.outputs import quat_to_rotmat_np, rotmat_to_quat, slerp_rotations
+
+    keys = Rotation.random(12, random_state=3).as_matrix()
+    keys[5] = keys[4]  # equal neighbours
+    keys[8] = Rotation.from_rotvec([0, 0, 3.1]).as_matrix()
+    keys[9] = Rotation.from_rotvec([0, 0, -3.1]).as_matrix()  # 0.08 rad apart across the pi boundary
+    q = rotmat_to_quat(keys)
+    assert np.allclose(quat_to_rotmat_np(q), keys, atol=1e-12)
+    ref_q = Rotation.from_matrix(keys).as_quat()[:, [3, 0, 1, 2]]  # scipy: x, y, z, w
+    assert np.allclose(np.abs((q * ref_q).sum(1)), 1.0, atol=1e-12)  # the same rotation (q or -q)
+    ts = np.concatenate([np.linspace(0, 11, 97), [0.0, 4.5, 8.5, 11.0]])
+    ours = slerp_rotations(keys, ts)
+    ref = Slerp(np.arange(12.0), Rotation.from_matrix(keys))(ts).as_matrix()
+    assert np.allclose(ours, ref, atol=1e-9)
+    # the 8 -> 9 step goes the short way: halfway is the identity's neighbourhood around z = pi, not z = 0
+    assert abs(abs(Rotation.from_matrix(ours[-2]).as_rotvec()[2]) - np.pi) < 1e-6
