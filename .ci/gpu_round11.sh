@@ -6,19 +6,11 @@
 #   step:    wall and GPU time per stylize step of this code (.ci/profile_step.py)
 # Raster and fit jobs: .ci/gpu_compare.sh with the same PREV.
 set -uo pipefail
-PREV=${PREV:?set PREV to the folder of the earlier code (a git archive under .gpu/)}
-OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
-export TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1
-R=/tmp/tlvg-runs; mkdir -p "$R"; D=/tmp/tlvg-data; F=$PWD/.gpu/fits
 [ $# -eq 0 ] && set -- tests stylize
-nvidia-smi --query-gpu=name --format=csv,noheader
-python3 -m compileall -q -j 16 /tmp/tlvg-gpu/site tlvg_warp kernels "$PREV" > /dev/null 2>&1
-metrics() { python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print({k: m.get(k) for k in sys.argv[2:]})" "$@"; }
-FERN="--scene $F/fern.spz --data $D/fern_llff --downscale 2 --style $D/styles/starry_night.jpg"
+source "$(dirname "$0")/gpu_env.sh"
 for job in "$@"; do
   case "$job" in
-    tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py tests/test_losses_vgg.py 2>&1 | tail -n 3;;
-      # (CUDA tests only: the staged Warp has no LLVM, so CPU kernels cannot compile on the device)
+    tests) cuda_tests;;
     stylize)
       for v in "now:$PWD" "prev:$PWD/$PREV" "now2:$PWD"; do
         IFS=: read -r name root <<< "$v"
