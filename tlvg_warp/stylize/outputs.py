@@ -86,14 +86,6 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def quat_to_rotmat_np(q: np.ndarray) -> np.ndarray:
-    """[K, 4] unit quaternions (w, x, y, z) -> [K, 3, 3]."""
-    w, x, y, z = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
-
-
 def slerp_rotations(R: np.ndarray, ts: np.ndarray) -> np.ndarray:
     """Rotations [K, 3, 3] keyed at t = 0..K-1, interpolated at ``ts`` [T] along the shortest arc between
     neighbours (what scipy's Slerp gives; scipy's package import took 0.6 s of a stylize run's start).
@@ -109,8 +101,9 @@ def slerp_rotations(R: np.ndarray, ts: np.ndarray) -> np.ndarray:
     small = sin < 1e-9  # (nearly) equal rotations: linear weights, normalized below
     w0 = np.where(small, 1 - f, np.sin((1 - f) * theta) / np.where(small, 1.0, sin))
     w1 = np.where(small, f, np.sin(f * theta) / np.where(small, 1.0, sin))
-    qt = w0 * q0 + w1 * q1
-    return quat_to_rotmat_np(qt / np.linalg.norm(qt, axis=1, keepdims=True))
+    from ..train.optim import quat_to_rotmat  # (normalizes)
+
+    return quat_to_rotmat(torch.from_numpy(w0 * q0 + w1 * q1)).numpy()
 
 
 def orbit_path(cams: list, n_frames: int) -> list:
