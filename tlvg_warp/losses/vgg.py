@@ -192,7 +192,7 @@ class _GraphedPass:
         with torch.cuda.stream(side):
             for _ in range(self.WARMUP):
                 out = vgg(self.x, scale)
-                torch.autograd.grad((out * torch.ones_like(out)).sum(), self.x)
+                torch.autograd.grad(out.sum(), self.x)
             del out
         torch.cuda.current_stream(self.x.device).wait_stream(side)
         pool = torch.cuda.graph_pool_handle()
