@@ -78,8 +78,8 @@ def test_orbit_slerp_matches_scipy():
     as quaternions (the shorter arc) and repeated keys (the small-angle branch)."""
     from scipy.spatial.transform import Rotation, Slerp
 
-    from tlvg_warp.stylize.outputs import rotmat_to_quat, slerp_rotations
-    from tlvg_warp.train.optim import quat_to_rotmat
+    from tlvg_warp.stylize.outputs import slerp_rotations
+    from tlvg_warp.train.optim import quat_to_rotmat, rotmat_to_quat
 
     keys = Rotation.random(12, random_state=3).as_matrix()
     keys[5] = keys[4]  # equal neighbours

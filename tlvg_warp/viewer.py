@@ -64,10 +64,9 @@ def camera_pose(cam: Camera):
 
 
 def rotmat_to_wxyz(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
+    from .train.optim import rotmat_to_quat
 
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return np.array([w, x, y, z])
+    return rotmat_to_quat(R[None])[0]
 
 
 def _bounds(g: Gaussians):

@@ -6,7 +6,7 @@ from .config import StylizeConfig, config_yaml, load_config
 from .pipeline import StylizeDiverged, StylizeInputs, StylizeResult, load_checkpoint, run_stylize
 
 
-def __getattr__(name):  # outputs pulls in matplotlib / scipy: only when asked for
+def __getattr__(name):  # outputs pulls in matplotlib: only when asked for
     if name == "write_outputs":
         from .outputs import write_outputs
         return write_outputs

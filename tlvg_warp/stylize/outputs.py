@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from ..fileio import atomic_path, write_image, write_json
+from ..train.optim import quat_to_rotmat, rotmat_to_quat
 from ..types import Camera, Gaussians
 
 RANDOM_VGG_NOTE = "VGG-16 RANDOM (not pretrained): style/content losses are not meaningful"
@@ -71,21 +72,6 @@ def comparison_grid(rows: list, painting: np.ndarray, caption: str) -> np.ndarra
 
 
 # --- the orbit path ------------------------------------------------------------------------------------------
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """[K, 3, 3] rotation matrices -> [K, 4] unit quaternions (w, x, y, z). Shepperd's method: each row is
-    solved from its largest of 4w², 4x², 4y², 4z², so no division comes near zero."""
-    R = np.asarray(R, dtype=np.float64)
-    d0, d1, d2 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
-    big = np.stack([1 + d0 + d1 + d2, 1 + d0 - d1 - d2, 1 - d0 + d1 - d2, 1 - d0 - d1 + d2], 1)  # 4 x [4q_i²]
-    s = np.sqrt(np.maximum(big.max(1), 1e-300))  # 2|q_k| for the largest component k
-    a, b, c = R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]  # 4w(x, y, z)
-    e, f, g = R[:, 0, 1] + R[:, 1, 0], R[:, 0, 2] + R[:, 2, 0], R[:, 1, 2] + R[:, 2, 1]  # 4(xy, xz, yz)
-    cases = np.stack([np.stack([s * s, a, b, c], 1), np.stack([a, s * s, e, f], 1),
-                      np.stack([b, e, s * s, g], 1), np.stack([c, f, g, s * s], 1)], 1) / (2 * s[:, None, None])
-    q = cases[np.arange(len(R)), big.argmax(1)]  # [K, 4]
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
 def slerp_rotations(R: np.ndarray, ts: np.ndarray) -> np.ndarray:
     """Rotations [K, 3, 3] keyed at t = 0..K-1, interpolated at ``ts`` [T] along the shortest arc between
     neighbours (what scipy's Slerp gives; scipy's package import took 0.6 s of a stylize run's start).
@@ -101,8 +87,6 @@ def slerp_rotations(R: np.ndarray, ts: np.ndarray) -> np.ndarray:
     small = sin < 1e-9  # (nearly) equal rotations: linear weights, normalized below
     w0 = np.where(small, 1 - f, np.sin((1 - f) * theta) / np.where(small, 1.0, sin))
     w1 = np.where(small, f, np.sin(f * theta) / np.where(small, 1.0, sin))
-    from ..train.optim import quat_to_rotmat  # (normalizes)
-
     return quat_to_rotmat(torch.from_numpy(w0 * q0 + w1 * q1)).numpy()
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from ..types import Gaussians, sh_coeffs
@@ -298,6 +299,21 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     ], dim=-1).view(*q.shape[:-1], 3, 3)
 
 
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """[K, 3, 3] rotation matrices -> [K, 4] unit quaternions (w, x, y, z). Shepperd's method: each row is
+    solved from its largest of 4w², 4x², 4y², 4z², so no division comes near zero."""
+    R = np.asarray(R, dtype=np.float64)
+    d0, d1, d2 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    big = np.stack([1 + d0 + d1 + d2, 1 + d0 - d1 - d2, 1 - d0 + d1 - d2, 1 - d0 - d1 + d2], 1)  # 4 x [4q_i²]
+    s = np.sqrt(np.maximum(big.max(1), 1e-300))  # 2|q_k| for the largest component k
+    a, b, c = R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]  # 4w(x, y, z)
+    e, f, g = R[:, 0, 1] + R[:, 1, 0], R[:, 0, 2] + R[:, 2, 0], R[:, 1, 2] + R[:, 2, 1]  # 4(xy, xz, yz)
+    cases = np.stack([np.stack([s * s, a, b, c], 1), np.stack([a, s * s, e, f], 1),
+                      np.stack([b, e, s * s, g], 1), np.stack([c, f, g, s * s], 1)], 1) / (2 * s[:, None, None])
+    q = cases[np.arange(len(R)), big.argmax(1)]  # [K, 4]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
 def footprint_normals(quats: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
     """n_i = R(q_i)·e_k with k = argmin scale: the axis of the Gaussian's thinnest extent. [N,3]."""
     R = quat_to_rotmat(quats)
@@ -347,4 +363,4 @@ def tangential_hook_torch(lam: float = 1.0):
 
 
 __all__ = ["FIELDS", "LR_RENAMED", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
-           "quat_to_rotmat", "footprint_normals", "tangential_hook", "tangential_hook_torch", "sh_coeffs"]
+           "quat_to_rotmat", "rotmat_to_quat", "footprint_normals", "tangential_hook", "tangential_hook_torch", "sh_coeffs"]
