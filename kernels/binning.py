@@ -62,12 +62,6 @@ SHFL = """
     return x;
 #endif
 """
-SUM = """
-#if defined(__CUDA_ARCH__)
-    for (int o = 16; o > 0; o >>= 1) x += __shfl_xor_sync(0xffffffffu, x, o);
-#endif
-    return x;
-"""
 OWNER = """
 #if defined(__CUDA_ARCH__)
     int lo = 0;
@@ -94,10 +88,6 @@ def warp_lane() -> int: ...
 def warp_scan(x: int) -> int:
     """Inclusive prefix sum over the warp's lanes."""
     ...
-
-
-@wp.func_native(SUM)
-def warp_sum_int(x: int) -> int: ...
 
 
 @wp.func_native(SHFL)
@@ -262,8 +252,7 @@ def count_tiles_kernel(
     width: int,
     height: int,
     all_tiles: int,  # 1: every visible Gaussian touches every tile (brute-force reference binning)
-    counts: wp.array(dtype=wp.int32),  # [N] out
-    total: wp.array(dtype=wp.int64),  # [1] out, zero-initialized: the sum of the counts
+    counts: wp.array(dtype=wp.int32),  # [N] out (their total is the last of their scan in depth order)
     depth_keys: wp.array(dtype=float),  # [2N] out: [:N] the depths, the depth sort's keys
     order: wp.array(dtype=wp.int32),  # [2N] out: [:N] the Gaussian ids, its values
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2] out: zeroed (tile_ranges_kernel fills the non-empty ones)
@@ -305,9 +294,6 @@ def count_tiles_kernel(
         counts[i] = mine
         depth_keys[i] = depth[i]
         order[i] = i
-    warp_total = warp_sum_int(mine)
-    if warp_lane() == 0 and warp_total > 0:
-        wp.atomic_add(total, 0, wp.int64(warp_total))
 
 
 @wp.kernel(enable_backward=False, module="tlvg_binning")
@@ -317,7 +303,7 @@ def emit_keys_kernel(
     conic: wp.array(dtype=wp.vec3),  # [N]
     opacity: wp.array(dtype=float),  # [N]
     rank: wp.array(dtype=wp.int32),  # [N] each Gaussian's position in depth order (depth_rank_kernel)
-    ends: wp.array(dtype=wp.int32),  # [N] in depth order: one past each Gaussian's last key (the inclusive prefix
+    ends: wp.array(dtype=wp.int64),  # [N] in depth order: one past each Gaussian's last key (the inclusive prefix
     # sum of the counts in depth order, so the keys land in depth order)
     counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian (Gaussian order)
     n: int,
@@ -342,7 +328,7 @@ def emit_keys_kernel(
     stop = int(0)
     if g < n:
         geo, rect, items = bin_setup(means2d[g], radii[g], conic[g], opacity[g], tiles_x, tiles_y, all_tiles)
-        stop = ends[rank[g]]
+        stop = int(ends[rank[g]])  # < 2**31: the total was checked on the host
         start = stop - counts[g]
     chunks = chunks_of(rect)
     k = start

@@ -93,7 +93,13 @@ def make_projection(scalar):
         radii: wp.array(dtype=wp.int32),  # [N] out, 0 = culled
     ):
         i = wp.tid()
+        # every output is written, the culled Gaussians' with zeros: the buffers come uninitialized (no memset
+        # launch per render, whose host time the forward waits on)
         radii[i] = 0
+        means2d[i] = vec2(scalar(0.0), scalar(0.0))
+        conic[i] = vec3(scalar(0.0), scalar(0.0), scalar(0.0))
+        depth[i] = scalar(0.0)
+        opacity[i] = scalar(0.0)
         mu = means[i]
         q = quats[i]
         ls = log_scales[i]

@@ -88,3 +88,38 @@ def test_cuda_without_depth_same_image_and_gradients(dtype):
     gb = torch.autograd.grad((lean.color * ups[0]).sum() + (lean.alpha * ups[1]).sum(), [getattr(g2, f) for f in FIELDS])
     for name, a, b in zip(FIELDS, ga, gb):
         assert_close(a, b, 1e-6 if dtype == torch.float32 else 1e-12, name)  # atomics: summation order only
+
+
+def test_cuda_render_on_a_side_stream_and_warp_state_restored():
+    """ops.warp_on runs the launches on torch's current stream and skips the CUDA context push when the context is
+    already current: a render on a side stream (forward and backward there) equals one on the default stream, the
+    default stream's next render is right again (the stream switched back), and Warp's default device and the
+    thread's CUDA context are what they were before each render."""
+    import warp as wp
+
+    from tlvg_warp.ops import _runtime
+
+    g = random_scene(500, 2, seed=5).to("cuda")
+    cam = camera(64, 48)
+    core = _runtime().core
+    before_dev, before_ctx = wp.get_device(), core.wp_cuda_context_get_current()
+    g1 = leafs(g)
+    ref = render(g1, cam, background=[0.1, 0.2, 0.3])
+    ups = [torch.randn_like(ref.color), torch.randn_like(ref.alpha)]
+    ga = torch.autograd.grad((ref.color * ups[0]).sum() + (ref.alpha * ups[1]).sum(), [getattr(g1, f) for f in FIELDS])
+    assert wp.get_device() == before_dev and core.wp_cuda_context_get_current() == before_ctx
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    g2 = leafs(g)
+    with torch.cuda.stream(side):
+        out = render(g2, cam, background=[0.1, 0.2, 0.3])
+        gb = torch.autograd.grad((out.color * ups[0]).sum() + (out.alpha * ups[1]).sum(),
+                                 [getattr(g2, f) for f in FIELDS])
+    torch.cuda.current_stream().wait_stream(side)
+    for k in ("color", "alpha", "depth"):
+        assert torch.equal(getattr(out, k), getattr(ref, k)), k
+    for name, a, b in zip(FIELDS, ga, gb):
+        assert_close(a, b, 1e-6, name)  # atomics: summation order only
+    again = render(leafs(g), cam, background=[0.1, 0.2, 0.3])  # back on the default stream
+    assert torch.equal(again.color, ref.color)
+    assert wp.get_device() == before_dev and core.wp_cuda_context_get_current() == before_ctx

@@ -37,10 +37,16 @@ def init_warp() -> None:
 
 
 def kernels_for(dtype: torch.dtype):
-    init_warp()
-    from .kernels import raster_kernels
+    K = _kernel_sets.get(dtype)  # a dict read: this runs several times a render
+    if K is None:
+        init_warp()
+        from .kernels import raster_kernels
 
-    return raster_kernels({torch.float32: "float32", torch.float64: "float64"}[dtype])
+        K = _kernel_sets[dtype] = raster_kernels({torch.float32: "float32", torch.float64: "float64"}[dtype])
+    return K
+
+
+_kernel_sets: dict = {}  # torch dtype -> its kernels
 
 
 _wdevs: dict = {}  # torch device -> its Warp device
@@ -57,24 +63,63 @@ def wdevice(device: torch.device):
 _streams: dict = {}  # torch stream handle -> its wp.Stream (wrapping one registers it with Warp: not per call)
 
 
-@contextlib.contextmanager
-def warp_on(device: torch.device):
-    """Run Warp launches on torch's current stream so no extra synchronization is needed. The stream stays the
-    Warp device's current stream after the render (set once, with one wait on Warp's previous stream; a render
-    on another torch stream switches it again): entering and leaving a ScopedStream per render cost two
-    cross-stream synchronizations of host time each."""
-    if device.type == "cuda":
-        ts = torch.cuda.current_stream(device)
-        stream = _streams.get(ts.cuda_stream)
+class _WarpOn:
+    """``warp_on(device)``'s context manager, one per torch device, reentrant (a stack of what each entry changed).
+    A class, not a generator: it is entered a few times per render and per training step, and the host time of a
+    render bounds its forward."""
+
+    __slots__ = ("device", "wdev", "stack")
+
+    def __init__(self, device: torch.device):
+        self.device, self.wdev, self.stack = device, wdevice(device), []
+
+    def __enter__(self):
+        if self.device.type != "cuda":
+            self.stack.append(None)
+            return self.wdev
+        index = self.device.index if self.device.index is not None else torch.cuda.current_device()
+        handle = torch._C._cuda_getCurrentRawStream(index)  # an int: no torch Stream object per call
+        stream = _streams.get(handle)
         if stream is None:
-            stream = _streams[ts.cuda_stream] = wp.stream_from_torch(ts)  # keeps ts alive: its handle stays unique
+            ts = torch.cuda.current_stream(self.device)
+            stream = _streams[handle] = wp.stream_from_torch(ts)  # keeps ts alive: its handle stays unique
         wdev = stream.device
         if wdev.stream is not stream:
             wdev.set_stream(stream, sync=True)
-        with wp.ScopedDevice(wdev):
-            yield wdev
-    else:
-        yield wdevice(device)
+        # what wp.ScopedDevice does, without the CUDA context push and pop when the context is already current
+        # (torch's own device: the usual case)
+        runtime = wdev.runtime
+        core = runtime.core
+        saved = runtime.default_device
+        runtime.default_device = wdev
+        push = core.wp_cuda_context_get_current() != wdev.context
+        if push:
+            core.wp_cuda_context_push_current(wdev.context)
+        self.stack.append((runtime, saved, push))
+        return wdev
+
+    def __exit__(self, *exc):
+        entry = self.stack.pop()
+        if entry is not None:
+            runtime, saved, push = entry
+            if push:
+                runtime.core.wp_cuda_context_pop_current()
+            runtime.default_device = saved
+        return False
+
+
+_warp_ons: dict = {}  # torch device -> its _WarpOn
+
+
+def warp_on(device: torch.device) -> _WarpOn:
+    """``with warp_on(device) as wdev``: run Warp launches on torch's current stream so no extra synchronization is
+    needed, with ``wdev`` Warp's default device. The stream stays the Warp device's current stream after the block
+    (set once, with one wait on Warp's previous stream; a block on another torch stream switches it again):
+    entering and leaving a ScopedStream per render cost two cross-stream synchronizations of host time each."""
+    w = _warp_ons.get(device)
+    if w is None:
+        w = _warp_ons[device] = _WarpOn(device)
+    return w
 
 
 def warp_array_ctype():
@@ -122,6 +167,24 @@ def ct(t: torch.Tensor, dtype=None):
 
 
 _templates: dict = {}  # (shape, strides, element size, vector dtype) -> a descriptor with a null data pointer
+
+
+def ct_at(base: torch.Tensor, offset: int, shape: tuple, elem: int, vec: int = 1):
+    """The descriptor of a contiguous array of ``shape`` (each element ``vec`` scalars of ``elem`` bytes) that
+    starts ``offset`` bytes into ``base``'s storage: what ``ct`` of a view of ``base`` gives, without making the
+    torch view (a host op of its own, several per render). Keeps ``base`` alive."""
+    key = ("at", shape, elem, vec)
+    template = _templates.get(key)
+    if template is None:
+        strides, step = [], elem * vec
+        for n in reversed(shape):
+            strides.append(step)
+            step *= n
+        template = _templates[key] = warp_array_ctype()(0, 0, len(shape), tuple(shape), tuple(reversed(strides)))
+    a = _ARRAY_T.from_buffer_copy(template)
+    a.data = base.data_ptr() + offset
+    a._ref = base
+    return a
 
 
 class _Site:
@@ -252,13 +315,22 @@ def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, begin_bit: 
     """``wp.utils.radix_sort_pairs`` on torch buffers (keys float32 or int32, values int32, each with room for
     2 * count) on the current Warp stream, called straight into Warp's runtime: no wp.array wrappers, no checks
     (a render sorts twice). Falls back to wp.utils where the runtime entry is missing."""
+    sort_pairs_at(keys.dtype, keys.device, keys.data_ptr(), values.data_ptr(), count, begin_bit, end_bit)
+
+
+def sort_pairs_at(key_dtype: torch.dtype, device: torch.device, keys: int, values: int, count: int,
+                  begin_bit: int = 0, end_bit: int = 32) -> None:
+    """``sort_pairs`` on raw addresses (buffers inside a larger allocation: no torch view per call)."""
     if count == 0:
         return
-    fn = _runtime_sort(_SORT_KERNELS[keys.dtype], "device" if keys.is_cuda else "host")
+    fn = _runtime_sort(_SORT_KERNELS[key_dtype], "device" if device.type == "cuda" else "host")
     if fn is None:
-        wp.utils.radix_sort_pairs(wp.from_torch(keys), wp.from_torch(values), count, begin_bit, end_bit)
+        dev, typ = wdevice(device), {torch.float32: wp.float32, torch.int32: wp.int32}[key_dtype]
+        k = wp.array(ptr=keys, dtype=typ, shape=(2 * count,), device=dev)
+        v = wp.array(ptr=values, dtype=wp.int32, shape=(2 * count,), device=dev)
+        wp.utils.radix_sort_pairs(k, v, count, begin_bit, end_bit)
     else:
-        fn(keys.data_ptr(), values.data_ptr(), count, begin_bit, end_bit, 4)
+        fn(keys, values, count, begin_bit, end_bit, 4)
 
 
 def canonical(t: torch.Tensor) -> torch.Tensor:
@@ -339,6 +411,23 @@ class Projected:
     radii: torch.Tensor  # [N] int32
 
 
+@dataclass
+class Projection:
+    """The projection's outputs as the kernels see them: one buffer and its descriptors (torch views only on
+    demand, ``tensors()``: each view is a host op, and the render's host time bounds its forward)."""
+
+    buf: torch.Tensor  # [7N] means2d (N, 2) | conic (N, 3) | depth (N) | opacity (N)
+    radii: torch.Tensor  # [N] int32
+    colors: torch.Tensor  # [N, 3] ShadeFn's output, passed through
+    outs: list  # descriptors [means2d, conic, depth, opacity, colors, radii]
+    n: int
+
+    def tensors(self) -> Projected:
+        n, b = self.n, self.buf
+        return Projected(b[:2 * n].view(n, 2), None, b[2 * n:5 * n].view(n, 3), b[5 * n:6 * n], b[6 * n:], self.colors,
+                         self.radii)
+
+
 def camera_values(cam: Camera):
     """(R rows, t, center) of the camera as Python floats, from one read of the 4x4 (no torch ops per value)."""
     m = cam.world_to_camera.tolist()
@@ -387,15 +476,16 @@ def camera_center(K, values):
     return kernel_vec3(K, values[2])
 
 
-def project(K, args, colors: torch.Tensor, cam: Camera, cam_values, n: int, dtype, device):
-    """Launch the projection: returns (Projected, its output descriptors [means2d, conic, depth, opacity, color,
-    radii]); the colors (``ShadeFn``'s output, ``args[4]``) pass through. The adjoint is launched by
-    ``project_adjoint``."""
-    means2d, conic, depth, opacity = packed_zeros([(n, 2), (n, 3), (n,), (n,)], dtype, device)
-    proj = Projected(means2d, None, conic, depth, opacity, colors, torch.zeros(n, dtype=torch.int32, device=device))
-    outs = [ct(means2d, K.vec2), ct(conic, K.vec3), ct(depth), ct(opacity), args[4], ct(proj.radii)]
+def project(K, args, colors: torch.Tensor, cam: Camera, cam_values, n: int, dtype, device) -> Projection:
+    """Launch the projection into one uninitialized buffer (the kernel writes every output); the colors
+    (``ShadeFn``'s output, ``args[4]``) pass through. The adjoint is launched by ``project_adjoint``."""
+    buf = torch.empty(7 * n, dtype=dtype, device=device)
+    radii = torch.empty(n, dtype=torch.int32, device=device)
+    e = buf.element_size()
+    outs = [ct_at(buf, 0, (n,), e, 2), ct_at(buf, 2 * n * e, (n,), e, 3), ct_at(buf, 5 * n * e, (n,), e),
+            ct_at(buf, 6 * n * e, (n,), e), args[4], ct(radii)]
     fast_launch(K.project, n, args[:4] + camera_args(cam, K, cam_values) + outs[:4] + outs[5:], wdevice(device))
-    return proj, outs
+    return Projection(buf, radii, colors, outs, n)
 
 
 def project_adjoint(K, args, pouts, grads, out_grads, cam: Camera, cam_values, n: int, device):
@@ -409,13 +499,15 @@ def project_adjoint(K, args, pouts, grads, out_grads, cam: Camera, cam_values, n
                 + [ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[2]), ct(out_grads[3]), None])
 
 
-def binning_geometry(proj: Projected):
-    """float32 views of what the binning kernels read (copies only on the float64 path; the projection's
-    outputs are contiguous)."""
-    if proj.depth.dtype == torch.float32:
-        return [ct(proj.means2d, wp.vec2), ct(proj.radii), ct(proj.conic, wp.vec3), ct(proj.opacity)]
-    return [ct(proj.means2d.float(), wp.vec2), ct(proj.radii), ct(proj.conic.float(), wp.vec3),
-            ct(proj.opacity.float())]
+def binning_inputs(pr: Projection):
+    """float32 descriptors of what the binning kernels read: [means2d, radii, conic, opacity] and the depths (copies
+    only on the float64 path)."""
+    if pr.buf.dtype == torch.float32:
+        o = pr.outs
+        return [o[0], o[5], o[1], o[3]], o[2]
+    p = pr.tensors()
+    return [ct(p.means2d.float(), wp.vec2), ct(p.radii), ct(p.conic.float(), wp.vec3),
+            ct(p.opacity.float())], ct(p.depth.float())
 
 
 _dummies: dict = {}
@@ -448,90 +540,98 @@ def warp_padded(n: int) -> int:
     return (n + 31) // 32 * 32
 
 
-def count_intersections(K, proj: Projected, width: int, height: int, all_tiles: bool = False):
-    """Tiles touched per Gaussian [N] int32, their total, the binning's inputs, and the depth sort's buffers
-    (float32 depths and Gaussian ids, each with the radix sort's 2x room, filled by the same kernel): the total
-    is the one host sync per render (it sizes the key buffers). Only the projection runs before it."""
-    n = proj.depth.shape[0]
-    device = proj.depth.device
-    geometry = binning_geometry(proj)
-    if n == 0:
-        return torch.empty(0, dtype=torch.int32, device=device), 0, geometry, None
+@dataclass
+class DepthOrder:
+    """The binning up to its one host sync: tiles per Gaussian, the depth order and the intersections' total."""
+
+    geometry: list  # binning_inputs' descriptors
+    work: torch.Tensor | None  # [7N] int32: counts N | depth keys 2N | order 2N | counts in depth order N | ranks N
+    ranges: torch.Tensor  # [tiles, 2] int32, zeroed by the tile count (tile_ranges_kernel fills the non-empty ones)
+    ends: torch.Tensor | None  # [N] int64 inclusive scan of the counts in depth order
+    total: int
+    tiles: tuple  # (tiles_x, tiles_y)
+
+
+def count_intersections(K, pr: Projection, width: int, height: int, all_tiles: bool = False) -> DepthOrder:
+    """Tiles touched per Gaussian, the Gaussians in depth order (one radix sort of their depths), each one's
+    depth rank and the end of its keys in depth order. Their total (the last end) is the one host sync per render:
+    it sizes the key buffers."""
+    n, device, wdev = pr.n, pr.buf.device, wdevice(pr.buf.device)
+    geometry, depth = binning_inputs(pr)
     tiles_x, tiles_y = tile_grid(width, height)
-    total = torch.zeros(1, dtype=torch.int64, device=device)
-    # the binning's per-Gaussian int32 and float32 buffers as views of one allocation (host time bounds a render's
-    # forward; all of them go when the forward ends): counts [N], depth sort keys and values [2N] each, counts in
-    # depth order and depth ranks [N]
-    counts, depth_keys, order, sorted_counts, rank = torch.empty(7 * n, dtype=torch.int32, device=device) \
-        .split_with_sizes([n, 2 * n, 2 * n, n, n])
-    depth_keys = depth_keys.view(torch.float32)
-    ranges = torch.empty(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)  # zeroed by the kernel
+    ranges = torch.empty(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)
+    if n == 0:
+        return DepthOrder(geometry, None, ranges.zero_(), None, 0, (tiles_x, tiles_y))
+    # the per-Gaussian buffers are one allocation, seen through descriptors at offsets (all go when the forward
+    # ends); the depth sort's keys and values have the radix sort's 2x room
+    work = torch.empty(7 * n, dtype=torch.int32, device=device)
+    at = work.data_ptr()
+    counts, rank = ct_at(work, 0, (n,), 4), ct_at(work, 24 * n, (n,), 4)
     fast_launch(K.count_tiles, warp_padded(max(n, tiles_x * tiles_y)),
-                [*geometry, ct(proj.depth.float()), n, tiles_x, tiles_y, width, height, int(all_tiles), ct(counts),
-                 ct(total), ct(depth_keys), ct(order), ct(ranges)], wdevice(device))
-    total = int(total.item())
+                [*geometry, depth, n, tiles_x, tiles_y, width, height, int(all_tiles), counts,
+                 ct_at(work, 4 * n, (2 * n,), 4), ct_at(work, 12 * n, (2 * n,), 4), ct(ranges)], wdev)
+    sort_pairs_at(torch.float32, device, at + 4 * n, at + 12 * n, n)  # culled Gaussians sort anywhere: they emit no keys
+    fast_launch(K.depth_rank, n, [ct_at(work, 12 * n, (n,), 4), counts, ct_at(work, 20 * n, (n,), 4), rank], wdev)
+    ends = torch.cumsum(work[5 * n:6 * n], 0, dtype=torch.int64)  # int64: a total past int32 is caught, not wrapped
+    total = int(ends[-1].item())
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
-    return counts, total, geometry, (depth_keys, order, ranges, sorted_counts, rank)
+    return DepthOrder(geometry, work, ranges, ends, total, (tiles_x, tiles_y))
 
 
-def bin_tiles(K, proj: Projected, counts: torch.Tensor, total: int, geometry, sort_buffers, width: int, height: int,
-              all_tiles: bool = False):
-    """Depth order, then stably tile-sorted keys -> per-tile [start, end) ranges [tiles, 2] and the sorted
-    Gaussian ids [total]."""
-    device = proj.depth.device
-    wdev = wdevice(device)
-    n = proj.depth.shape[0]
-    tiles_x, tiles_y = tile_grid(width, height)
-    if sort_buffers is None:  # no Gaussians: nothing was counted
-        return torch.zeros(tiles_x * tiles_y, 2, dtype=torch.int32, device=device), \
-            torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
-    depth_keys, order, ranges, sorted_counts, rank = sort_buffers
+def bin_tiles(K, pr: Projection, order: DepthOrder, width: int, height: int, all_tiles: bool = False):
+    """Keys in depth order, stably sorted by tile -> the per-tile [start, end) ranges descriptor and the sorted
+    Gaussian ids (descriptor, and the buffer it views)."""
+    device, wdev, n, total = pr.buf.device, wdevice(pr.buf.device), pr.n, order.total
     if total == 0:
-        return ranges, torch.zeros(1, dtype=torch.int32, device=device), tiles_x, tiles_y
-    # depth order (culled Gaussians sort anywhere: they emit no keys)
-    sort_pairs(depth_keys, order, n)
-    del depth_keys
-    order = order[:n]
-    fast_launch(K.depth_rank, n, [ct(order), ct(counts), ct(sorted_counts), ct(rank)], wdev)
-    ends = torch.cumsum(sorted_counts, 0, dtype=torch.int32)  # [N] inclusive, in depth order; < 2**31 (checked)
+        ids = _dummy(torch.int32, device)
+        return ct(order.ranges), ct(ids), ids
+    tiles_x, tiles_y = order.tiles
+    work = order.work
     # two allocations, not one: the sorted ids outlive the keys until the blending backward, and on a wide image
     # (beer, 720x1280) that stage holds the backward's peak
     keys = torch.empty(2 * total, dtype=torch.int32, device=device)  # each with the radix sort's 2x room
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
-    fast_launch(K.emit_keys, warp_padded(n), [*geometry, ct(rank), ct(ends), ct(counts), n, tiles_x, tiles_y, width,
-                                              height, int(all_tiles), ct(keys), ct(ids)], wdev)
+    fast_launch(K.emit_keys, warp_padded(n), [*order.geometry, ct_at(work, 24 * n, (n,), 4), ct(order.ends),
+                                              ct_at(work, 0, (n,), 4), n, tiles_x, tiles_y, width, height,
+                                              int(all_tiles), ct(keys), ct(ids)], wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
-    sort_pairs(keys, ids, total, 0, tile_bits)  # stable: each tile stays in depth order
-    fast_launch(K.tile_ranges, total, [ct(keys), total, ct(ranges)], wdev)
-    # a view: the sort's second half lives until the blending backward has run (no copy per render; the
-    # backward's peak comes later, at the SH gradients, after these are freed)
-    return ranges, ids[:total], tiles_x, tiles_y
+    sort_pairs_at(torch.int32, device, keys.data_ptr(), ids.data_ptr(), total, 0, tile_bits)  # stable: tiles stay in depth order
+    ranges = ct(order.ranges)
+    fast_launch(K.tile_ranges, total, [ct(keys), total, ranges], wdev)
+    # the sort's second half lives until the blending backward has run (no copy per render; the backward's peak
+    # comes later, at the SH gradients, after these are freed)
+    return ranges, ct_at(ids, 0, (total,), 4), ids
 
 
-def blend(K, proj: Projected, pouts, counts, total: int, geometry, sort_buffers, cam: Camera, settings: dict):
+def blend(K, pr: Projection, order: DepthOrder, cam: Camera, settings: dict):
     """Bin, then blend front to back: the images, and the per-pixel state the blending backward reads."""
-    device, dtype, n = proj.depth.device, proj.depth.dtype, proj.depth.shape[0]
+    device, dtype, n = pr.buf.device, pr.buf.dtype, pr.n
     H, W = cam.height, cam.width
-    ranges, ids, tiles_x, tiles_y = bin_tiles(K, proj, counts, total, geometry, sort_buffers, W, H,
-                                              settings["all_tiles"])
+    ranges, ids, ids_buf = bin_tiles(K, pr, order, W, H, settings["all_tiles"])
+    tiles_x, tiles_y = order.tiles
     color = torch.empty(H, W, 3, dtype=dtype, device=device)
     alpha = torch.empty(H, W, dtype=dtype, device=device)
     want_depth = settings.get("depth", True)
-    depth = torch.empty((H, W) if want_depth else (1, 1), dtype=dtype, device=device)  # (1, 1): never written
-    T = torch.empty(H, W, dtype=dtype, device=device)
-    last = torch.empty(H, W, dtype=torch.int32, device=device)
+    depth = torch.empty(H, W, dtype=dtype, device=device) if want_depth else _dummy(dtype, device)  # never written
+    # transmittance T [H, W] and one past each pixel's last contributor [H, W] int32: one allocation, one lifetime
+    e = color.element_size()
+    state_px = torch.empty(H * W * (e + 4), dtype=torch.uint8, device=device)
+    T, last = ct_at(state_px, 0, (H, W), e), ct_at(state_px, H * W * e, (H, W), 4)
     weights = torch.zeros(n, dtype=dtype, device=device) if settings["weights"] else _dummy(dtype, device)
     bg = kernel_vec3(K, settings["background"])
-    w_means2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pouts
-    args = [ct(ranges), ct(ids), w_means2d, w_conic, w_opacity, w_color, w_depth, bg, W, H, tiles_x, int(want_depth)]
+    w_means2d, w_conic, w_depth, w_opacity, w_color, _w_radii = pr.outs
+    args = [ranges, ids, w_means2d, w_conic, w_opacity, w_color, w_depth, bg, W, H, tiles_x, int(want_depth)]
+    out_depth = ct(depth) if want_depth else ct_at(depth, 0, (1, 1), e)
     fast_launch(K.blend_forward, tiles_x * tiles_y * TILE * TILE,
-                args + [int(settings["weights"]), ct(color, K.vec3), ct(alpha), ct(depth), ct(T), ct(last), ct(weights)],
+                args + [int(settings["weights"]), ct(color, K.vec3), ct(alpha), out_depth, T, last, ct(weights)],
                 wdevice(device), block_dim=TILE * TILE)
-    state = {"args": args, "saved": [ct(depth), ct(T), ct(last)], "threads": tiles_x * tiles_y * TILE * TILE}
+    state = {"args": args, "saved": [out_depth, T, last], "threads": tiles_x * tiles_y * TILE * TILE}
     if _capture is not None:
-        _capture.update(proj=proj, counts=counts, total=total, ranges=ranges, ids=ids, last=last,
-                        tiles=(tiles_x, tiles_y))
+        _capture.update(proj=pr.tensors(), counts=order.work[:n] if order.work is not None else
+                        torch.empty(0, dtype=torch.int32, device=device), total=order.total, ranges=order.ranges,
+                        ids=ids_buf[:order.total], last=state_px[H * W * e:].view(torch.int32).view(H, W),
+                        tiles=order.tiles)
     return color, alpha, depth if want_depth else None, weights, state
 
 
@@ -594,17 +694,16 @@ class RasterizeFn(torch.autograd.Function):
         with warp_on(device):
             args = [input_ct(t, ty) for t, ty in zip((means, quats, log_scales, opacity_logits),
                                                       (K.vec3, K.vec4, K.vec3, None))] + [ct(colors, K.vec3)]
-            proj, pouts = project(K, args, colors, cam, cam_values, n, means.dtype, device)
-            binning = count_intersections(K, proj, cam.width, cam.height, settings["all_tiles"])
-            color, alpha, depth, weights, first = blend(K, proj, pouts, *binning, cam, settings)
-            del binning
-        ctx.state = {"proj": proj, "pouts": pouts, "blend": first, "args": args, "cam": cam, "cam_values": cam_values,
+            pr = project(K, args, colors, cam, cam_values, n, means.dtype, device)
+            color, alpha, depth, weights, first = blend(
+                K, pr, count_intersections(K, pr, cam.width, cam.height, settings["all_tiles"]), cam, settings)
+        ctx.state = {"proj": pr, "blend": first, "args": args, "cam": cam, "cam_values": cam_values,
                      "settings": settings}
         # the inputs are read by the adjoints: saving them lets autograd refuse a backward after an in-place
         # change (torch's version counter) instead of returning stale gradients
         ctx.save_for_backward(means, quats, log_scales, opacity_logits, colors)
-        ctx.mark_non_differentiable(proj.radii, weights)
-        return color, alpha, depth, proj.radii, weights if settings["weights"] else None  # depth None if not asked
+        ctx.mark_non_differentiable(pr.radii, weights)
+        return color, alpha, depth, pr.radii, weights if settings["weights"] else None  # depth None if not asked
 
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
@@ -616,9 +715,9 @@ class RasterizeFn(torch.autograd.Function):
         device, dtype, n = means.device, means.dtype, means.shape[0]
         H, W = cam.height, cam.width
         with warp_on(device) as wdev:
-            proj, pouts = state.pop("proj", None), state.pop("pouts", None)
-            if proj is None:  # a second backward through the same graph: the first freed the projection
-                proj, pouts = project(K, args, inputs[4], cam, cam_values, n, dtype, device)
+            pr = state.pop("proj", None)
+            if pr is None:  # a second backward through the same graph: the first freed the projection
+                pr = project(K, args, inputs[4], cam, cam_values, n, dtype, device)
             # gradient buffers exist only from here on (fresh per call, so a second backward through the same
             # graph, e.g. gradcheck or retain_graph, never sees the first call's sums). What outlives this op (the
             # probe's dL/d(screen mean), dL/dcolor for ShadeFn, dL/dmeans until ShadeFn adds its part) shares one
@@ -634,11 +733,12 @@ class RasterizeFn(torch.autograd.Function):
             # the sorted ids, T and last go when this block ends (stream-ordered: safe with the launch queued);
             # a second backward through the same graph rebuilds them
             st = state.pop("blend", None) or blend(
-                K, proj, pouts, *count_intersections(K, proj, W, H, settings["all_tiles"]), cam, settings)[4]
+                K, pr, count_intersections(K, pr, W, H, settings["all_tiles"]), cam, settings)[4]
             fast_launch(K.blend_backward, st["threads"],
                         st["args"] + st["saved"] + [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
                         + [ct(kept_flat), ct(geo_flat)], wdev, block_dim=TILE * TILE)
-            del st, ups, proj
+            pouts = pr.outs
+            del st, ups, pr
             grads = [g_means] + packed_zeros([t.shape for t in inputs[1:4]], dtype, device)
             project_adjoint(K, args, pouts, grads, (g_means2d, g_conic, g_depth_n, g_opacity), cam, cam_values, n,
                             device)

@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# Issue 15, eighth session: the render's host trims against PREV on one GPU (nvidia-h200).
+# On the device: source /tmp/tlvg-gpu/env.sh && PREV=.gpu/prev12 bash .ci/gpu_round13.sh [tests] [host] [raster] [stylize]
+#   tests:   the CUDA tests (rasterizer, graphed VGG)
+#   host:    host vs wall time of a fern render (.ci/host_wall.py), this code and PREV alternately
+#   raster:  `bench raster` on fern, beer and a random 1M against gsplat 1.5.3: this code, PREV, this code again,
+#            each in its own process with gsplat in it
+#   stylize: fern stylized 3000 iterations, this code and PREV alternately, twice each (process wall)
+set -uo pipefail
+[ $# -eq 0 ] && set -- tests host raster stylize
+source "$(dirname "$0")/gpu_env.sh"
+SCENES="--scene $F/fern.spz:$D/fern_llff:images_4 --scene $F/beer.spz:$D/beer_colmap:images"
+for job in "$@"; do
+  case "$job" in
+    tests) cuda_tests;;
+    host)
+      for v in "now:$PWD" "prev:$PWD/$PREV" "now2:$PWD" "prev2:$PWD/$PREV"; do
+        IFS=: read -r name root <<< "$v"
+        for mode in fwd fwd_bwd; do
+          echo -n "$name "; PYTHONPATH=/tmp/tlvg-gpu/site:$root python3 .ci/host_wall.py "$F/fern.spz:$D/fern_llff:images_4" $mode 300
+        done
+      done;;
+    raster)
+      for v in "now:$PWD" "prev:$PWD/$PREV" "now2:$PWD"; do
+        IFS=: read -r name root <<< "$v"
+        echo "== bench raster: $name"
+        ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root timeout 300 python3 -m tlvg_warp bench raster \
+            --sizes 1000000 --garden "" --peers tlvg_warp,gsplat $SCENES --repeats 10 --out "$R/bench_$name" \
+            > "$R/bench_$name.log" 2>&1 )
+        grep -v "^Module\|^{" "$R/bench_$name.log" | grep "^|" | tail -n 22
+      done
+      tar -czf "$OUT/bench_logs.tgz" -C "$R" $(cd "$R" && ls -d bench_* 2>/dev/null);;
+    stylize)
+      python3 -m tlvg_warp stylize $FERN --iterations 300 --out "$R/warm" --overwrite --quiet > /dev/null 2>&1
+      for v in "now:$PWD" "prev:$PWD/$PREV" "now2:$PWD" "prev2:$PWD/$PREV"; do
+        IFS=: read -r name root <<< "$v"
+        ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root /usr/bin/time -f "fern stylize $name 3000 wall %e s" \
+            python3 -m tlvg_warp stylize $FERN --out "$R/fern_$name" --overwrite --quiet > "$R/fern_$name.log" 2>&1 )
+        tail -n 2 "$R/fern_$name.log"
+        metrics "$R/fern_$name/metrics.json" wall_time_s train_time_s outputs_time_s flow_alignment time_per_phase_s
+      done
+      tar -czf "$OUT/stylize_logs.tgz" -C "$R" $(cd "$R" && ls fern_*/metrics.json fern_*.log 2>/dev/null);;
+  esac
+done
