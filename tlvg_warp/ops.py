@@ -489,14 +489,15 @@ def project(K, args, colors: torch.Tensor, cam: Camera, cam_values, n: int, dtyp
 
 
 def project_adjoint(K, args, pouts, grads, out_grads, cam: Camera, cam_values, n: int, device):
-    """The projection's Warp-generated adjoint: dL/d(screen mean, conic, depth, opacity) -> ``grads`` of the four
+    """The projection's Warp-generated adjoint: dL/d(screen mean, conic, depth, opacity) (``out_grads``,
+    descriptors) -> ``grads`` of the four
     geometric inputs (accumulated). What wp.Tape would launch, with the gradient buffers passed as adjoint
     arguments: the forward descriptors carry no gradient pointers, so no output gradient is zeroed on the way (the
     screen-mean one stays dL/d(screen mean))."""
     cam_args = camera_args(cam, K, cam_values)
     fast_launch(K.project, n, args[:4] + cam_args + pouts[:4] + pouts[5:], wdevice(device),
                 adj_args=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))] + no_grad_args(cam_args)
-                + [ct(out_grads[0], K.vec2), ct(out_grads[1], K.vec3), ct(out_grads[2]), ct(out_grads[3]), None])
+                + list(out_grads) + [None])
 
 
 def binning_inputs(pr: Projection):
@@ -522,12 +523,13 @@ def _dummy(dtype, device) -> torch.Tensor:
     return t
 
 
-def _zeros(n: int, dtype, device) -> torch.Tensor:
-    """A kept zero vector of n elements (read-only: the broadcast row of an absent upstream gradient)."""
-    key = (n, dtype, device)
+def _zero_upstream(shape: tuple, dtype, device) -> torch.Tensor:
+    """A kept read-only zero of ``shape`` that owns one row (stride 0 over the others): the upstream gradient of
+    an output that got none (no [H, W] buffer, no memset, no view op per backward)."""
+    key = (shape, dtype, device)
     t = _dummies.get(key)
     if t is None:
-        t = _dummies[key] = torch.zeros(n, dtype=dtype, device=device)
+        t = _dummies[key] = torch.zeros(shape[-1], dtype=dtype, device=device).expand(shape)
     return t
 
 
@@ -697,7 +699,7 @@ class RasterizeFn(torch.autograd.Function):
             pr = project(K, args, colors, cam, cam_values, n, means.dtype, device)
             color, alpha, depth, weights, first = blend(
                 K, pr, count_intersections(K, pr, cam.width, cam.height, settings["all_tiles"]), cam, settings)
-        ctx.state = {"proj": pr, "blend": first, "args": args, "cam": cam, "cam_values": cam_values,
+        ctx.state = {"proj": pr, "blend": first, "n": n, "dtype": means.dtype, "device": device, "args": args, "cam": cam, "cam_values": cam_values,
                      "settings": settings}
         # the inputs are read by the adjoints: saving them lets autograd refuse a backward after an in-place
         # change (torch's version counter) instead of returning stale gradients
@@ -709,37 +711,34 @@ class RasterizeFn(torch.autograd.Function):
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
         state = ctx.state
         args, cam, cam_values, settings = (state[k] for k in ("args", "cam", "cam_values", "settings"))
-        inputs = ctx.saved_tensors  # (raises if an input changed in place since the forward)
-        means = inputs[0]
-        K = kernels_for(means.dtype)
-        device, dtype, n = means.device, means.dtype, means.shape[0]
+        n, dtype, device = state["n"], state["dtype"], state["device"]
+        K = kernels_for(dtype)
         H, W = cam.height, cam.width
         with warp_on(device) as wdev:
-            pr = state.pop("proj", None)
-            if pr is None:  # a second backward through the same graph: the first freed the projection
-                pr = project(K, args, inputs[4], cam, cam_values, n, dtype, device)
+            pr, st = state.pop("proj", None), state.pop("blend", None)
+            if pr is None:  # a second backward through the same graph: the first freed the projection and binning
+                pr = project(K, args, ctx.saved_tensors[4], cam, cam_values, n, dtype, device)
+                st = blend(K, pr, count_intersections(K, pr, W, H, settings["all_tiles"]), cam, settings)[4]
             # gradient buffers exist only from here on (fresh per call, so a second backward through the same
             # graph, e.g. gradcheck or retain_graph, never sees the first call's sums). What outlives this op (the
             # probe's dL/d(screen mean), dL/dcolor for ShadeFn, dL/dmeans until ShadeFn adds its part) shares one
             # buffer; the geometric gradients go with this op, the other inputs' once autograd has accumulated them
             kept_flat = torch.zeros(8 * n, dtype=dtype, device=device)  # [means2d (N, 2) | color (N, 3) | means (N, 3)]
             geo_flat = torch.zeros(5 * n, dtype=dtype, device=device)  # [conic (N, 3) | opacity (N) | depth (N)]
-            g_means2d, g_rgb = kept_flat[:2 * n].view(n, 2), kept_flat[2 * n:5 * n].view(n, 3)
-            g_means = kept_flat[5 * n:].view(n, 3)
-            g_conic, g_opacity, g_depth_n = geo_flat[:3 * n].view(n, 3), geo_flat[3 * n:4 * n], geo_flat[4 * n:]
-            # an absent upstream gradient is a broadcast zero (stride 0 over rows): no [H, W] buffer, no memset
-            ups = [g.contiguous() if g is not None else _zeros(shape[-1], dtype, device).expand(shape)
+            ups = [g.contiguous() if g is not None else _zero_upstream(shape, dtype, device)
                    for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
-            # the sorted ids, T and last go when this block ends (stream-ordered: safe with the launch queued);
-            # a second backward through the same graph rebuilds them
-            st = state.pop("blend", None) or blend(
-                K, pr, count_intersections(K, pr, W, H, settings["all_tiles"]), cam, settings)[4]
+            # the blending backward first: the GPU waits on its enqueue, so everything else of the host's part comes
+            # after it (the sorted ids, T and last go when this block ends: stream-ordered, safe with it queued)
             fast_launch(K.blend_backward, st["threads"],
                         st["args"] + st["saved"] + [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
                         + [ct(kept_flat), ct(geo_flat)], wdev, block_dim=TILE * TILE)
+            inputs = ctx.saved_tensors  # (raises if an input changed in place since the forward)
             pouts = pr.outs
             del st, ups, pr
-            grads = [g_means] + packed_zeros([t.shape for t in inputs[1:4]], dtype, device)
-            project_adjoint(K, args, pouts, grads, (g_means2d, g_conic, g_depth_n, g_opacity), cam, cam_values, n,
-                            device)
+            e = kept_flat.element_size()
+            g_means2d, g_rgb = kept_flat[:2 * n].view(n, 2), kept_flat[2 * n:5 * n].view(n, 3)
+            grads = [kept_flat[5 * n:].view(n, 3)] + packed_zeros([t.shape for t in inputs[1:4]], dtype, device)
+            project_adjoint(K, args, pouts, grads, (ct_at(kept_flat, 0, (n,), e, 2), ct_at(geo_flat, 0, (n,), e, 3),
+                                                     ct_at(geo_flat, 4 * n * e, (n,), e),
+                                                     ct_at(geo_flat, 3 * n * e, (n,), e)), cam, cam_values, n, device)
         return (*grads, g_rgb, g_means2d, None, None, None)
