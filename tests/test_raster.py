@@ -166,10 +166,20 @@ def test_thousands_on_one_pixel_stop_early():
 
 
 def test_sh_degree_argument_truncates():
+    """Evaluating fewer SH degrees than stored: the image and every gradient equal those of the truncated scene,
+    and the coefficients past the degree get an exact zero gradient (not left unwritten)."""
     g = random_scene(100, 3, seed=4)
-    low = render(g, camera(), sh_degree=1)
-    ref = render_reference(g.with_sh_degree(1), camera())
+    gl = leafs(g)
+    low = render(gl, camera(), sh_degree=1)
+    gt = leafs(g.with_sh_degree(1))
+    ref = render_reference(gt, camera())
     assert_close(low.color, ref.color, F64_TOL, "color at degree 1")
+    ups = upstream(ref)
+    for name, a, b in zip(FIELDS, loss_grads(gl, low, ups), loss_grads(gt, ref, ups)):
+        if name == "sh":
+            assert torch.equal(a[:, 4:], torch.zeros_like(a[:, 4:])), "gradient past the evaluated degree"
+            a = a[:, :4]
+        assert_close(a, b, F64_TOL, f"d/d{name} at degree 1")
 
 
 def test_degenerate_gaussians_do_not_poison_others():
