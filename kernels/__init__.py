@@ -39,7 +39,7 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
         # module stays the exact oracle; TLVG_WARP_FAST_MATH=0 turns it off. No effect on the CPU.
         wp.set_module_options({"fast_math": True}, module_name(scalar))
     project, ewa_cov2d = make_projection(scalar)
-    sh_color, sh_backward = make_sh(scalar, module_name(scalar))
+    sh_color, sh_backward, sh_coeff_grad = make_sh(scalar, module_name(scalar))
     flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d)
     forward, backward = make_blend(scalar, module_name(scalar), blend_min_blocks(),
                                    os.environ.get("TLVG_WARP_BLEND_SLAB", "vector"),
@@ -54,6 +54,7 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
         project=project,
         sh_color=sh_color,
         sh_backward=sh_backward,
+        sh_coeff_grad=sh_coeff_grad,
         flow_terms=flow_terms,
         blend_forward=forward,
         blend_backward=backward,

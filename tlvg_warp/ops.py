@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from .kernels.sh import sh_threads
 from .types import Camera
 
 TILE = 16
@@ -654,8 +653,8 @@ class ShadeFn(torch.autograd.Function):
         colors = torch.empty(n, 3, dtype=means.dtype, device=device)
         center = camera_center(K, cam_values)
         with warp_on(device) as wdev:
-            fast_launch(K.sh_color, sh_threads(n, device.type == "cuda"),
-                        [input_ct(means, K.vec3), input_ct(sh, K.vec3), center, degree, n, ct(colors, K.vec3)], wdev)
+            fast_launch(K.sh_color, n, [input_ct(means, K.vec3), input_ct(sh, K.vec3), center, degree,
+                                        ct(colors, K.vec3)], wdev)
         ctx.save_for_backward(means, sh)
         ctx.center, ctx.degree = center, degree
         return colors
@@ -665,12 +664,16 @@ class ShadeFn(torch.autograd.Function):
         means, sh = ctx.saved_tensors
         K = kernels_for(means.dtype)
         device, n = means.device, means.shape[0]
-        g_means = torch.empty_like(means)  # the kernel stores every row (0 where dL/dcolor is 0)
-        g_sh = torch.empty_like(sh)  # every coefficient stored (0 past the degree)
+        n_coeffs = (ctx.degree + 1) ** 2
+        g_means = torch.empty_like(means)  # sh_backward stores every row (0 where dL/dcolor is 0)
+        g_rgb = torch.empty(n, 3, dtype=means.dtype, device=device)  # dL/d(SH sum), the clamp applied
+        g_sh = torch.empty_like(sh) if n_coeffs == sh.shape[1] else torch.zeros_like(sh)  # degree < stored: rest 0
         with warp_on(device) as wdev:
-            fast_launch(K.sh_backward, sh_threads(n, device.type == "cuda"),
-                        [input_ct(means, K.vec3), input_ct(sh, K.vec3), ctx.center, ctx.degree, n,
-                         ct(g_colors.contiguous(), K.vec3), ct(g_means, K.vec3), ct(g_sh, K.vec3)], wdev)
+            m = input_ct(means, K.vec3)
+            rgb = ct(g_rgb, K.vec3)
+            fast_launch(K.sh_backward, n, [m, input_ct(sh, K.vec3), ctx.center, ctx.degree,
+                                           ct(g_colors.contiguous(), K.vec3), rgb, ct(g_means, K.vec3)], wdev)
+            fast_launch(K.sh_coeff_grad, n * n_coeffs, [m, ctx.center, n_coeffs, rgb, ct(g_sh, K.vec3)], wdev)
         return g_means, g_sh, None, None
 
 
