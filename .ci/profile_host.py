@@ -49,7 +49,7 @@ def wrap(mod, name, label=None):
 
 
 wrap(ops, "fast_launch", lambda a: f"launch {a[0].key[:36]}")
-wrap(ops, "sort_pairs", lambda a: f"sort {a[2]}")
+wrap(ops, "sort_pairs_at", lambda a: f"sort {a[4]}")
 for name in ("project", "count_intersections", "bin_tiles", "blend", "project_adjoint"):
     wrap(ops, name)
 for fn in (ops.ShadeFn, ops.RasterizeFn):  # the two autograd ops, forward and backward

@@ -303,7 +303,7 @@ def emit_keys_kernel(
     conic: wp.array(dtype=wp.vec3),  # [N]
     opacity: wp.array(dtype=float),  # [N]
     rank: wp.array(dtype=wp.int32),  # [N] each Gaussian's position in depth order (depth_rank_kernel)
-    ends: wp.array(dtype=wp.int64),  # [N] in depth order: one past each Gaussian's last key (the inclusive prefix
+    ends: wp.array(dtype=wp.int32),  # [N] in depth order: one past each Gaussian's last key (the inclusive prefix
     # sum of the counts in depth order, so the keys land in depth order)
     counts: wp.array(dtype=wp.int32),  # [N] keys reserved per Gaussian (Gaussian order)
     n: int,
@@ -328,7 +328,7 @@ def emit_keys_kernel(
     stop = int(0)
     if g < n:
         geo, rect, items = bin_setup(means2d[g], radii[g], conic[g], opacity[g], tiles_x, tiles_y, all_tiles)
-        stop = int(ends[rank[g]])  # < 2**31: the total was checked on the host
+        stop = ends[rank[g]]
         start = stop - counts[g]
     chunks = chunks_of(rect)
     k = start

@@ -120,6 +120,29 @@ def test_binned_equals_brute_force():
     compare(random_scene(150, 1, seed=10, opacity_shift=2.0), cam, all_tiles=True)
 
 
+def test_int64_scan_of_the_key_ends_equals_the_int32_one(monkeypatch):
+    """Scenes whose total could pass int32 (N x tiles >= 2**31) scan the key ends in int64 before checking the
+    total: forced here (the bound lowered to 0), the image, the gradients and the binning equal the int32 scan's."""
+    import tlvg_warp.ops as ops
+
+    g = random_scene(300, 1, seed=12)
+    cam = camera(45, 29)
+    runs = []
+    for limit in (2**31, 0):
+        monkeypatch.setattr(ops, "SCAN_INT32_LIMIT", limit)
+        gl = leafs(g)
+        with ops.capture_binning() as cap:
+            out = render(gl, cam)
+        ups = upstream(out)
+        runs.append((out, loss_grads(gl, out, ups), cap["total"], cap["ids"].clone()))
+    (a, ga, ta, ia), (b, gb, tb, ib) = runs
+    assert ta == tb > 0 and torch.equal(ia, ib)
+    for k in ("color", "alpha", "depth"):
+        assert torch.equal(getattr(a, k), getattr(b, k)), k
+    for name, x, y in zip(FIELDS, ga, gb):
+        assert_close(x, y, 1e-12, name)  # the same sums; atomics may order them differently
+
+
 def test_empty_scene_and_everything_culled():
     cam = camera(20, 12)
     bg = [0.25, 0.5, 0.75]

@@ -333,6 +333,20 @@ def sort_pairs_at(key_dtype: torch.dtype, device: torch.device, keys: int, value
         fn(keys, values, count, begin_bit, end_bit, 4)
 
 
+SCAN_INT32_LIMIT = 2**31  # below this bound on the total the ends are scanned in int32 (the tests lower it)
+_scan_fns: dict = {}
+
+
+def inclusive_scan_at(src: int, dst: int, n: int, device: torch.device) -> None:
+    """Inclusive prefix sum of n int32 at address ``src`` into ``dst`` on the current Warp stream: Warp's runtime
+    scan (CUB on a GPU), called directly (torch.cumsum costs a dispatch and a view of host time per render)."""
+    side = "device" if device.type == "cuda" else "host"
+    fn = _scan_fns.get(side)
+    if fn is None:
+        fn = _scan_fns[side] = getattr(_runtime().core, f"wp_array_scan_int_{side}")
+    fn(src, dst, n, 4, 4, 1, True)
+
+
 def canonical(t: torch.Tensor) -> torch.Tensor:
     """``t.contiguous()`` with the row-major strides spelled out. Torch calls a tensor contiguous whatever the
     stride of a size-1 dimension (a [1, 3] column slice of a [1, 26] PLY table keeps stride 26), but Warp
@@ -547,9 +561,10 @@ class DepthOrder:
     """The binning up to its one host sync: tiles per Gaussian, the depth order and the intersections' total."""
 
     geometry: list  # binning_inputs' descriptors
-    work: torch.Tensor | None  # [7N] int32: counts N | depth keys 2N | order 2N | counts in depth order N | ranks N
+    work: torch.Tensor | None  # [8N] int32: counts N | depth keys 2N | order 2N | counts in depth order N | ranks N |
+    # their inclusive scan N (each Gaussian's end in depth order)
     ranges: torch.Tensor  # [tiles, 2] int32, zeroed by the tile count (tile_ranges_kernel fills the non-empty ones)
-    ends: torch.Tensor | None  # [N] int64 inclusive scan of the counts in depth order
+    ends: object  # descriptor of the scan (None without Gaussians)
     total: int
     tiles: tuple  # (tiles_x, tiles_y)
 
@@ -565,8 +580,8 @@ def count_intersections(K, pr: Projection, width: int, height: int, all_tiles: b
     if n == 0:
         return DepthOrder(geometry, None, ranges.zero_(), None, 0, (tiles_x, tiles_y))
     # the per-Gaussian buffers are one allocation, seen through descriptors at offsets (all go when the forward
-    # ends); the depth sort's keys and values have the radix sort's 2x room
-    work = torch.empty(7 * n, dtype=torch.int32, device=device)
+    # ends); the depth sort's keys and values have the radix sort's 2x room. The last end is the total
+    work = torch.empty(8 * n, dtype=torch.int32, device=device)
     at = work.data_ptr()
     counts, rank = ct_at(work, 0, (n,), 4), ct_at(work, 24 * n, (n,), 4)
     fast_launch(K.count_tiles, warp_padded(max(n, tiles_x * tiles_y)),
@@ -574,10 +589,17 @@ def count_intersections(K, pr: Projection, width: int, height: int, all_tiles: b
                  ct_at(work, 4 * n, (2 * n,), 4), ct_at(work, 12 * n, (2 * n,), 4), ct(ranges)], wdev)
     sort_pairs_at(torch.float32, device, at + 4 * n, at + 12 * n, n)  # culled Gaussians sort anywhere: they emit no keys
     fast_launch(K.depth_rank, n, [ct_at(work, 12 * n, (n,), 4), counts, ct_at(work, 20 * n, (n,), 4), rank], wdev)
-    ends = torch.cumsum(work[5 * n:6 * n], 0, dtype=torch.int64)  # int64: a total past int32 is caught, not wrapped
-    total = int(ends[-1].item())
+    if n * tiles_x * tiles_y < SCAN_INT32_LIMIT:  # a Gaussian touches at most every tile: no int32 end can wrap
+        inclusive_scan_at(at + 20 * n, at + 28 * n, n, device)
+        total = int(work[8 * n - 1].item())
+    else:  # in int64, so that a total past int32 is caught rather than wrapped
+        ends64 = torch.cumsum(work[5 * n:6 * n], 0, dtype=torch.int64)
+        total = int(ends64[-1].item())
+        if total < 2**31:
+            work[7 * n:].copy_(ends64)
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
+    ends = ct_at(work, 28 * n, (n,), 4)
     return DepthOrder(geometry, work, ranges, ends, total, (tiles_x, tiles_y))
 
 
@@ -594,7 +616,7 @@ def bin_tiles(K, pr: Projection, order: DepthOrder, width: int, height: int, all
     # (beer, 720x1280) that stage holds the backward's peak
     keys = torch.empty(2 * total, dtype=torch.int32, device=device)  # each with the radix sort's 2x room
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
-    fast_launch(K.emit_keys, warp_padded(n), [*order.geometry, ct_at(work, 24 * n, (n,), 4), ct(order.ends),
+    fast_launch(K.emit_keys, warp_padded(n), [*order.geometry, ct_at(work, 24 * n, (n,), 4), order.ends,
                                               ct_at(work, 0, (n,), 4), n, tiles_x, tiles_y, width, height,
                                               int(all_tiles), ct(keys), ct(ids)], wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
