@@ -27,7 +27,7 @@ for job in "$@"; do
         ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root timeout 300 python3 -m tlvg_warp bench raster \
             --sizes 1000000 --garden "" --peers tlvg_warp,gsplat $SCENES --repeats 10 --out "$R/bench_$name" \
             > "$R/bench_$name.log" 2>&1 )
-        grep -v "^Module\|^{" "$R/bench_$name.log" | grep "^|" | tail -n 22
+        grep -v "^Module\|^{" "$R/bench_$name.log" | grep "^|" | tail -n 8
       done
       tar -czf "$OUT/bench_logs.tgz" -C "$R" $(cd "$R" && ls -d bench_* 2>/dev/null);;
     stylize)
