@@ -10,3 +10,16 @@ metrics() { python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print({
 FERN="--scene $F/fern.spz --data $D/fern_llff --downscale 2 --style $D/styles/starry_night.jpg"
 # the CUDA tests only: the staged Warp has no LLVM, so CPU kernels cannot compile on the device
 cuda_tests() { python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py tests/test_losses_vgg.py 2>&1 | tail -n 3; }
+# fern stylized 3000 iterations, this code and PREV alternately, twice each (process wall), after one 300-iteration
+# warm-up that compiles the kernels; the arguments are the metrics.json keys to print per run
+stylize_interleaved() {
+  python3 -m tlvg_warp stylize $FERN --iterations 300 --out "$R/warm" --overwrite --quiet > /dev/null 2>&1
+  for v in "now:$PWD" "prev:$PWD/$PREV" "now2:$PWD" "prev2:$PWD/$PREV"; do
+    IFS=: read -r name root <<< "$v"
+    ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root /usr/bin/time -f "fern stylize $name 3000 wall %e s" \
+        python3 -m tlvg_warp stylize $FERN --out "$R/fern_$name" --overwrite --quiet > "$R/fern_$name.log" 2>&1 )
+    tail -n 2 "$R/fern_$name.log"
+    metrics "$R/fern_$name/metrics.json" "$@"
+  done
+  tar -czf "$OUT/stylize_logs.tgz" -C "$R" $(cd "$R" && ls fern_*/metrics.json fern_*.log 2>/dev/null)
+}
