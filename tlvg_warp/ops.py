@@ -564,7 +564,9 @@ class DepthOrder:
     work: torch.Tensor | None  # [8N] int32: counts N | depth keys 2N | order 2N | counts in depth order N | ranks N |
     # their inclusive scan N (each Gaussian's end in depth order)
     ranges: torch.Tensor  # [tiles, 2] int32, zeroed by the tile count (tile_ranges_kernel fills the non-empty ones)
-    ends: object  # descriptor of the scan (None without Gaussians)
+    counts: object  # descriptors into work (None without Gaussians): the counts,
+    rank: object  # the depth ranks
+    ends: object  # and the scan
     total: int
     tiles: tuple  # (tiles_x, tiles_y)
 
@@ -578,7 +580,7 @@ def count_intersections(K, pr: Projection, width: int, height: int, all_tiles: b
     tiles_x, tiles_y = tile_grid(width, height)
     ranges = torch.empty(tiles_x * tiles_y, 2, dtype=torch.int32, device=device)
     if n == 0:
-        return DepthOrder(geometry, None, ranges.zero_(), None, 0, (tiles_x, tiles_y))
+        return DepthOrder(geometry, None, ranges.zero_(), None, None, None, 0, (tiles_x, tiles_y))
     # the per-Gaussian buffers are one allocation, seen through descriptors at offsets (all go when the forward
     # ends); the depth sort's keys and values have the radix sort's 2x room. The last end is the total
     work = torch.empty(8 * n, dtype=torch.int32, device=device)
@@ -587,7 +589,8 @@ def count_intersections(K, pr: Projection, width: int, height: int, all_tiles: b
     fast_launch(K.count_tiles, warp_padded(max(n, tiles_x * tiles_y)),
                 [*geometry, depth, n, tiles_x, tiles_y, width, height, int(all_tiles), counts,
                  ct_at(work, 4 * n, (2 * n,), 4), ct_at(work, 12 * n, (2 * n,), 4), ct(ranges)], wdev)
-    sort_pairs_at(torch.float32, device, at + 4 * n, at + 12 * n, n)  # culled Gaussians sort anywhere: they emit no keys
+    # the depth sort (culled Gaussians sort anywhere: they emit no keys)
+    sort_pairs_at(torch.float32, device, at + 4 * n, at + 12 * n, n)
     fast_launch(K.depth_rank, n, [ct_at(work, 12 * n, (n,), 4), counts, ct_at(work, 20 * n, (n,), 4), rank], wdev)
     if n * tiles_x * tiles_y < SCAN_INT32_LIMIT:  # a Gaussian touches at most every tile: no int32 end can wrap
         inclusive_scan_at(at + 20 * n, at + 28 * n, n, device)
@@ -599,8 +602,7 @@ def count_intersections(K, pr: Projection, width: int, height: int, all_tiles: b
             work[7 * n:].copy_(ends64)
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed the int32 index range; render at a lower resolution")
-    ends = ct_at(work, 28 * n, (n,), 4)
-    return DepthOrder(geometry, work, ranges, ends, total, (tiles_x, tiles_y))
+    return DepthOrder(geometry, work, ranges, counts, rank, ct_at(work, 28 * n, (n,), 4), total, (tiles_x, tiles_y))
 
 
 def bin_tiles(K, pr: Projection, order: DepthOrder, width: int, height: int, all_tiles: bool = False):
@@ -611,16 +613,15 @@ def bin_tiles(K, pr: Projection, order: DepthOrder, width: int, height: int, all
         ids = _dummy(torch.int32, device)
         return ct(order.ranges), ct(ids), ids
     tiles_x, tiles_y = order.tiles
-    work = order.work
     # two allocations, not one: the sorted ids outlive the keys until the blending backward, and on a wide image
     # (beer, 720x1280) that stage holds the backward's peak
     keys = torch.empty(2 * total, dtype=torch.int32, device=device)  # each with the radix sort's 2x room
     ids = torch.empty(2 * total, dtype=torch.int32, device=device)
-    fast_launch(K.emit_keys, warp_padded(n), [*order.geometry, ct_at(work, 24 * n, (n,), 4), order.ends,
-                                              ct_at(work, 0, (n,), 4), n, tiles_x, tiles_y, width, height,
-                                              int(all_tiles), ct(keys), ct(ids)], wdev)
+    fast_launch(K.emit_keys, warp_padded(n), [*order.geometry, order.rank, order.ends, order.counts, n, tiles_x,
+                                              tiles_y, width, height, int(all_tiles), ct(keys), ct(ids)], wdev)
     tile_bits = max(1, (tiles_x * tiles_y).bit_length())  # room for the sentinel tile id
-    sort_pairs_at(torch.int32, device, keys.data_ptr(), ids.data_ptr(), total, 0, tile_bits)  # stable: tiles stay in depth order
+    # stable: each tile's list stays in depth order
+    sort_pairs_at(torch.int32, device, keys.data_ptr(), ids.data_ptr(), total, 0, tile_bits)
     ranges = ct(order.ranges)
     fast_launch(K.tile_ranges, total, [ct(keys), total, ranges], wdev)
     # the sort's second half lives until the blending backward has run (no copy per render; the backward's peak
@@ -721,8 +722,8 @@ class RasterizeFn(torch.autograd.Function):
             pr = project(K, args, colors, cam, cam_values, n, means.dtype, device)
             color, alpha, depth, weights, first = blend(
                 K, pr, count_intersections(K, pr, cam.width, cam.height, settings["all_tiles"]), cam, settings)
-        ctx.state = {"proj": pr, "blend": first, "n": n, "dtype": means.dtype, "device": device, "args": args, "cam": cam, "cam_values": cam_values,
-                     "settings": settings}
+        ctx.state = {"proj": pr, "blend": first, "n": n, "dtype": means.dtype, "device": device, "args": args,
+                     "cam": cam, "cam_values": cam_values, "settings": settings}
         # the inputs are read by the adjoints: saving them lets autograd refuse a backward after an in-place
         # change (torch's version counter) instead of returning stale gradients
         ctx.save_for_backward(means, quats, log_scales, opacity_logits, colors)
