@@ -8,28 +8,12 @@
 # The fifth session's calls: PREV=.gpu/old15 (efe8cbc, "round 7"), .gpu/prev8 (336b7e5, "round 8"), .gpu/prev9 (the
 # commit before the binning launch merge, "round 9"); they ran as copies of this script named gpu_round7/8/9.sh.
 set -uo pipefail
-PREV=${PREV:?set PREV to the folder of the earlier code (a git archive under .gpu/)}
-OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
-export TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1
-R=/tmp/tlvg-runs; mkdir -p "$R"; D=/tmp/tlvg-data; F=$PWD/.gpu/fits
 [ $# -eq 0 ] && set -- tests raster host fit stylize
-nvidia-smi --query-gpu=name --format=csv,noheader
-python3 -m compileall -q -j 16 /tmp/tlvg-gpu/site tlvg_warp kernels "$PREV" > /dev/null 2>&1  # as an install would
-metrics() { python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print({k: m.get(k) for k in sys.argv[2:]})" "$@"; }
-SCENES="--scene $F/fern.spz:$D/fern_llff:images_4 --scene $F/beer.spz:$D/beer_colmap:images"
+source "$(dirname "$0")/gpu_env.sh"
 for job in "$@"; do
   case "$job" in
     tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py 2>&1 | tail -n 2;;
-    raster)
-      for v in "prev:$PWD/$PREV" "now:$PWD"; do
-        IFS=: read -r name root <<< "$v"
-        echo "== bench raster: $name"
-        ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root timeout 300 python3 -m tlvg_warp bench raster \
-            --sizes 1000000 --garden "" --peers tlvg_warp,gsplat $SCENES --repeats 10 --out "$R/bench_$name" \
-            > "$R/bench_$name.log" 2>&1 )
-        grep -v "^Module\|^{" "$R/bench_$name.log" | grep "^|" | tail -n 22
-      done
-      tar -czf "$OUT/bench_logs.tgz" -C "$R" $(cd "$R" && ls -d bench_* 2>/dev/null);;
+    raster) RASTER_ROWS=22 raster_ab prev now;;
     host)
       python3 .ci/profile_host.py "$F/fern.spz:$D/fern_llff:images_4" fwd 2>&1 | grep -v "^Module" | tail -n 45
       python3 .ci/profile_host.py "$F/fern.spz:$D/fern_llff:images_4" fwd_bwd 2>&1 | grep -v "^Module" | tail -n 48;;

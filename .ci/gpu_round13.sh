@@ -9,7 +9,6 @@
 set -uo pipefail
 [ $# -eq 0 ] && set -- tests host raster stylize
 source "$(dirname "$0")/gpu_env.sh"
-SCENES="--scene $F/fern.spz:$D/fern_llff:images_4 --scene $F/beer.spz:$D/beer_colmap:images"
 for job in "$@"; do
   case "$job" in
     tests) cuda_tests;;
@@ -20,16 +19,7 @@ for job in "$@"; do
           echo -n "$name "; PYTHONPATH=/tmp/tlvg-gpu/site:$root python3 .ci/host_wall.py "$F/fern.spz:$D/fern_llff:images_4" $mode 300
         done
       done;;
-    raster)
-      for v in "now:$PWD" "prev:$PWD/$PREV" "now2:$PWD"; do
-        IFS=: read -r name root <<< "$v"
-        echo "== bench raster: $name"
-        ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root timeout 300 python3 -m tlvg_warp bench raster \
-            --sizes 1000000 --garden "" --peers tlvg_warp,gsplat $SCENES --repeats 10 --out "$R/bench_$name" \
-            > "$R/bench_$name.log" 2>&1 )
-        grep -v "^Module\|^{" "$R/bench_$name.log" | grep "^|" | tail -n 8
-      done
-      tar -czf "$OUT/bench_logs.tgz" -C "$R" $(cd "$R" && ls -d bench_* 2>/dev/null);;
+    raster) raster_ab now prev now2;;
     stylize) stylize_interleaved wall_time_s train_time_s outputs_time_s flow_alignment time_per_phase_s;;
   esac
 done
