@@ -115,6 +115,7 @@ def test_cuda_render_on_a_side_stream_and_warp_state_restored():
         out = render(g2, cam, background=[0.1, 0.2, 0.3])
         gb = torch.autograd.grad((out.color * ups[0]).sum() + (out.alpha * ups[1]).sum(),
                                  [getattr(g2, f) for f in FIELDS])
+        assert wp.get_device(str(g.device)).stream.cuda_stream == side.cuda_stream  # the launches went to the side
     torch.cuda.current_stream().wait_stream(side)
     for k in ("color", "alpha", "depth"):
         assert torch.equal(getattr(out, k), getattr(ref, k)), k
@@ -122,4 +123,5 @@ def test_cuda_render_on_a_side_stream_and_warp_state_restored():
         assert_close(a, b, 1e-6, name)  # atomics: summation order only
     again = render(leafs(g), cam, background=[0.1, 0.2, 0.3])  # back on the default stream
     assert torch.equal(again.color, ref.color)
+    assert wp.get_device(str(g.device)).stream.cuda_stream == torch.cuda.current_stream().cuda_stream  # and back
     assert wp.get_device() == before_dev and core.wp_cuda_context_get_current() == before_ctx
