@@ -222,8 +222,9 @@ def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, ad
     ``wp.array``s, scalars, vectors) and, on CUDA, enqueue it through Warp's runtime, skipping ``wp.launch``'s
     per-argument checks and packing and ``Launch``'s per-call bookkeeping (a render's host time bounds its
     forward: the GPU waits on the host for most of it). ``adj_args``: launch the kernel's adjoint with these
-    adjoint arguments (None for an array: no gradient). The Launch keeps no tensor alive between renders: it
-    stores bare copies of the descriptors; the caller's own references cover the enqueue (the allocator is
+    adjoint arguments (None for an array: no gradient). The Launch keeps no tensor alive between renders: on CUDA
+    its parameter addresses point at the caller's descriptors only until the enqueue has copied them (``_point``),
+    on the CPU it holds bare copies (``_fill``); the caller's own references cover the enqueue (the allocator is
     stream-ordered)."""
     if dim <= 0:
         return
@@ -239,27 +240,46 @@ def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, ad
         launch.launch()
         return
     launch = site.launch
-    _fill(site, 1, args)
     if adjoint:
-        _fill(site, len(args) + 1, [a if a is not None else _null_array() for a in adj_args])
+        args = list(args) + [a if a is not None else _null_array() for a in adj_args]
     if dim != site.dim:
         launch.set_dim(dim)
         site.dim = dim
     if device.is_cuda:
+        keep = _point(site, args)  # the slots point at the caller's descriptors until the launch has read them
         if _runtime().core.wp_cuda_launch_kernel(device.context, site.hook, launch.bounds.size, launch.max_blocks,
                                                  launch.block_dim, int(launch.grid_stride), launch.cluster_dim,
                                                  site.smem, launch.params_addr, device.stream.cuda_stream, None):
             launch.launch()  # the failure again, through Warp's own error report
+        del keep
     else:
+        _fill(site, args)
         launch.launch()
     del args, adj_args
 
 
-def _fill(site: _Site, first: int, values) -> None:
-    """Write the arguments into the launch's own parameter slots (by value: the launch keeps no reference to
-    them, so no tensor outlives its render through a descriptor's ``_ref``)."""
+def _point(site: _Site, values) -> list:
+    """CUDA: point the launch's parameter addresses at the argument descriptors and values themselves (what
+    ``Launch.set_param_at_index_from_ctype`` does; cuLaunchKernel copies them at the launch), scalars into their
+    slots. A pointer store per argument instead of a copy of its bytes. Returns what must stay alive until the
+    launch (``wp.array`` descriptors made here)."""
+    params, kinds, ptrs, keep = site.launch.params, site.kinds, site.launch.params_addr, []
+    for i, a in enumerate(values, 1):
+        if kinds[i] == _SCALAR:
+            params[i].value = a
+        else:
+            if isinstance(a, wp.array):
+                a = a.__ctype__()
+                keep.append(a)
+            ptrs[i] = ctypes.addressof(a)
+    return keep
+
+
+def _fill(site: _Site, values) -> None:
+    """CPU: write the arguments into the launch's own parameter slots, which its call reads (by value: the launch
+    keeps no reference to them, so no tensor outlives its render through a descriptor's ``_ref``)."""
     params, kinds, addrs, sizes = site.launch.params, site.kinds, site.addrs, site.sizes
-    for i, a in enumerate(values, first):
+    for i, a in enumerate(values, 1):
         if kinds[i] == _SCALAR:
             params[i].value = a
         else:
