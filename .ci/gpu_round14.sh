@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# Issue 15, ninth session: the per-warp walk of the blending backward and the pointer-store launches against PREV
+# on one GPU (nvidia-h200).
+# On the device: source /tmp/tlvg-gpu/env.sh && PREV=.gpu/prev13 bash .ci/gpu_round14.sh [tests] [gap] [raster]
+#   tests:  the CUDA tests (rasterizer, graphed VGG)
+#   gap:    the host-only timeline of a beer and a fern forward+backward (.ci/host_gap.py), this code then PREV
+#   raster: `bench raster` on fern, beer and a random 1M against gsplat 1.5.3: this code, PREV, this code again,
+#           each in its own process with gsplat in it
+set -uo pipefail
+[ $# -eq 0 ] && set -- tests gap raster
+source "$(dirname "$0")/gpu_env.sh"
+for job in "$@"; do
+  case "$job" in
+    tests) cuda_tests;;
+    gap)
+      for v in "now:$PWD" "prev:$PWD/$PREV"; do
+        IFS=: read -r name root <<< "$v"
+        echo "== host gap: $name"
+        PYTHONPATH=/tmp/tlvg-gpu/site:$root python3 .ci/host_gap.py "$F/beer.spz:$D/beer_colmap:images" \
+          "$F/fern.spz:$D/fern_llff:images_4" 2>&1 | grep -v "^Module" > "$OUT/gap_$name.txt"
+        tail -n 3 "$OUT/gap_$name.txt"
+      done;;
+    raster) raster_ab now prev now2;;
+  esac
+done
