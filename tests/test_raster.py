@@ -512,6 +512,24 @@ def test_without_depth_same_image_and_gradients():
         assert torch.equal(a, b), name
 
 
+@pytest.mark.parametrize("output", ["color", "alpha", "depth"])
+def test_a_loss_on_one_output_has_the_reference_gradients(output):
+    """The other outputs get no gradient: the backward receives None for them (autograd does not materialize zeros)
+    and must read them as zeros, for every input and the screen-space probe."""
+    g = random_scene(150, 2, seed=31)
+    g1, g2 = leafs(g), leafs(g)
+    out, ref = render(g1, camera(), background=[0.1, 0.2, 0.3]), render_reference(g2, camera(), background=[0.1, 0.2, 0.3])
+    up = upstream(ref)[("color", "alpha", "depth").index(output)]
+    grads = []
+    for o, gl in ((out, g1), (ref, g2)):
+        wrt = [getattr(gl, f) for f in FIELDS] + [o.means2d]
+        gs = torch.autograd.grad((getattr(o, output) * up).sum(), wrt, allow_unused=True)  # alpha: no path to sh
+        grads.append([torch.zeros_like(w) if x is None else x for x, w in zip(gs, wrt)])
+    assert grads[1][0].abs().max() > 0  # the loss reaches the means
+    for name, a, b in zip(FIELDS + ("means2d",), *grads):
+        assert_close(a, b, F64_TOL, f"d/d{name}")
+
+
 def test_fast_launch_reuses_its_launch_and_keeps_no_tensor_alive():
     """ops.fast_launch records one wp.Launch per kernel and resets its parameters per call (no per-call packing):
     each call must see its own arguments, and the recorded launch must not keep the last call's tensors alive."""

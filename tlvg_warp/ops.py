@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import math
 import os
 import weakref
@@ -190,12 +191,15 @@ def ct_at(base: torch.Tensor, offset: int, shape: tuple, elem: int, vec: int = 1
 class _Site:
     """One recorded ``wp.Launch`` per (kernel, device, block_dim, forward/adjoint) and how to refill it: per
     parameter slot a setter kind (descriptor, ctypes scalar, vector/matrix copied by bytes), found once; the
-    launch's dimensions, reset only when they change (``Launch.set_dim`` validates in Python each time)."""
+    launch's dimensions, reset only when they change (``Launch.set_dim`` validates in Python each time). On CUDA
+    the launch's parameter addresses are repointed per call (``_point``) and dangle between calls: only
+    ``fast_launch`` may enqueue a site's launch."""
 
-    __slots__ = ("launch", "dim", "kinds", "addrs", "sizes", "hook", "smem")
+    __slots__ = ("launch", "dim", "kinds", "addrs", "sizes", "hook", "smem", "enqueue")
 
     def __init__(self, launch, dim: int, adjoint: bool):
         self.launch, self.dim = launch, dim
+        self.enqueue = None  # CUDA: Warp's runtime launch with this site's fixed arguments bound (_enqueue_of)
         params = launch.params  # [0] is the launch bounds; the slots are never replaced (written in place)
         self.kinds = [_slot_kind(p) for p in params]
         self.addrs = [ctypes.addressof(p) for p in params]
@@ -244,18 +248,27 @@ def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, ad
         args = list(args) + [a if a is not None else _null_array() for a in adj_args]
     if dim != site.dim:
         launch.set_dim(dim)
-        site.dim = dim
+        site.dim, site.enqueue = dim, None
     if device.is_cuda:
         keep = _point(site, args)  # the slots point at the caller's descriptors until the launch has read them
-        if _runtime().core.wp_cuda_launch_kernel(device.context, site.hook, launch.bounds.size, launch.max_blocks,
-                                                 launch.block_dim, int(launch.grid_stride), launch.cluster_dim,
-                                                 site.smem, launch.params_addr, device.stream.cuda_stream, None):
+        enqueue = site.enqueue or _enqueue_of(site, device)
+        if enqueue(device.stream.cuda_stream, None):
             launch.launch()  # the failure again, through Warp's own error report
         del keep
     else:
         _fill(site, args)
         launch.launch()
     del args, adj_args
+
+
+def _enqueue_of(site: _Site, device):
+    """``wp_cuda_launch_kernel`` with every argument but the stream bound (they change only with the dimensions,
+    which reset it): nine attribute reads fewer per launch."""
+    launch = site.launch
+    site.enqueue = functools.partial(_runtime().core.wp_cuda_launch_kernel, device.context, site.hook,
+                                     launch.bounds.size, launch.max_blocks, launch.block_dim, int(launch.grid_stride),
+                                     launch.cluster_dim, site.smem, launch.params_addr)
+    return site.enqueue
 
 
 def _point(site: _Site, values) -> list:
@@ -748,6 +761,9 @@ class RasterizeFn(torch.autograd.Function):
         # change (torch's version counter) instead of returning stale gradients
         ctx.save_for_backward(means, quats, log_scales, opacity_logits, colors)
         ctx.mark_non_differentiable(pr.radii, weights)
+        # an output without a gradient (the alpha of a colour loss, the radii) reaches the backward as None, which it
+        # reads as kept broadcast zeros: autograd would allocate and memset an [H, W] and an [N] zero per backward
+        ctx.set_materialize_grads(False)
         return color, alpha, depth, pr.radii, weights if settings["weights"] else None  # depth None if not asked
 
     @staticmethod
