@@ -1,17 +1,21 @@
 #!/usr/bin/env bash
 # Issue 15, ninth session: the per-warp walk of the blending backward and the pointer-store launches against PREV
 # on one GPU (nvidia-h200).
-# On the device: source /tmp/tlvg-gpu/env.sh && PREV=.gpu/prev13 bash .ci/gpu_round14.sh [tests] [gap] [raster]
+# On the device: source /tmp/tlvg-gpu/env.sh && PREV=.gpu/prev13 bash .ci/gpu_round14.sh [tests] [costs] [gap] [raster]
+#   [stylize]
 #   tests:  the CUDA tests (rasterizer, graphed VGG)
+#   costs:  host microseconds per render operation (.ci/host_costs.py), this code
 #   gap:    the host-only timeline of a beer and a fern forward+backward (.ci/host_gap.py), this code then PREV
 #   raster: `bench raster` on fern, beer and a random 1M against gsplat 1.5.3: this code, PREV, this code again,
 #           each in its own process with gsplat in it
+#   stylize: fern stylized 3000 iterations, this code and PREV alternately, twice each (process wall)
 set -uo pipefail
 [ $# -eq 0 ] && set -- tests gap raster
 source "$(dirname "$0")/gpu_env.sh"
 for job in "$@"; do
   case "$job" in
     tests) cuda_tests;;
+    costs) python3 .ci/host_costs.py 2>&1 | grep -v "^Module\|^Warp";;
     gap)
       for v in "now:$PWD" "prev:$PWD/$PREV"; do
         IFS=: read -r name root <<< "$v"
@@ -21,5 +25,6 @@ for job in "$@"; do
         tail -n 3 "$OUT/gap_$name.txt"
       done;;
     raster) raster_ab now prev now2;;
+    stylize) stylize_interleaved wall_time_s train_time_s flow_alignment time_per_phase_s;;
   esac
 done
