@@ -65,43 +65,30 @@ def make_sh(scalar, mod: str):
 
     @wp.func
     def sh_basis(k: int, d: vec3) -> scalar:
+        """b_k(d), branch free: the 32 lanes of a warp hold two Gaussians' 16 coefficients, so an if-chain on k
+        would run all 16 branches one after another; here every lane evaluates the 16 cheap products and selects."""
         x = d[0]
         y = d[1]
         z = d[2]
         xx = x * x
         yy = y * y
         zz = z * z
-        b = scalar(SH_C0)
-        if k == 1:
-            b = -scalar(SH_C1) * y
-        elif k == 2:
-            b = scalar(SH_C1) * z
-        elif k == 3:
-            b = -scalar(SH_C1) * x
-        elif k == 4:
-            b = scalar(C20) * x * y
-        elif k == 5:
-            b = scalar(C21) * y * z
-        elif k == 6:
-            b = scalar(C22) * (scalar(2.0) * zz - xx - yy)
-        elif k == 7:
-            b = scalar(C23) * x * z
-        elif k == 8:
-            b = scalar(C24) * (xx - yy)
-        elif k == 9:
-            b = scalar(C30) * y * (scalar(3.0) * xx - yy)
-        elif k == 10:
-            b = scalar(C31) * x * y * z
-        elif k == 11:
-            b = scalar(C32) * y * (scalar(4.0) * zz - xx - yy)
-        elif k == 12:
-            b = scalar(C33) * z * (scalar(2.0) * zz - scalar(3.0) * xx - scalar(3.0) * yy)
-        elif k == 13:
-            b = scalar(C34) * x * (scalar(4.0) * zz - xx - yy)
-        elif k == 14:
-            b = scalar(C35) * z * (xx - yy)
-        elif k == 15:
-            b = scalar(C36) * x * (xx - scalar(3.0) * yy)
+        b = wp.where(k == 0, scalar(SH_C0), scalar(0.0))
+        b = wp.where(k == 1, -scalar(SH_C1) * y, b)
+        b = wp.where(k == 2, scalar(SH_C1) * z, b)
+        b = wp.where(k == 3, -scalar(SH_C1) * x, b)
+        b = wp.where(k == 4, scalar(C20) * x * y, b)
+        b = wp.where(k == 5, scalar(C21) * y * z, b)
+        b = wp.where(k == 6, scalar(C22) * (scalar(2.0) * zz - xx - yy), b)
+        b = wp.where(k == 7, scalar(C23) * x * z, b)
+        b = wp.where(k == 8, scalar(C24) * (xx - yy), b)
+        b = wp.where(k == 9, scalar(C30) * y * (scalar(3.0) * xx - yy), b)
+        b = wp.where(k == 10, scalar(C31) * x * y * z, b)
+        b = wp.where(k == 11, scalar(C32) * y * (scalar(4.0) * zz - xx - yy), b)
+        b = wp.where(k == 12, scalar(C33) * z * (scalar(2.0) * zz - scalar(3.0) * xx - scalar(3.0) * yy), b)
+        b = wp.where(k == 13, scalar(C34) * x * (scalar(4.0) * zz - xx - yy), b)
+        b = wp.where(k == 14, scalar(C35) * z * (xx - yy), b)
+        b = wp.where(k == 15, scalar(C36) * x * (xx - scalar(3.0) * yy), b)
         return b
 
     @wp.kernel(enable_backward=False, module=mod)
