@@ -2,13 +2,14 @@
 # Issue 15, ninth session: the per-warp walk of the blending backward and the pointer-store launches against PREV
 # on one GPU (nvidia-h200).
 # On the device: source /tmp/tlvg-gpu/env.sh && PREV=.gpu/prev13 bash .ci/gpu_round14.sh [tests] [costs] [gap] [raster]
-#   [stylize]
+#   [stylize] [fit]
 #   tests:  the CUDA tests (rasterizer, graphed VGG)
 #   costs:  host microseconds per render operation (.ci/host_costs.py), this code
 #   gap:    the host-only timeline of a beer and a fern forward+backward (.ci/host_gap.py), this code then PREV
 #   raster: `bench raster` on fern, beer and a random 1M against gsplat 1.5.3: this code, PREV, this code again,
 #           each in its own process with gsplat in it
 #   stylize: fern stylized 3000 iterations, this code and PREV alternately, twice each (process wall)
+#   fit:    fern fitted by `reconstruct`, 7000 iterations, this code then PREV (training time, PSNR)
 set -uo pipefail
 [ $# -eq 0 ] && set -- tests gap raster
 source "$(dirname "$0")/gpu_env.sh"
@@ -25,6 +26,14 @@ for job in "$@"; do
         tail -n 3 "$OUT/gap_$name.txt"
       done;;
     raster) raster_ab now prev now2;;
+    fit)
+      for v in "now:$PWD" "prev:$PWD/$PREV"; do
+        IFS=: read -r name root <<< "$v"
+        ( cd "$root" && PYTHONPATH=/tmp/tlvg-gpu/site:$root /usr/bin/time -f "fern fit $name wall %e s" \
+            python3 -m tlvg_warp reconstruct $D/fern_llff --images images_4 --iterations 7000 --out "$R/fit_$name" \
+            --overwrite --quiet > "$R/fit_$name.log" 2>&1 ); tail -n 1 "$R/fit_$name.log"
+        metrics "$R/fit_$name/metrics.json" psnr ssim num_gaussians train_time_s wall_time_s
+      done;;
     stylize) stylize_interleaved wall_time_s train_time_s flow_alignment time_per_phase_s;;
   esac
 done
