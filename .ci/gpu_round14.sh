@@ -2,7 +2,7 @@
 # Issue 15, ninth session: the per-warp walk of the blending backward and the pointer-store launches against PREV
 # on one GPU (nvidia-h200).
 # On the device: source /tmp/tlvg-gpu/env.sh && PREV=.gpu/prev13 bash .ci/gpu_round14.sh [tests] [costs] [gap] [raster]
-#   [stylize] [fit]
+#   [stylize] [fit] [quality]
 #   tests:  the CUDA tests (rasterizer, graphed VGG)
 #   costs:  host microseconds per render operation (.ci/host_costs.py), this code
 #   gap:    the host-only timeline of a beer and a fern forward+backward (.ci/host_gap.py), this code then PREV
@@ -10,6 +10,8 @@
 #           each in its own process with gsplat in it
 #   stylize: fern stylized 3000 iterations, this code and PREV alternately, twice each (process wall)
 #   fit:    fern fitted by `reconstruct`, 7000 iterations, this code then PREV (training time, PSNR)
+#   quality: after stylize, `evaluate` on its four runs (one ruler: flow alignment, style and content distance,
+#           holes), first 10 views
 set -uo pipefail
 [ $# -eq 0 ] && set -- tests gap raster
 source "$(dirname "$0")/gpu_env.sh"
@@ -34,6 +36,10 @@ for job in "$@"; do
             --overwrite --quiet > "$R/fit_$name.log" 2>&1 ); tail -n 1 "$R/fit_$name.log"
         metrics "$R/fit_$name/metrics.json" psnr ssim num_gaussians train_time_s wall_time_s
       done;;
+    quality)
+      timeout 400 python3 -m tlvg_warp evaluate "$R/fern_now" "$R/fern_prev" "$R/fern_now2" "$R/fern_prev2" \
+        --max-views 10 --out "$R/fern_eval" > "$R/fern_eval.log" 2>&1; tail -n 24 "$R/fern_eval.log"
+      cp "$R/fern_eval/evaluation.json" "$OUT/" 2>/dev/null;;
     stylize) stylize_interleaved wall_time_s train_time_s flow_alignment time_per_phase_s;;
   esac
 done
