@@ -3,6 +3,7 @@
 # on one GPU (nvidia-h200).
 # On the device: source /tmp/tlvg-gpu/env.sh && PREV=.gpu/prev13 bash .ci/gpu_round14.sh [tests] [costs] [gap] [raster]
 #   [stylize] [fit] [quality]
+#   [lego]
 #   tests:  the CUDA tests (rasterizer, graphed VGG)
 #   costs:  host microseconds per render operation (.ci/host_costs.py), this code
 #   gap:    the host-only timeline of a beer and a fern forward+backward (.ci/host_gap.py), this code then PREV
@@ -10,6 +11,9 @@
 #           each in its own process with gsplat in it
 #   stylize: fern stylized 3000 iterations, this code and PREV alternately, twice each (process wall)
 #   fit:    fern fitted by `reconstruct`, 7000 iterations, this code then PREV (training time, PSNR)
+#   lego:   lego (Blender, 800x800, all 125 views) fitted by `reconstruct`, 7000 iterations, kept as
+#           /tmp/tlvg-fits/lego.spz (and in $OUT); a later raster job on the same machine benches it too. The data
+#           comes in its own call: `mkdir -p /tmp/tlvg-data && cp -r .gpu/lego/* /tmp/tlvg-data/` (carry .gpu/lego)
 #   quality: after stylize, `evaluate` on its four runs (one ruler: flow alignment, style and content distance,
 #           holes), first 10 views
 set -uo pipefail
@@ -27,7 +31,16 @@ for job in "$@"; do
           "$F/fern.spz:$D/fern_llff:images_4" 2>&1 | grep -v "^Module" > "$OUT/gap_$name.txt"
         tail -n 3 "$OUT/gap_$name.txt"
       done;;
-    raster) raster_ab now prev now2;;
+    raster)
+      [ -f /tmp/tlvg-fits/lego.spz ] && SCENES="$SCENES --scene /tmp/tlvg-fits/lego.spz:$D/lego_blender"
+      raster_ab now prev now2;;
+    lego)
+      /usr/bin/time -f "lego fit wall %e s" python3 -m tlvg_warp reconstruct $D/lego_blender --iterations 7000 \
+        --out "$R/lego" --overwrite --quiet > "$R/lego.log" 2>&1; tail -n 1 "$R/lego.log"
+      metrics "$R/lego/metrics.json" psnr ssim num_gaussians train_time_s wall_time_s
+      mkdir -p /tmp/tlvg-fits && python3 -c "import sys; from tlvg_warp.io.ply import load_ply; \
+from tlvg_warp.io.splat_formats import save_spz; save_spz(load_ply(sys.argv[1]), sys.argv[2])" \
+        "$R/lego/point_cloud.ply" /tmp/tlvg-fits/lego.spz && cp /tmp/tlvg-fits/lego.spz "$OUT/";;
     fit)
       for v in "now:$PWD" "prev:$PWD/$PREV"; do
         IFS=: read -r name root <<< "$v"
