@@ -59,7 +59,7 @@ with w:
     site = [s for k, s in ops._sites.items() if k[0] is K.sh_color][0]
     L = site.launch
     sh_args = [ops.input_ct(gp.means, K.vec3), ops.input_ct(gp.sh, K.vec3), center, 3, ops.ct(colors, K.vec3)]
-    cost("  of which _point (5 args)", lambda: ops._point(site, sh_args))  # the slots now point at sh_args (alive)
+    cost("  of which _set_args (5 args)", lambda: ops._set_args(site, sh_args, True))  # slots now point at sh_args
     def raw():
         rt.core.wp_cuda_launch_kernel(wdev.context, site.hook, L.bounds.size, L.max_blocks, L.block_dim,
                                       int(L.grid_stride), L.cluster_dim, site.smem, L.params_addr,

@@ -192,7 +192,7 @@ class _Site:
     """One recorded ``wp.Launch`` per (kernel, device, block_dim, forward/adjoint) and how to refill it: per
     parameter slot a setter kind (descriptor, ctypes scalar, vector/matrix copied by bytes), found once; the
     launch's dimensions, reset only when they change (``Launch.set_dim`` validates in Python each time). On CUDA
-    the launch's parameter addresses are repointed per call (``_point``) and dangle between calls: only
+    the launch's parameter addresses are repointed per call (``_set_args``) and dangle between calls: only
     ``fast_launch`` may enqueue a site's launch."""
 
     __slots__ = ("launch", "dim", "kinds", "addrs", "sizes", "hook", "smem", "enqueue")
@@ -227,8 +227,8 @@ def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, ad
     per-argument checks and packing and ``Launch``'s per-call bookkeeping (a render's host time bounds its
     forward: the GPU waits on the host for most of it). ``adj_args``: launch the kernel's adjoint with these
     adjoint arguments (None for an array: no gradient). The Launch keeps no tensor alive between renders: on CUDA
-    its parameter addresses point at the caller's descriptors only until the enqueue has copied them (``_point``),
-    on the CPU it holds bare copies (``_fill``); the caller's own references cover the enqueue (the allocator is
+    its parameter addresses point at the caller's descriptors only until the enqueue has copied them, on the CPU
+    it holds bare copies (``_set_args``); the caller's own references cover the enqueue (the allocator is
     stream-ordered)."""
     if dim <= 0:
         return
@@ -250,13 +250,13 @@ def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, ad
         launch.set_dim(dim)
         site.dim, site.enqueue = dim, None
     if device.is_cuda:
-        keep = _point(site, args)  # the slots point at the caller's descriptors until the launch has read them
+        keep = _set_args(site, args, True)  # the slots point at the caller's descriptors until the launch reads them
         enqueue = site.enqueue or _enqueue_of(site, device)
         if enqueue(device.stream.cuda_stream, None):
             launch.launch()  # the failure again, through Warp's own error report
         del keep
     else:
-        _fill(site, args)
+        _set_args(site, args, False)
         launch.launch()
     del args, adj_args
 
@@ -271,12 +271,14 @@ def _enqueue_of(site: _Site, device):
     return site.enqueue
 
 
-def _point(site: _Site, values) -> list:
-    """CUDA: point the launch's parameter addresses at the argument descriptors and values themselves (what
-    ``Launch.set_param_at_index_from_ctype`` does; cuLaunchKernel copies them at the launch), scalars into their
-    slots. A pointer store per argument instead of a copy of its bytes. Returns what must stay alive until the
-    launch (``wp.array`` descriptors made here)."""
-    params, kinds, ptrs, keep = site.launch.params, site.kinds, site.launch.params_addr, []
+def _set_args(site: _Site, values, cuda: bool) -> list:
+    """Scalars into the launch's own slots; descriptors, vectors and matrices: on CUDA the launch's parameter
+    addresses point at them (what ``Launch.set_param_at_index_from_ctype`` does; cuLaunchKernel copies them at
+    the launch: a pointer store instead of a copy of the bytes), on the CPU their bytes are copied into the slots,
+    which the call reads (so the launch keeps no reference: no tensor outlives its render through a descriptor's
+    ``_ref``). Returns what must stay alive until the launch (``wp.array`` descriptors made here)."""
+    params, kinds, keep = site.launch.params, site.kinds, []
+    ptrs, addrs, sizes = site.launch.params_addr, site.addrs, site.sizes
     for i, a in enumerate(values, 1):
         if kinds[i] == _SCALAR:
             params[i].value = a
@@ -284,21 +286,11 @@ def _point(site: _Site, values) -> list:
             if isinstance(a, wp.array):
                 a = a.__ctype__()
                 keep.append(a)
-            ptrs[i] = ctypes.addressof(a)
+            if cuda:
+                ptrs[i] = ctypes.addressof(a)
+            else:
+                ctypes.memmove(addrs[i], ctypes.addressof(a), sizes[i])
     return keep
-
-
-def _fill(site: _Site, values) -> None:
-    """CPU: write the arguments into the launch's own parameter slots, which its call reads (by value: the launch
-    keeps no reference to them, so no tensor outlives its render through a descriptor's ``_ref``)."""
-    params, kinds, addrs, sizes = site.launch.params, site.kinds, site.addrs, site.sizes
-    for i, a in enumerate(values, 1):
-        if kinds[i] == _SCALAR:
-            params[i].value = a
-        else:
-            if isinstance(a, wp.array):
-                a = a.__ctype__()
-            ctypes.memmove(addrs[i], ctypes.addressof(a), sizes[i])
 
 
 _RUNTIME = None
