@@ -170,6 +170,23 @@ def slab_id(slot: int, lane: int, x: int, write: int) -> int: ...
 def warp_any(x: int) -> int: ...
 
 
+# The blending backward's per-batch gradient sums in shared memory: slot s (a staged Gaussian) holds its values
+# k = 0..9 at [s * 11 + k] (an odd stride: the flush, one slot per lane, reads without bank conflicts). op 0 zeroes
+# a value, 1 adds x (a shared atomic: the block's warps add to the same slot), 2 reads it. The CPU never calls it
+# (one lane per warp adds to the global sums directly).
+ACC = """
+#if defined(__CUDA_ARCH__)
+    __shared__ {ctype} acc[256 * 11];
+    {ctype}* e = acc + slot * 11 + k;
+    if (op == 0) {{ *e = {ctype}(0); return {ctype}(0); }}
+    if (op == 1) {{ atomicAdd(e, x); return {ctype}(0); }}
+    return *e;
+#else
+    return x;
+#endif
+"""
+
+
 # the largest x over a warp's lanes (a butterfly of 5 shuffles, every lane gets it); all 32 lanes must be active
 WARP_MAX = """
 #if defined(__CUDA_ARCH__)
@@ -399,6 +416,9 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
     @wp.func_native(WARP_TRANSPOSE_SUM.format(ctype=ctype))
     def warp_transpose_sum(x: vec16) -> scalar: ...
 
+    @wp.func_native(ACC.format(ctype=ctype))
+    def batch_acc(slot: int, k: int, x: scalar, op: int) -> scalar: ...
+
     @wp.func
     def add_grad(k: int, g: int, n: int, value: scalar, grad_kept: wp.array(dtype=scalar),
                  grad_geo: wp.array(dtype=scalar)):
@@ -451,7 +471,8 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
     ):
         # On the GPU all lanes of a block walk the same Gaussians in lockstep (the loop runs from the block's
         # furthest last contributor; lanes past their own skip), so each Gaussian's gradient is summed over
-        # a warp with shuffles and written with one atomic per warp instead of one per pixel.
+        # a warp with shuffles, over the block's warps in shared memory, and written with one atomic per value and
+        # tile instead of one per pixel.
         tid = wp.tid()
         p = pixel_of(tid, tiles_x)
         inside = p[0] < width and p[1] < height
@@ -482,6 +503,7 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
         # the block walks back from its furthest last contributor, a batch of Gaussians at a time (as forward)
         lane = lane_id()
         B = batch_size()
+        many_lanes = wp.where(warp_lanes() == 1, 0, 1)  # the GPU: warps of 32 lanes sum through shared memory
         top = block_max(last)
         # a warp walks only from its own furthest last contributor (its lanes stay in step for the shuffle sums;
         # every lane of the block still helps stage each batch): on fitted beer 8% of the block's walk is past
@@ -490,8 +512,12 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
         for b in range((top - start + B - 1) // B):
             hi = top - b * B
             lo = wp.max(start, hi - B)
-            if hi - 1 - lane >= lo:  # slot i holds list entry hi - 1 - i: the walk order
+            staged = hi - 1 - lane >= lo
+            if staged:  # slot i holds list entry hi - 1 - i: the walk order
                 stage_gaussian(hi - 1 - lane, lane, ids, means2d, conic, opacity, color, depth, want_depth)
+                if many_lanes != 0:
+                    for z in range(10):
+                        batch_acc(lane, z, zero, 0)
             sync_block(0)
             for j in range(wp.max(0, hi - warp_top), hi - lo):  # entry k = hi - 1 - j < warp_top
                 k = hi - 1 - j
@@ -530,12 +556,21 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
                               zero, zero, zero, zero, zero, zero)
                     if warp_lanes() == 1:  # the CPU: the lane is the warp
                         add_grads(g, n, v, want_depth, grad_kept, grad_geo)
-                    else:
+                    else:  # the warp's sums go to the batch's shared sums (global atomics once per tile below)
                         total = warp_transpose_sum(v)  # value lane / 2, in lanes 2k and 2k + 1
                         lane_w = warp_lane()
                         k = lane_w // 2
                         if lane_w % 2 == 0 and k < n_values:
-                            add_grad(k, g, n, total, grad_kept, grad_geo)
-            sync_block(0)  # the next batch overwrites the slab
+                            batch_acc(j, k, total, 1)
+            if many_lanes != 0:
+                sync_block(0)
+                if staged:  # each lane adds its slot's sums to the Gaussian's gradient: one atomic per value and
+                    g = slab_id(0, lane, 0, 0)  # tile instead of one per value and warp
+                    for z in range(10):
+                        if z < n_values:
+                            acc_v = batch_acc(lane, z, zero, 2)
+                            if acc_v != zero:
+                                add_grad(z, g, n, acc_v, grad_kept, grad_geo)
+            sync_block(0)  # the next batch overwrites the slab and its sums
 
     return blend_forward_kernel, blend_backward_kernel
