@@ -178,8 +178,8 @@ ACC = """
 #if defined(__CUDA_ARCH__)
     __shared__ {ctype} acc[256 * 11];
     {ctype}* e = acc + slot * 11 + k;
-    if (op == 0) {{ *e = {ctype}(0); return {ctype}(0); }}
-    if (op == 1) {{ atomicAdd(e, x); return {ctype}(0); }}
+    if (op == 0) {{ *e = ({ctype})0; return ({ctype})0; }}  // C casts: Warp's header defines float(x) as a macro
+    if (op == 1) {{ atomicAdd(e, x); return ({ctype})0; }}
     return *e;
 #else
     return x;
