@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Issue 15, ninth session: the per-warp walk of the blending backward and the pointer-store launches against PREV
-# on one GPU (nvidia-h200).
+# Issue 15, ninth session: this session's rasterizer, launch and training-loop changes against PREV on one GPU
+# (nvidia-h200).
 # On the device: source /tmp/tlvg-gpu/env.sh && PREV=.gpu/prev13 bash .ci/gpu_round14.sh [tests] [costs] [gap] [raster]
 #   [stylize] [fit] [quality]
 #   [lego]
