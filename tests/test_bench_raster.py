@@ -4,6 +4,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from tlvg_warp.eval import bench_raster as br
@@ -98,12 +99,18 @@ def test_scene_without_dataset_gets_orbit_views_and_the_cli_runs(tmp_path, capsy
     assert len(case.cams) == 3 and all(c.width == 40 for c in case.cams)
     with torch.no_grad():
         assert all(br.render(case.g, c, depth=False).alpha.max() > 0.5 for c in case.cams)  # the scene is in view
-    main(["bench", "raster", "--device", "cpu", "--quick", "--sizes", "none", "--garden", "", "--peers", "tlvg_warp",
-          "--repeats", "1", "--scene", str(tmp_path / "s.ply"), "--views", "2", "--out", str(tmp_path / "out")])
+    main(["bench", "raster", "--device", "cpu", "--quick", "--sizes", "300", "--size", "40x30", "--garden", "",
+          "--peers", "tlvg_warp", "--repeats", "1", "--scene", str(tmp_path / "s.ply"), "--views", "2",
+          "--out", str(tmp_path / "out")])
     res = json.loads((tmp_path / "out" / "bench_raster.json").read_text())
-    (row,) = res["rows"]
+    random_row, row = res["rows"]
+    assert random_row["n"] == 300 and random_row["size"] == "40x30" == row["size"]  # --size reaches both cases
     assert row["views"] == 2 and row["lists"]["tile_max"] > 0 and not res["ours_depth"]
     assert "orbit 2 views" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        main(["bench", "raster", "--size", "40x"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "--size" in err[0] and "'40x'" in err[0]
 
 
 def test_kernel_names_map_to_stages():

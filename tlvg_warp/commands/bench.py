@@ -10,6 +10,17 @@ from ..fileio import write_json, write_text
 DEFAULT_DATA = Path(os.environ.get("TLVG_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 
 
+def _size(text: str) -> tuple[int, int]:
+    """'WxH' as (width, height); argparse turns the ValueError into a one-line usage error (exit code 2)."""
+    w, sep, h = text.lower().partition("x")
+    if not (sep and w.isdigit() and h.isdigit() and int(w) > 0 and int(h) > 0):
+        raise ValueError(text)
+    return int(w), int(h)
+
+
+_size.__name__ = "size (WxH, e.g. 3840x2160)"  # argparse names the type in its error
+
+
 def add_arguments(p):
     p.add_argument("what", nargs="?", default="sweep", choices=["raster", "sweep"],
                    help="sweep (the default): speed against quality of stylization; raster: the rasterizer against gsplat/gswarp")
@@ -19,6 +30,9 @@ def add_arguments(p):
     p.add_argument("--repeats", type=int, default=20, help="timed repetitions, the median is reported (default: %(default)s)")
     p.add_argument("--sizes", default=None, help="raster: comma-separated Gaussian counts of the random scenes "
                    "(default 1000000,3000000; 'none' for none)")
+    p.add_argument("--size", type=_size, default=None, metavar="WxH",
+                   help="raster: image size of the random scenes and of orbit views, e.g. 3840x2160 for a 4K stress "
+                        "case (default 1008x756)")
     p.add_argument("--log-scale", type=float, default=-4.0, help="raster: mean log-scale of the random Gaussians (default: %(default)s)")
     p.add_argument("--sh-degree", type=int, default=3, help="raster: SH degree of the random Gaussians (default: %(default)s)")
     p.add_argument("--peers", default="tlvg_warp,gsplat,gswarp", help="raster: which rasterizers to time (default: %(default)s)")
@@ -50,7 +64,7 @@ def run(args) -> int:
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     sizes_arg = args.sizes or ("2000,20000" if args.quick else "1000000,3000000")
     sizes = [] if sizes_arg.strip().lower() in ("none", "0", "") else [int(s) for s in sizes_arg.split(",")]
-    width, height = (252, 189) if args.quick else (1008, 756)
+    width, height = args.size or ((252, 189) if args.quick else (1008, 756))
     repeats = 3 if args.quick else args.repeats
     cam = br.bench_camera(width, height)
     cases = [br.Case(f"random {n:,} ls{args.log_scale:g}", br.random_scene(n, args.log_scale, args.sh_degree, device),
