@@ -9,7 +9,7 @@
 set -uo pipefail
 [ $# -eq 0 ] && set -- many 4k huge
 OUT=${OUT:-/tmp/tlvg-out}; R=/tmp/tlvg-runs; mkdir -p "$OUT" "$R"
-export PYTHONUNBUFFERED=1
+export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16  # gsplat builds its extension on first import
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 bench() {  # name, then `bench raster` arguments
   local name=$1; shift
