@@ -51,14 +51,14 @@ colors = torch.empty(N, 3, device=dev)
 center = ops.camera_center(K, vals)
 wdev = ops.wdevice(dev)
 def launch_sh():
-    ops.fast_launch(K.sh_color, N, [ops.input_ct(gp.means, K.vec3), ops.input_ct(gp.sh, K.vec3), center, 3,
-                                    ops.ct(colors, K.vec3)], wdev)
+    ops.fast_launch(K.sh_color, 3 * N, [ops.input_ct(gp.means, K.vec3), ops.input_ct(gp.sh, None), center, 16,
+                                        ops.ct(colors.view(-1))], wdev)
 with w:
     cost("fast_launch sh_color (5 args, inside warp_on)", launch_sh)
     rt = ops._runtime()
     site = [s for k, s in ops._sites.items() if k[0] is K.sh_color][0]
     L = site.launch
-    sh_args = [ops.input_ct(gp.means, K.vec3), ops.input_ct(gp.sh, K.vec3), center, 3, ops.ct(colors, K.vec3)]
+    sh_args = [ops.input_ct(gp.means, K.vec3), ops.input_ct(gp.sh, None), center, 16, ops.ct(colors.view(-1))]
     cost("  of which _set_args (5 args)", lambda: ops._set_args(site, sh_args, True))  # slots now point at sh_args
     def raw():
         rt.core.wp_cuda_launch_kernel(wdev.context, site.hook, L.bounds.size, L.max_blocks, L.block_dim,

@@ -410,7 +410,7 @@ def capture_binning():
         _capture = prev
 
 
-_inputs: dict = {}  # id(tensor) -> (weakref, layout key, descriptor): the inputs of recent renders
+_inputs: dict = {}  # (id(tensor), vector dtype?) -> (weakref, layout key, descriptor): the inputs of recent renders
 
 
 def input_ct(t: torch.Tensor, dtype):
@@ -420,12 +420,12 @@ def input_ct(t: torch.Tensor, dtype):
     if t.numel() and t.stride()[-1] != 1:  # the vector dimension must be innermost and contiguous
         return ct(t.detach().contiguous(), dtype)
     key = (t.data_ptr(), t.shape, t.stride(), t.dtype)
-    hit = _inputs.get(id(t))
+    slot = (id(t), hasattr(dtype, "_shape_"))  # a tensor read as vectors and as scalars has a descriptor for each
+    hit = _inputs.get(slot)
     if hit is not None and hit[0]() is t and hit[1] == key:
         return hit[2]
     a = ct(t.detach(), dtype)
-    tid = id(t)
-    _inputs[tid] = (weakref.ref(t, lambda _r: _inputs.pop(tid, None)), key, a)
+    _inputs[slot] = (weakref.ref(t, lambda _r: _inputs.pop(slot, None)), key, a)
     return a
 
 
@@ -701,8 +701,8 @@ class ShadeFn(torch.autograd.Function):
         colors = torch.empty(n, 3, dtype=means.dtype, device=device)
         center = camera_center(K, cam_values)
         with warp_on(device) as wdev:
-            fast_launch(K.sh_color, n, [input_ct(means, K.vec3), input_ct(sh, K.vec3), center, degree,
-                                        ct(colors, K.vec3)], wdev)
+            fast_launch(K.sh_color, 3 * n, [input_ct(means, K.vec3), input_ct(sh, None), center, (degree + 1) ** 2,
+                                            ct(colors.view(-1))], wdev)
         ctx.save_for_backward(means, sh)
         ctx.center, ctx.degree = center, degree
         return colors
