@@ -5,18 +5,21 @@
 #   many: 3M, 10M and 20M random Gaussians at 1008x756 (log-scale -4, SH degree 3)
 #   4k:   1M and 3M random Gaussians at 3840x2160
 #   huge: huge footprints at 1008x756: 1M at log-scale -2.5 (~70 px radius), 100k at -1.5 (~190 px)
-# Prints each process's table rows; the JSON and logs come back in $OUT/stress_logs.tgz.
+#   ROOT=DIR TAG=_x: run the code in DIR (e.g. an earlier code's git archive under .gpu/) with this script, its
+#   logs named stress_x_*
+# Prints each process's table rows; the JSON and logs come back in $OUT/stress_logs$TAG.tgz.
 set -uo pipefail
 [ $# -eq 0 ] && set -- many 4k huge
-OUT=${OUT:-/tmp/tlvg-out}; R=/tmp/tlvg-runs; mkdir -p "$OUT" "$R"
+OUT=${OUT:-/tmp/tlvg-out}; R=/tmp/tlvg-runs; mkdir -p "$OUT" "$R"; ROOT=${ROOT:-$PWD}; TAG=${TAG:-}
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16  # gsplat builds its extension on first import
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 bench() {  # name, then `bench raster` arguments
-  local name=$1; shift
-  echo "== $name: $*"
-  /usr/bin/time -f "process wall %e s" timeout 280 python3 -m tlvg_warp bench raster --garden "" \
-    --peers tlvg_warp,gsplat --repeats 5 --profile-reps 1 --out "$R/stress_$name" "$@" > "$R/stress_$name.log" 2>&1
-  grep "^|" "$R/stress_$name.log" | tail -n 8; grep "process wall\|Error\|error" "$R/stress_$name.log" | tail -n 3
+  local name=stress${TAG}_$1; shift
+  echo "== $name ($ROOT): $*"
+  ( cd "$ROOT" && PYTHONPATH=/tmp/tlvg-gpu/site:$ROOT /usr/bin/time -f "process wall %e s" timeout 280 python3 -m \
+    tlvg_warp bench raster --garden "" --peers tlvg_warp,gsplat --repeats 5 --profile-reps 1 --out "$R/$name" "$@" \
+    > "$R/$name.log" 2>&1 )
+  grep "^|" "$R/$name.log" | tail -n 8; grep "process wall\|Error\|error" "$R/$name.log" | tail -n 3
 }
 for job in "$@"; do
   case "$job" in
@@ -25,4 +28,4 @@ for job in "$@"; do
     huge) bench huge25 --sizes 1000000 --log-scale -2.5; bench huge15 --sizes 100000 --log-scale -1.5;;
   esac
 done
-tar -czf "$OUT/stress_logs.tgz" -C "$R" $(cd "$R" && ls -d stress_* 2>/dev/null)
+tar -czf "$OUT/stress_logs$TAG.tgz" -C "$R" $(cd "$R" && ls -d stress${TAG}_* 2>/dev/null)
