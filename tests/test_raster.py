@@ -243,6 +243,22 @@ def test_screen_space_gradient_is_mean2d_gradient():
     assert out.means2d.grad[out.radii > 0].abs().sum() > 0
 
 
+def test_input_descriptors_follow_the_requested_layout():
+    """ops.input_ct keeps one descriptor per tensor and layout: the shading forward reads the SH coefficients as
+    [N, K, 3] scalars, its backward as [N, K] vec3s. One entry per tensor would hand the later reader the first
+    one's layout (a [N, K] vec3 descriptor read as [N, K, 3] has channel stride 0: every channel reads red)."""
+    from tlvg_warp import ops
+
+    K = ops.kernels_for(torch.float32)
+    for first, second in ((K.vec3, None), (None, K.vec3)):
+        sh = torch.randn(5, 4, 3)
+        got = {id(first): ops.input_ct(sh, first), id(second): ops.input_ct(sh, second)}
+        vec, flat = got[id(K.vec3)], got[id(None)]
+        assert (vec.ndim, tuple(vec.shape)[:2], tuple(vec.strides)[:2]) == (2, (5, 4), (48, 12))
+        assert (flat.ndim, tuple(flat.shape)[:3], tuple(flat.strides)[:3]) == (3, (5, 4, 3), (48, 12, 4))
+        assert ops.input_ct(sh, first) is got[id(first)]  # both stay cached
+
+
 def test_shade_op_matches_its_torch_twin():
     """The SH stage is its own autograd op (ops.ShadeFn): colours and both gradients against reference.shade_reference
     in float64, at the stored degree and a lower one (the higher coefficients get exactly zero). Gaussians whose
