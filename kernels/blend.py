@@ -554,7 +554,7 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
                     g = slab_id(0, j, 0, 0)
                     v = vec16(d_m[0], d_m[1], d_q[0], d_q[1], d_q[2], d_o, d_c[0], d_c[1], d_c[2], d_z,
                               zero, zero, zero, zero, zero, zero)
-                    if warp_lanes() == 1:  # the CPU: the lane is the warp
+                    if many_lanes == 0:  # the CPU: the lane is the warp
                         add_grads(g, n, v, want_depth, grad_kept, grad_geo)
                     else:  # the warp's sums go to the batch's shared sums (global atomics once per tile below)
                         total = warp_transpose_sum(v)  # value lane / 2, in lanes 2k and 2k + 1
