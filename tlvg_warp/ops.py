@@ -26,6 +26,9 @@ TILE = 16
 _initialized = False
 
 
+NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"  # what Warp's C library prints without a GPU driver
+
+
 def init_warp() -> None:
     global _initialized
     if not _initialized:
@@ -33,8 +36,54 @@ def init_warp() -> None:
             wp.config.quiet = True  # Warp before 1.19
             if hasattr(wp, "LOG_WARNING"):
                 wp.config.log_level = wp.LOG_WARNING  # Warp 1.19 replaced `quiet` by a log level
+            if not cuda_driver_present():
+                # a machine without a GPU: Warp's native library says so on stderr whatever ``quiet`` is; that
+                # line is dropped (anything else it writes is passed on)
+                without_lines(wp.init, NO_DRIVER)
+                _initialized = True
+                return
         wp.init()
         _initialized = True
+
+
+def cuda_driver_present() -> bool:
+    """Whether the CUDA driver library loads (what Warp's ``init_cuda_driver`` tries: libcuda.so, libcuda.so.1,
+    nvcuda.dll on Windows)."""
+    names = ("nvcuda.dll",) if os.name == "nt" else ("libcuda.so", "libcuda.so.1")
+    for name in names:
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+def without_lines(fn, drop: str):
+    """``fn()`` with what it writes to file descriptor 2 (C code included) captured, and passed on to stderr
+    without the lines that contain ``drop``."""
+    import sys
+    import tempfile
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no file descriptor 2 to redirect: run as it is
+        return fn()
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            return fn()
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            kept = [ln for ln in tmp.read().decode(errors="replace").splitlines(keepends=True) if drop not in ln]
+            if kept:
+                sys.stderr.write("".join(kept))
+                sys.stderr.flush()
 
 
 def kernels_for(dtype: torch.dtype):
