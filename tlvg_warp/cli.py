@@ -27,6 +27,8 @@ COMMANDS = {
              "rasterizer alone",
     "stability": "drive the pipeline into the places where stylization breaks",
     "study": "configs x scenes x paintings: resumable runs, Table 1 per scene, ablations, speed-quality chart",
+    "rate": "the user study: raters compare pairs of runs blind in the browser (flow, materiality, aesthetics); "
+            "--report gives the win rates",
     "view": "the scene in the browser (viser): a run (stylized / un-stylized, training cameras) or a scene file",
 }
 
