@@ -6,6 +6,7 @@ changes; ``base: other.yaml`` (relative to the file) is loaded first, so an abla
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -24,6 +25,8 @@ class StyleLoss:
     style_loss: str = "fast"  # fast (FAST, reference code) | nnfm (ARF) | gram
     luminance_only: bool = True  # style loss on Y = 0.299R+0.587G+0.114B for render and painting (paper §3.3)
     w_style: float = 2.0  # style loss weight (reference code)
+    w_style_color: float = 0.0  # a second style term on RGB features: the painting's colour texture (ours; 0: off)
+    strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     w_depth: float = 0.01  # MSE of inverse depth vs the un-stylized scene (reference code)
     w_tv: float = 0.02  # total variation of the render, horizontal + vertical (reference code, corrected)
@@ -40,7 +43,8 @@ class StyleLoss:
 
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
-             **{w: (">=", 0) for w in ("w_style", "w_content", "w_depth", "w_tv", "w_opacity_reg", "w_scale_reg",
+             "strength": (">=", 0),
+             **{w: (">=", 0) for w in ("w_style", "w_style_color", "w_content", "w_depth", "w_tv", "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}
 
     def lab_weight(self, k: float, n: int) -> float:
@@ -89,7 +93,11 @@ class StylizeConfig:
     palette_init: bool = True  # pre-process starts from the Gaussians recolored by the photos' palette map (ours)
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
     style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
-    style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3)
+    style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3); 0: to the height at
+    # which VGG sees a view (view height x vgg_scale), i.e. the painting spans the view and its strokes keep their
+    # size relative to the picture
+    stroke_scale: float = 1.0  # the painting's working size x this: 2 = strokes twice as large in the views
+    keep_colors: bool = False  # keep the scene's own colours: no palette transfer, style on luminance only
     vgg_weights: str | None = None  # torchvision vgg16 state dict path, "random", or None (env / torch hub cache)
     vgg_scale: float = 0.5  # the render is resized by this before VGG (SPEC §3: x0.5)
     vgg_channels_last: bool = True  # on CUDA: VGG in NHWC (cuDNN's layout; float32 arithmetic, gradients within 3e-4; issue 15)
@@ -109,7 +117,8 @@ class StylizeConfig:
     lr: LearningRates = field(default_factory=LearningRates)  # learning rates, one Adam across the phases (3DGS)
     density: DensityConfig = field(default_factory=_density)  # adaptive density control, per phase step
 
-    RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 1),
+    RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
+             "stroke_scale": (">", 0),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
              "orbit_frames": (">=", 0), "orbit_fps": (">=", 1), "comparison_views": (">=", 0)}
@@ -132,6 +141,11 @@ class StylizeConfig:
         post = int(round(self.iterations * p[2] / tot))
         return pre, self.iterations - pre - post, post
 
+    def style_work_height(self, view_height: int) -> int:
+        """The painting's working height for views ``view_height`` pixels high (style_height, stroke_scale)."""
+        base = self.style_height or view_height * self.vgg_scale
+        return max(16, int(round(base * self.stroke_scale)))
+
     def check(self, prefix: str = "") -> None:
         if len(self.phases) != 3 or any(not (x >= 0 and math.isfinite(x)) for x in self.phases) or sum(self.phases) <= 0:
             raise ConfigError(prefix + "phases", f"must be 3 non-negative numbers (pre, stylize, post), got {self.phases}")
@@ -144,7 +158,10 @@ class StylizeConfig:
                                                          f"{sorted(unknown)}")
 
     def validate(self) -> "StylizeConfig":
-        return config_io.validate(self)
+        cfg = config_io.validate(self)
+        if cfg.keep_colors:  # the scene's colours: the style may only shape luminance
+            cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, luminance_only=True, w_style_color=0.0))
+        return cfg
 
 
 # --- loading -------------------------------------------------------------------------------------------------

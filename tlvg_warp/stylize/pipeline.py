@@ -53,11 +53,11 @@ from ..types import Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "content", "depth", "tv", "opacity_reg", "scale_reg", "lab", "align", "aniso")
+STYLIZE_TERMS = ("style", "style_color", "content", "depth", "tv", "opacity_reg", "scale_reg", "lab", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
 POST_TRAINABLE = ("quats", "sh_dc", "sh_rest")  # the post-process fits colors and rotations only
-RUN_FILES = ("checkpoint.pt", "stylized.ply", "metrics.json", "log.jsonl", "config.yaml")
+RUN_FILES = ("checkpoint.pt", "stylized.ply", "metrics.json", "log.jsonl", "config.yaml", "sources.json")
 
 
 class StylizeDiverged(Diverged):
@@ -132,6 +132,7 @@ class Targets:
     style_work: torch.Tensor  # the painting at its working size [hs,ws,3] (CPU)
     style_field: tuple  # (θ, coherence, doubled) numpy at the working size
     style_feats: torch.Tensor  # [768, Ns] the style term's target features
+    style_feats_rgb: torch.Tensor | None  # [768, Ns] RGB features of the painting (the colour style term), or None
     match_feats: torch.Tensor  # [768, Ns] luminance features: the field match
     style_doubled_cells: torch.Tensor  # the painting's doubled-angle field at its feature cells
     recolored: list  # per view [H,W,3]: the photos in the painting's palette (pre-process and Lab targets)
@@ -148,14 +149,21 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     from ..renderer import render
 
     style_np = inp.style.detach().cpu().numpy().astype(np.float32)
-    style_work = torch.from_numpy(resize_style(style_np, cfg.style_height)).contiguous()  # [hs,ws,3]
+    view_h = int(np.median([c.height for c in inp.cameras]))
+    style_work = torch.from_numpy(resize_style(style_np, cfg.style_work_height(view_h))).contiguous()  # [hs,ws,3]
     with torch.no_grad():
         sf_lum = vgg(luminance(style_work.to(device)), scale=1.0)  # [1,768,fh,fw]: the field match
-        sf = sf_lum if cfg.loss.luminance_only else vgg(style_work.to(device), scale=1.0)
+        need_rgb = not cfg.loss.luminance_only or cfg.loss.w_style_color > 0
+        sf_rgb = vgg(style_work.to(device), scale=1.0) if need_rgb else None
+        sf = sf_lum if cfg.loss.luminance_only else sf_rgb
     s_theta, s_coh, s_doubled = stroke_field(style_work.numpy())
     cells = torch.from_numpy(field_at_cells(s_doubled, tuple(sf_lum.shape[-2:]))).to(device)
     photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
-    recolored, pal_m, pal_t = color_transfer(photos, style_work.to(device))
+    if cfg.keep_colors:  # the scene's own colours: the photos are the pre-process and Lab targets as they are
+        recolored = photos
+        pal_m, pal_t = torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
+    else:
+        recolored, pal_m, pal_t = color_transfer(photos, style_work.to(device))
     g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
     inv_depth, photo_feats, originals = [], [], []
     with torch.no_grad():
@@ -165,6 +173,7 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
             originals.append(ro.color.clamp(0, 1).cpu())
             photo_feats.append(flatten_feats(vgg(photo, scale=cfg.vgg_scale)))  # content: RGB
     return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
+                   None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
                    flatten_feats(sf_lum).contiguous(), cells, recolored, [lab_chroma_stats(r) for r in recolored],
                    (pal_m, pal_t), photo_feats, inv_depth, originals)
 
@@ -184,14 +193,18 @@ class Stylize(Phase):
         self.cfg, self.tg, self.vgg, w = cfg, tg, vgg, cfg.loss
         self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss, refresh_every=w.fast_refresh,
                                   cache=w.fast_cache)  # the painting's side computed once
+        self.color_fn = None if tg.style_feats_rgb is None or w.w_style_color == 0 else StyleLoss(
+            tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         self.fields = None  # per view [H,W,3] on the device
-        self.const = {"style": w.w_style, "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
+        self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
+                      "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
                       "aniso": w.w_aniso}
         # a term weighted 0 over the whole phase is not computed at all
         self.on = {t: v != 0 for t, v in self.const.items()}
         self.on["lab"] = w.w_lab_start != 0 or w.w_lab_end != 0
-        self.vgg_on = self.on["style"] or self.on["content"]
+        self.on["style_color"] = self.color_fn is not None and self.const["style_color"] != 0
+        self.vgg_on = self.on["style"] or self.on["content"] or self.on["style_color"]
         self.render_weights = self.on["align"] or self.on["aniso"]
 
     def weights(self, k: int) -> dict:
@@ -239,6 +252,8 @@ class Stylize(Phase):
             t.mark("vgg")
             if on["style"]:
                 terms["style"] = self.style_fn(a, key=vi)  # the key: a view's match may be reused (fast_refresh)
+            if on["style_color"]:
+                terms["style_color"] = self.color_fn(a_rgb, key=vi)
             t.mark("style")
             if on["content"]:
                 terms["content"] = content_loss(a_rgb, tg.photo_feats[vi])
@@ -267,13 +282,16 @@ class Stylize(Phase):
 
     def state_dict(self) -> dict:
         return {"fields": [f.cpu() for f in self.fields] if self.fields is not None else None,
-                "style_cache": self.style_fn.state_dict()}  # the reused FAST matches (loss.fast_refresh > 1)
+                "style_cache": self.style_fn.state_dict(),  # the reused FAST matches (loss.fast_refresh > 1)
+                "color_cache": self.color_fn.state_dict() if self.color_fn is not None else None}
 
     def load_state_dict(self, sd: dict, device=None) -> None:
         if sd.get("fields") is not None:
             self.fields = [f.to(device) for f in sd["fields"]]
         if sd.get("style_cache") is not None:
             self.style_fn.load_state_dict(sd["style_cache"], device)
+        if sd.get("color_cache") is not None and self.color_fn is not None:
+            self.color_fn.load_state_dict(sd["color_cache"], device)
 
 
 # --- the run ---------------------------------------------------------------------------------------------------
@@ -321,7 +339,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
     n_pre, n_sty, n_post = cfg.phase_steps()
     g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
     g_work = g_in if cfg.keep_sh else g_in.with_sh_degree(0)
-    if cfg.palette_init:  # the same colour map the pre-process targets went through, applied in closed form
+    if cfg.palette_init and not cfg.keep_colors:  # the same colour map the pre-process targets went through, applied in closed form
         g_work = dataclasses.replace(g_work, sh=recolor_sh(g_work.sh, *tg.palette))
     extent = scene_extent(cams)
     params = GaussianParams(g_work, g_work.sh_degree)
@@ -334,7 +352,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
         with torch.no_grad():
             g = run.params.gaussians()
             rs = [render(g, cam, bg).color.clamp(0, 1) for cam in cams]
-        return color_transfer(rs, tg.style_work.to(device))[0]
+        return rs if cfg.keep_colors else color_transfer(rs, tg.style_work.to(device))[0]
 
     dens = set(cfg.density.phases)
     hook = [(tangential_hook(cfg.geometry.tangential_lambda), ("means",))] if cfg.geometry.tangential_lambda > 0 else []

@@ -1,0 +1,156 @@
+"""Stylize one scene with several config variants and paintings in ONE process, then score them with `evaluate`
+beside an un-stylized anchor run, print one table per painting and write a picture montage.
+
+    python benchmarks/tune.py --scene fern.spz --data fern_llff --styles a.jpg,b.jpg --out OUT \
+        --variant tlvg: --variant abcgs:config=configs/abcgs.yaml --variant big:stroke_scale=2;loss.w_tv=0
+
+A variant is ``name:key=value;key=value`` (``config=PATH`` picks the config file, default configs/tlvg.yaml;
+other keys are `stylize --set` overrides). Finished runs (metrics.json present) are skipped, so a call cut
+short is continued by the same command. ``--phase run`` only stylizes, ``--phase eval`` only scores.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tlvg_warp import cli  # noqa: E402
+
+KEYS = ("flow_alignment", "stroke_stats", "gram", "nnfm", "content", "mv_error_k1", "detail", "holes_1x",
+        "holes_2x", "chroma_noise", "gaussians", "wall_time_s")
+
+
+def parse_variant(text: str):
+    name, _, rest = text.partition(":")
+    cfg, sets = str(ROOT / "configs" / "tlvg.yaml"), []
+    for kv in filter(None, (x.strip() for x in rest.split(";"))):
+        k, _, v = kv.partition("=")
+        if k == "config":
+            cfg = str(ROOT / v) if not Path(v).is_absolute() else v
+        else:
+            sets.append(f"{k}={v}")
+    return name, cfg, sets
+
+
+def stylize(args, variants, styles):
+    for style in styles:
+        for name, cfg, sets in variants:
+            out = Path(args.out) / Path(style).stem / name
+            if (out / "metrics.json").is_file():
+                continue
+            argv = ["stylize", "--scene", args.scene, "--data", args.data, "--style", style, "--config", cfg,
+                    "--out", str(out), "--overwrite", "--quiet", *sum((["--set", s] for s in sets), [])]
+            if args.iterations:
+                argv += ["--iterations", str(args.iterations)]
+            t = time.perf_counter()
+            rc = cli.main(argv)
+            print(f"run {out}: rc {rc}, {time.perf_counter() - t:.1f} s", flush=True)
+
+
+def anchor_run(src: Path, scene: str, dst: Path) -> Path:
+    """A run folder whose 'stylized' scene is the un-stylized input (SH degree 0, as the runs write theirs)."""
+    from tlvg_warp.io.ply import load_ply, save_ply
+
+    if (dst / "stylized.ply").is_file():
+        return dst
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in ("cameras.json", "style.png", "config.yaml", "metrics.json"):
+        shutil.copy(src / f, dst / f)
+    shutil.copytree(src / "photos", dst / "photos", dirs_exist_ok=True)
+    save_ply(load_ply(scene).with_sh_degree(0), dst / "stylized.ply")
+    return dst
+
+
+def evaluate(args, variants, styles):
+    for style in styles:
+        d = Path(args.out) / Path(style).stem
+        runs = [d / n for n, _, _ in variants if (d / n / "metrics.json").is_file()]
+        if not runs:
+            continue
+        runs.insert(0, anchor_run(runs[0], args.scene, d / "unstylized"))
+        t = time.perf_counter()
+        cli.main(["evaluate", *map(str, runs), "--scene", args.scene, "--out", str(d / "evaluation")])
+        print(f"evaluate {d.name}: {time.perf_counter() - t:.1f} s", flush=True)
+        table(d / "evaluation" / "evaluation.json")
+
+
+def _mean(v):
+    if isinstance(v, dict):
+        v = v.get("mean")
+    return v
+
+
+def table(path: Path):
+    res = json.loads(path.read_text())
+    keys = [k for k in KEYS if any(k in r["summary"] for r in res["runs"])]
+    print(f"\n{path.parent.parent.name}\n| run | " + " | ".join(keys) + " |")
+    for r in res["runs"]:
+        cells = []
+        for k in keys:
+            v = _mean(r["summary"].get(k))
+            cells.append("-" if v is None else f"{v:.4g}")
+        print(f"| {r['name']} | " + " | ".join(cells) + " |")
+
+
+def montage(args, variants, styles, view: int = 0, width: int = 504):
+    import cv2
+
+    rows = []
+    for style in styles:
+        d = Path(args.out) / Path(style).stem
+        tiles = []
+        names = ["unstylized"] + [n for n, _, _ in variants]
+        for n in names:
+            folder = d / n / ("renders" if n != "unstylized" else "photos")
+            files = sorted(folder.glob("*.png")) if folder.is_dir() else []
+            if not files:
+                continue
+            im = cv2.imread(str(files[min(view, len(files) - 1)]))
+            im = cv2.resize(im, (width, round(im.shape[0] * width / im.shape[1])), interpolation=cv2.INTER_AREA)
+            cv2.putText(im, n, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 255), 2)
+            tiles.append(im)
+        p = cv2.imread(str(style))
+        if p is not None and tiles:
+            h = tiles[0].shape[0]
+            tiles.append(cv2.resize(p, (round(p.shape[1] * h / p.shape[0]), h), interpolation=cv2.INTER_AREA))
+        if tiles:
+            h = tiles[0].shape[0]
+            rows.append(np.concatenate([cv2.resize(t, (t.shape[1], h)) for t in tiles], 1))
+    if rows:
+        w = max(r.shape[1] for r in rows)
+        rows = [np.pad(r, ((0, 0), (0, w - r.shape[1]), (0, 0))) for r in rows]
+        cv2.imwrite(str(Path(args.montage)), np.concatenate(rows, 0), [cv2.IMWRITE_JPEG_QUALITY, 85])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--styles", required=True, help="comma-separated painting paths")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--variant", action="append", default=[], help="name:key=value;key=value")
+    ap.add_argument("--iterations", type=int, default=0, help="override every variant's iterations (0: keep)")
+    ap.add_argument("--phase", choices=["all", "run", "eval"], default="all")
+    ap.add_argument("--montage", default=None, help="write a JPEG montage of view --view of every run here")
+    ap.add_argument("--view", type=int, default=0)
+    args = ap.parse_args()
+    variants = [parse_variant(v) for v in args.variant]
+    styles = [s for s in args.styles.split(",") if s]
+    if args.phase in ("all", "run"):
+        stylize(args, variants, styles)
+    if args.phase in ("all", "eval"):
+        evaluate(args, variants, styles)
+    if args.montage:
+        montage(args, variants, styles, args.view)
+
+
+if __name__ == "__main__":
+    main()
