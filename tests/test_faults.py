@@ -143,7 +143,7 @@ def test_full_disk_while_saving_keeps_previous_checkpoint(valid, reference, tmp_
         capsys.readouterr()
         rc = main(["stylize", "--resume", str(out), "--iterations", str(ITERS + 4), "--quiet"])
         err = capsys.readouterr().err.strip().splitlines()
-        assert rc == 1 and len(err) == 1, err
+        assert rc == 2 and len(err) == 1, err
         assert "no space left on device" in err[0] and str(out) in err[0] and "Traceback" not in err[0]
         assert (out / "checkpoint.pt").read_bytes() == before  # the previous checkpoint is intact
         assert not _temps(out) and not (out / ".lock").exists()

@@ -1,6 +1,7 @@
 """`python -m tlvg_warp <command>`: each command lives in tlvg_warp/commands/<name>.py with
 ``add_arguments(parser)`` and ``run(args) -> int``. Every expected failure ends in one line on stderr:
-bad input (InputError, a bad flag) exits 2, an output that could not be written (WriteError) exits 1."""
+bad input (InputError, a bad flag) and an output that could not be written (WriteError: a full disk, a read-only
+folder) exit 2."""
 from __future__ import annotations
 
 import argparse
@@ -71,7 +72,7 @@ def main(argv=None) -> int:
         return 2
     except WriteError as e:
         print(f"error: {one_line(e)}", file=sys.stderr)
-        return 1
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -1,5 +1,5 @@
 """The two failures the CLI reports in one line: bad user input (exit 2) and a file that could not be written
-(disk full, no permission: exit 1). Anything else is a bug and keeps its traceback."""
+(disk full, no permission: exit 2 too). Anything else is a bug and keeps its traceback."""
 
 
 class InputError(ValueError):

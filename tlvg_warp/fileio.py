@@ -79,6 +79,45 @@ def write_bytes(path, data: bytes) -> None:
         tmp.write_bytes(data)
 
 
+class _RecordingFile:
+    """A file object that remembers the OSError its writes raised: torch's zip writer turns that error into a
+    RuntimeError ("unexpected pos") which no longer says the disk was full."""
+
+    def __init__(self, f):
+        self.f, self.error = f, None
+
+    def write(self, b):
+        try:
+            return self.f.write(b)
+        except OSError as e:
+            self.error = e
+            raise
+
+    def flush(self):
+        try:
+            self.f.flush()
+        except OSError as e:
+            self.error = e
+            raise
+
+
+def save_torch(path, obj) -> None:
+    """torch.save to ``path`` through :func:`atomic_path`: a full disk is a one-line WriteError (whether the OS
+    reports it during a write or when the file is closed), the previous file is kept, no temporary file stays."""
+    import torch
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        rec = _RecordingFile(f)
+        try:
+            torch.save(obj, rec)
+        except RuntimeError:
+            if rec.error is not None:
+                raise rec.error from None
+            raise
+        rec.flush()
+        os.fsync(f.fileno())
+
+
 def write_text(path, text: str) -> None:
     write_bytes(path, text.encode())
 

@@ -6,14 +6,17 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import pickletools
 import signal
 import threading
 import time
+import warnings
+import zipfile
 from pathlib import Path
 
 import torch
 
-from .errors import InputError
+from .errors import InputError, WriteError
 from .fileio import atomic_path, is_temp
 
 LOCK = ".lock"  # held (flock) by the run writing the folder; the kernel releases it when that process dies
@@ -66,8 +69,9 @@ def run_folder(out: Path, overwrite: bool, resume: bool, run_files=()):
     """Claim ``out`` for one run of a command: create it, take its lock (a second run on the same folder is refused
     with one line; the lock of a killed run is free again, as flock locks die with their process), delete the
     temporary files a killed run left, refuse a folder holding another run (check_out_dir). If the command then
-    stops on bad input (InputError), everything it created in ``out`` is removed again (the folder too when it
-    made it), so the corrected command can run at once. Files that were there before are left alone."""
+    stops on bad input (InputError), or on an output it could not write (WriteError) before it had a checkpoint,
+    everything it created in ``out`` is removed again (the folder too when it made it), so the corrected command
+    can run at once. Files that were there before are left alone."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a folder", out)
@@ -84,7 +88,9 @@ def run_folder(out: Path, overwrite: bool, resume: bool, run_files=()):
         before = set(out.rglob("*"))
         check_out_dir(out, overwrite, resume, run_files)
         yield out
-    except InputError:
+    except (InputError, WriteError) as e:
+        if isinstance(e, WriteError) and (out / "checkpoint.pt").is_file():
+            raise  # a full disk after a checkpoint: the run is resumable, keep what it wrote
         for p in sorted(set(out.rglob("*")) - before, key=lambda q: len(q.parts), reverse=True):  # deepest first
             with contextlib.suppress(OSError):
                 p.rmdir() if p.is_dir() and not p.is_symlink() else p.unlink()
@@ -148,6 +154,81 @@ class Interrupt:
             signal.signal(signal.SIGINT, self.old)
 
 
+# --- checkpoints are data, never code ----------------------------------------------------------------------------
+def load_data(path, mmap: bool = False):
+    """A torch file (checkpoint.pt, weights) read as data only: tensors, dicts, lists, tuples, str, int, float, bool
+    and None (torch's weights-only unpickler, which never imports or calls anything the file names). A file that
+    names any other Python object (``os.system``, a class, a numpy array) is refused with one line that says which,
+    before anything in it is constructed; any other unreadable file is one line too."""
+    p = Path(path)
+    try:
+        with warnings.catch_warnings():  # torch warns about pickle protocols on stderr: the error is one line
+            warnings.simplefilter("ignore")
+            return torch.load(p, map_location="cpu", weights_only=True, mmap=mmap)
+    except Exception as e:  # noqa: BLE001 - whatever the loader raises, the file is bad input
+        names = pickle_globals(p)
+        if names:
+            raise InputError(f"refused: it names the Python object {names[0]}, and a checkpoint may hold only "
+                             "tensors and plain data (loading it could run code); nothing in it was loaded",
+                             p) from None
+        if "Weights only load failed" in str(e):
+            raise InputError("refused: not plain data (tensors, dicts, lists, numbers, strings); nothing in it "
+                             "was loaded", p) from None
+        raise InputError(f"unreadable checkpoint ({type(e).__name__})", p) from None
+
+
+SAFE_MODULES = ("torch", "collections")  # what torch.save itself names: tensor rebuilders, storages, OrderedDict
+
+
+def pickle_globals(path) -> list[str]:
+    """The Python objects (module.name) a torch file's pickle imports, other than torch's own and OrderedDict,
+    read by scanning the opcodes (pickletools: nothing is executed). [] when it names none or is not a pickle."""
+    p = Path(path)
+    try:
+        if zipfile.is_zipfile(p):
+            with zipfile.ZipFile(p) as z:
+                data = next((z.read(n) for n in z.namelist() if n.endswith("/data.pkl") or n == "data.pkl"), b"")
+        else:
+            with open(p, "rb") as f:
+                data = f.read(64 << 20)
+    except (OSError, zipfile.BadZipFile, RuntimeError):
+        return []
+    out, strings = [], []
+    try:
+        for op, arg, _ in pickletools.genops(data):
+            if op.name == "GLOBAL":
+                out.append(str(arg).replace(" ", "."))
+            elif op.name == "STACK_GLOBAL" and len(strings) >= 2:
+                out.append(f"{strings[-2]}.{strings[-1]}")
+            elif isinstance(arg, str):
+                strings.append(arg)
+            if op.name == "STOP":
+                break
+    except Exception:  # noqa: BLE001 - a damaged pickle: report what was found before the damage
+        pass
+    return [n for n in dict.fromkeys(out) if n.split(".")[0] not in SAFE_MODULES]
+
+
+def plain_data(obj, where: str = "checkpoint"):
+    """``obj`` with numpy scalars as Python numbers and numpy arrays as tensors, so that it loads with
+    :func:`load_data`; anything else that is not a tensor or plain data is a bug (TypeError naming it)."""
+    import numpy as np
+
+    if obj is None or isinstance(obj, (bool, int, float, str, torch.Tensor, torch.Size)):
+        return obj
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(obj))
+    if isinstance(obj, dict):
+        return {plain_data(k, where): plain_data(v, f"{where}[{k!r}]") for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(plain_data(v, f"{where}[{i}]") for i, v in enumerate(obj))
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"{where} is a {type(obj).__module__}.{type(obj).__name__}, which a checkpoint cannot hold")
+
+
 def read_checkpoint(path, fmt: str, what: str) -> dict:
     """A run's checkpoint.pt (``path`` is the file or its run folder), refused unless its format is ``fmt``."""
     p = Path(path)
@@ -155,10 +236,7 @@ def read_checkpoint(path, fmt: str, what: str) -> dict:
         p = p / "checkpoint.pt"
     if not p.is_file():
         raise InputError("no checkpoint.pt to resume from", p.parent if p.name == "checkpoint.pt" else p)
-    try:
-        ck = torch.load(p, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001 - any unpickling problem is a bad file
-        raise InputError(f"unreadable checkpoint ({type(e).__name__})", p) from None
+    ck = load_data(p)
     if not isinstance(ck, dict) or ck.get("format") != fmt:
         raise InputError(f"not a tlvg_warp {what} checkpoint", p)
     return ck
@@ -240,7 +318,6 @@ def run_sources(run) -> dict:
     ck = Path(run) / "checkpoint.pt"
     if not ck.is_file():
         return {}
-    try:
-        return dict(torch.load(ck, map_location="cpu", weights_only=False, mmap=True).get("sources") or {})
-    except Exception as e:  # noqa: BLE001 - an unreadable checkpoint is one line
-        raise InputError(f"unreadable checkpoint ({type(e).__name__})", ck) from None
+    d = load_data(ck, mmap=True)
+    src = d.get("sources") if isinstance(d, dict) else None
+    return {str(k): str(v) for k, v in src.items() if isinstance(v, (str, Path))} if isinstance(src, dict) else {}

@@ -68,26 +68,21 @@ def add_arguments(p):
 # --- inputs ----------------------------------------------------------------------------------------------------
 def load_style(path) -> torch.Tensor:
     """The painting as float32 [H,W,3]; one-line InputError for missing / unreadable / tiny files."""
-    import cv2
-
-    from ..io.images import composite, read_image
+    from ..io.images import composite, read_image_fit
 
     p = Path(path)
     if not p.exists():
         raise InputError("style image does not exist", p)
     if p.is_dir():
         raise InputError("style image is a folder, not an image file", p)
-    img = read_image(p)  # InputError when unreadable
-    h, w = img.shape[:2]
+    img, (w, h) = read_image_fit(p, MAX_STYLE_PX)  # InputError when unreadable; shrunk to fit as it is read
     if min(h, w) < MIN_STYLE_PX:
         raise InputError(f"style image is {w}x{h}; it needs at least {MIN_STYLE_PX} px on each side", p)
     if img.shape[2] == 4:
         warnings.warn(f"{p}: style image has an alpha channel; composited onto white")
         img = composite(img, (1.0, 1.0, 1.0))
     if max(h, w) > MAX_STYLE_PX:
-        s = MAX_STYLE_PX / max(h, w)
         warnings.warn(f"{p}: style image is {w}x{h}; resized to fit {MAX_STYLE_PX} px")
-        img = cv2.resize(img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
     img = np.ascontiguousarray(img[:, :, :3], np.float32)
     if np.abs(img[..., 0] - img[..., 1]).max() < 1e-6 and np.abs(img[..., 1] - img[..., 2]).max() < 1e-6:
         warnings.warn(f"{p}: style image is grayscale; the stylized scene's chroma will follow it")

@@ -43,7 +43,7 @@ def bench_camera(width: int, height: int) -> Camera:
 
 
 def garden_scene(path: Path, device, degree: int):
-    d = np.load(path)
+    d = np.load(path, allow_pickle=False)
     means = torch.from_numpy(d["means3d"]).float()
     n = means.shape[0]
     rgb = torch.from_numpy(d["colors"]).float() / 255.0

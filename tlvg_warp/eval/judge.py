@@ -84,7 +84,8 @@ def _run_style(run: Path) -> Path | None:
 
 
 def resolve_inputs(run_a, run_b, style=None, max_views=None):
-    """Pair the two runs' renders by file name and find the painting. Returns (pairs, style_path)."""
+    """Pair the two runs' renders by file name and find the painting; every one of those images must decode.
+    Returns (pairs, style_path)."""
     imgs = []
     for run in (Path(run_a), Path(run_b)):
         if not run.is_dir():
@@ -108,7 +109,18 @@ def resolve_inputs(run_a, run_b, style=None, max_views=None):
         if style is None:
             raise InputError("no painting: no config.yaml `style` or style.png in either run; pass --style",
                              run_a)
-    return [(n, imgs[0][n], imgs[1][n]) for n in names], style
+    pairs = [(n, imgs[0][n], imgs[1][n]) for n in names]
+    check_images([style] + [p for _, a, b in pairs for p in (a, b)])
+    return pairs, style
+
+
+def check_images(paths) -> None:
+    """Decode every image the judge will send (header, truncation, pixel data), so a corrupt render or painting
+    is reported, naming the file, before any endpoint is contacted."""
+    from ..io.images import read_image
+
+    for p in paths:
+        read_image(Path(p))
 
 
 def png_data_url(path) -> str:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..errors import InputError
 from ..fileio import write_bytes
 from . import metrics as M
 
@@ -148,12 +149,27 @@ def _save_cached(refs: Refs, path) -> None:
 
 
 def _load_cached(refs: Refs, path) -> Refs:
-    z = np.load(path)
+    """The cached arrays: plain numeric arrays only (``allow_pickle=False``: an array of Python objects, which
+    unpickling would construct, is refused), all present, each a number array. One line when not."""
     n = len(refs.cameras)
-    refs.base = [{"color": z[f"color{i}"], "depth": z[f"depth{i}"], "alpha": z[f"alpha{i}"]} for i in range(n)]
-    refs.alpha2x = [z[f"alpha2x{i}"] for i in range(n)]
-    refs.recolored = [z[f"recolored{i}"] for i in range(n)]
-    refs.fields = [z[f"field{i}"] for i in range(n)] if refs.pretrained else None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            def get(k):
+                a = z[k]
+                if a.dtype.kind not in "fiub":
+                    raise ValueError(f"array {k} is {a.dtype}, not numbers")
+                return a
+
+            base = [{"color": get(f"color{i}"), "depth": get(f"depth{i}"), "alpha": get(f"alpha{i}")}
+                    for i in range(n)]
+            alpha2x = [get(f"alpha2x{i}") for i in range(n)]
+            recolored = [get(f"recolored{i}") for i in range(n)]
+            fields = [get(f"field{i}") for i in range(n)] if refs.pretrained else None
+    except Exception as e:  # noqa: BLE001 - a damaged or foreign cache file is one line, never code
+        why = "it holds Python objects, which are never unpickled" if "allow_pickle" in str(e) else \
+            f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+        raise InputError(f"unreadable reference cache ({why}); delete it to rebuild it", path) from None
+    refs.base, refs.alpha2x, refs.recolored, refs.fields = base, alpha2x, recolored, fields
     return refs
 
 

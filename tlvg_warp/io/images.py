@@ -115,9 +115,16 @@ def image_size(path: Path) -> tuple[int, int]:
     return int(size[0]), int(size[1])
 
 
-def read_image(path: Path) -> np.ndarray:
-    """float32 [H, W, 3 or 4] RGB(A) in [0, 1]; 8- and 16-bit, gray or color. PNG/JPEG files are checked
-    (:func:`image_size`) before the decoder sees them."""
+def read_image(path: Path, max_side: int | None = None) -> np.ndarray:
+    """See :func:`read_image_fit`; the image only."""
+    return read_image_fit(path, max_side)[0]
+
+
+def read_image_fit(path: Path, max_side: int | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+    """(image, (width, height) of the file). The image: float32 [H, W, 3 or 4] RGB(A) in [0, 1]; 8- and 16-bit,
+    gray or color. PNG/JPEG files are checked (:func:`image_size`) before the decoder sees them. ``max_side``: a larger image is shrunk (area average) to
+    fit it before it becomes float, so memory stays near the decoded file's own size (a large JPEG is decoded
+    at 1/2, 1/4 or 1/8 scale by libjpeg itself)."""
     import cv2
 
     path = Path(path)
@@ -125,14 +132,23 @@ def read_image(path: Path) -> np.ndarray:
         raise InputError("missing image file", path)
     with open(path, "rb") as f:
         head = f.read(8)
-    if head == _PNG_SIG or head[:2] == b"\xff\xd8":
-        image_size(path)
+    size = image_size(path) if head == _PNG_SIG or head[:2] == b"\xff\xd8" else None
+    flags = cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION
+    if max_side and size and head[:2] == b"\xff\xd8" and max(size) >= 2 * max_side:
+        k = max(f for f in (2, 4, 8) if max(size) >= f * max_side)
+        flags = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+                 8: cv2.IMREAD_REDUCED_COLOR_8}[k] | cv2.IMREAD_IGNORE_ORIENTATION
     try:
-        a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+        a = cv2.imread(str(path), flags)
     except cv2.error as e:  # e.g. OpenCV's own pixel limit for formats whose header we do not read
         raise InputError(f"unreadable image ({one_line(e.err or e)[:120]})", path) from None
     if a is None or a.size == 0:
         raise InputError("unreadable image (corrupt or unsupported format)", path)
+    full = size or (a.shape[1], a.shape[0])
+    if max_side and max(a.shape[:2]) > max_side:
+        s = max_side / max(a.shape[:2])
+        a = cv2.resize(a, (max(1, round(a.shape[1] * s)), max(1, round(a.shape[0] * s))),
+                       interpolation=cv2.INTER_AREA)
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(a.dtype)
     if scale is None:
         raise InputError(f"unsupported image sample type {a.dtype}", path)
@@ -142,7 +158,7 @@ def read_image(path: Path) -> np.ndarray:
         a = cv2.cvtColor(a, cv2.COLOR_BGRA2RGBA)
     else:
         a = cv2.cvtColor(a, cv2.COLOR_BGR2RGB)
-    return a.astype(np.float32) / np.float32(scale)
+    return a.astype(np.float32) / np.float32(scale), (int(full[0]), int(full[1]))
 
 
 def composite(img: np.ndarray, background) -> np.ndarray:

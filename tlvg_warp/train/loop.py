@@ -40,8 +40,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..fileio import atomic_path, write_text
-from ..runs import Interrupt, StageTimer
+from ..fileio import save_torch, write_text
+from ..runs import Interrupt, StageTimer, plain_data
 from .optim import FIELDS
 
 STAGES = ("render", "loss", "backward", "optimizer", "density")  # what the loop itself times
@@ -276,8 +276,7 @@ class Run:
         sd = self.state_dict(checkpoint=True)  # every rank: the density statistics are summed
         if self.dist.is_main:
             sd["note"] = note
-            with atomic_path(self.out / "checkpoint.pt") as tmp, open(tmp, "wb") as f:
-                torch.save(sd, f)  # to a file object: a full disk raises OSError (a path gives a RuntimeError)
+            save_torch(self.out / "checkpoint.pt", plain_data(sd))  # data only: it loads without unpickling code
         self.dist.barrier()
 
     def write_log(self) -> None:
