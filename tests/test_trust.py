@@ -279,3 +279,57 @@ def test_viewer_binds_loopback_and_serves_only_its_files():
                 socket.create_connection((addr, port), timeout=2).close()
     finally:
         v.stop()
+
+
+# --- judge checks its inputs before the network --------------------------------------------------------------
+def _judge_inputs(root: Path):
+    import cv2
+
+    for r in ("a", "b"):
+        (root / r / "renders").mkdir(parents=True)
+        for i in range(3):
+            assert cv2.imwrite(str(root / r / "renders" / f"view_{i:03d}.png"),
+                               np.full((24, 32, 3), 40 * i + (r == "b") * 20, np.uint8))
+    assert cv2.imwrite(str(root / "painting.png"), np.full((64, 64, 3), 90, np.uint8))
+
+
+@pytest.mark.parametrize("corrupt", ["a/renders/view_001.png", "b/renders/view_002.png", "painting.png"])
+def test_judge_names_a_corrupt_input_before_contacting_the_endpoint(tmp_path, capsys, corrupt):
+    """A listening socket stands for the endpoint: with a corrupt render (cut short) or painting, judge ends in one
+    line naming that file and the socket never sees a connection; with the file intact the endpoint is reached
+    (the control: the socket does see one)."""
+    _judge_inputs(tmp_path)
+    bad = tmp_path / corrupt
+    data = bad.read_bytes()
+    bad.write_bytes(data[: len(data) * 2 // 3])
+    with socket.socket() as srv:
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(8)
+        srv.setblocking(False)
+        url = f"http://127.0.0.1:{srv.getsockname()[1]}/v1"
+        argv = ["judge", "--a", str(tmp_path / "a"), "--b", str(tmp_path / "b"), "--models", "m", "--base-url", url,
+                "--style", str(tmp_path / "painting.png"), "--out", str(tmp_path / "judged"), "--quiet",
+                "--retries", "0", "--timeout", "2"]
+        rc, err = _run(argv, capsys)
+        _one_line_refusal(rc, err, bad)
+        with pytest.raises(BlockingIOError):
+            srv.accept()  # nothing connected
+        assert not (tmp_path / "judged").exists()
+        bad.write_bytes(data)
+        _run(argv, capsys)  # the endpoint answers nothing useful; what matters is that it was contacted
+        conn, _ = srv.accept()
+        conn.close()
+
+
+def test_judge_with_a_corrupt_render_and_an_unreachable_endpoint_names_the_render(tmp_path, capsys):
+    _judge_inputs(tmp_path)
+    bad = tmp_path / "a" / "renders" / "view_000.png"
+    bad.write_bytes(bad.read_bytes()[:-30])
+    with socket.socket() as s:  # a port with nothing listening
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    rc, err = _run(["judge", "--a", str(tmp_path / "a"), "--b", str(tmp_path / "b"), "--models", "m",
+                    "--base-url", f"http://127.0.0.1:{port}/v1", "--style", str(tmp_path / "painting.png"),
+                    "--quiet"], capsys)
+    _one_line_refusal(rc, err, bad)
+    assert "does not answer" not in err
