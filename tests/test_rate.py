@@ -303,7 +303,8 @@ def test_only_registered_files_are_served(tmp_path, pair):
            "/rate.js/../study.json", "/assets/rate.js", "/tlvg_warp/assets/rate.html", "//etc/passwd",
            "/etc/passwd", str(render), "/media/" + str(render), "/media" + str(render), "/media/" + "0" * 24,
            n["left"] + "/", n["left"] + "/..", "/renders/view_000.png", "/%2fetc%2fpasswd", "/..\\study.json",
-           "/rate.css%00.js", "/favicon.ico"]
+           "/rate.css%00.js", "/favicon.ico", "/" + "../" * 16 + "etc/passwd", "/" + "%2e%2e/" * 16 + "etc/passwd",
+           "/" + "%2e%2e%2f" * 16 + "etc%2fpasswd", "/media/" + "..%2f" * 16 + "etc%2fpasswd"]
     try:
         for path in bad:
             conn = http.client.HTTPConnection(host, port, timeout=10)
@@ -525,7 +526,10 @@ def test_a_real_run_folder_pairs_and_matches_the_fake_layout(tmp_path, real_run)
 def _wait(c: Chromium, js: str, timeout=PAGE_TIMEOUT):
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:
-        v = c.eval(js)
+        try:
+            v = c.eval(js)
+        except RuntimeError:  # the page navigating: its context went away under the call
+            v = None
         if v:
             return v
         time.sleep(0.1)
@@ -548,6 +552,13 @@ def _side_colors(c: Chromium) -> tuple:
         x, y = int(box[0] + box[2] * 0.75), int(box[1] + box[3] * 0.75)  # away from the view's white mark
         out.append(tuple(int(v) for v in img[y, x]))
     return tuple(out)
+
+
+def _reload(c: Chromium):
+    """Reload the page and wait for the new document (the old one's marker gone)."""
+    c.eval("window.oldPage = true")
+    c.call("Page.reload")
+    _wait(c, "window.oldPage === undefined && document.readyState === 'complete'")
 
 
 def _is(color, ref) -> bool:
@@ -576,8 +587,7 @@ def test_browser_answers_are_recorded_counted_and_not_shown_again(tmp_path):
             _wait(c, "document.querySelector('#expertise-saved').textContent.startsWith('saved')")
             for k in range(4):
                 if k == 2:  # the rater stops and comes back (a reload): the answered items stay answered
-                    c.call("Page.reload")
-                    time.sleep(0.3)
+                    _reload(c)
                     item = _loaded(c)
                     assert item not in seen, (item, seen)
                     assert c.eval("document.querySelector('#progress').textContent") == "item 3 of 4"
@@ -597,8 +607,7 @@ def test_browser_answers_are_recorded_counted_and_not_shown_again(tmp_path):
                                     "document.body.dataset.loaded === s.item ? s.item : null; })()")
             _wait(c, "!document.querySelector('#done').hidden")
             assert c.eval("document.querySelector('#study').hidden") is True
-            c.call("Page.reload")  # done stays done
-            time.sleep(0.3)
+            _reload(c)  # done stays done
             _wait(c, "window.rateState && rateState() && rateState().done && "
                      "!document.querySelector('#done').hidden")
     finally:
