@@ -65,7 +65,7 @@ def start_run_dir(out: Path, overwrite: bool, resuming: bool, run_files=(), rend
 
 
 @contextlib.contextmanager
-def run_folder(out: Path, overwrite: bool, resume: bool, run_files=()):
+def run_folder(out: Path, overwrite: bool, resume: bool, run_files=(), inputs=()):
     """Claim ``out`` for one run of a command: create it, take its lock (a second run on the same folder is refused
     with one line; the lock of a killed run is free again, as flock locks die with their process), delete the
     temporary files a killed run left, refuse a folder holding another run (check_out_dir). If the command then
@@ -75,6 +75,7 @@ def run_folder(out: Path, overwrite: bool, resume: bool, run_files=()):
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a folder", out)
+    check_not_an_input(out, inputs)
     made = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -97,6 +98,24 @@ def run_folder(out: Path, overwrite: bool, resume: bool, run_files=()):
         raise
     finally:
         _unlock(out, fd, made)
+
+
+def check_not_an_input(out: Path, inputs) -> None:
+    """Refuse an output folder that is an input's own folder (the dataset, the scene's or the painting's folder):
+    the run would write its files among its inputs and --overwrite deletes files by name (an INRIA dataset's
+    cameras.json is also a run file). A folder inside the dataset is fine: nothing of the dataset is touched."""
+    if not out.is_dir():
+        return
+    for i in inputs:
+        if i is None:
+            continue
+        p = Path(i)
+        d = p if p.is_dir() else p.parent
+        with contextlib.suppress(OSError):
+            if d.is_dir() and os.path.samefile(d, out):
+                raise InputError(f"the output folder is the folder of the input {p} (its dataset or file): "
+                                 "choose another --out, so the run's files never mix with or replace its inputs",
+                                 out)
 
 
 def _lock(out: Path) -> int:

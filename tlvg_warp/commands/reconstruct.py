@@ -52,7 +52,8 @@ def run(args) -> int:
     dataset = _load(args.data, cfg)
     dist = Dist.from_env(str(resolve_device(cfg.device)))  # torchrun: one rank per GPU, views of a step split
     # the main rank owns the folder (locked; bad input leaves nothing behind); the others only read
-    folder = run_folder(out, args.overwrite, args.resume is not None, RUN_FILES) if dist.is_main else contextlib.nullcontext()
+    folder = (run_folder(out, args.overwrite, args.resume is not None, RUN_FILES, inputs=(args.data,))
+              if dist.is_main else contextlib.nullcontext())
     with folder:
         try:
             _, m = fit_scene(dataset, cfg, out, progress=not args.quiet and dist.is_main, resume=args.resume,

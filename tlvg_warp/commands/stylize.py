@@ -255,7 +255,8 @@ def run(args) -> int:
     vgg = load_vgg(cfg.vgg_weights, device)  # InputError (how to get the weights) before anything is written
     t_vgg = time.perf_counter() - t_vgg
     # the main rank owns the folder (locked; bad input leaves nothing behind); the others only read
-    folder = run_folder(out, args.overwrite, ck is not None, RUN_FILES) if dist.is_main else contextlib.nullcontext()
+    folder = (run_folder(out, args.overwrite, ck is not None, RUN_FILES, inputs=(args.data, args.scene, args.style))
+              if dist.is_main else contextlib.nullcontext())
     with folder:
         return _run(args, cfg, sources, out, device, vgg, wall0, dist, t_vgg)
 

@@ -87,6 +87,7 @@ class _View:
     size: tuple  # (W, H) the size K refers to
     dist: np.ndarray | None = None  # OpenCV (k1, k2, p1, p2), None = pinhole
     source: Path | None = None  # the file the pose came from, for error messages
+    intrinsics: Path | None = None  # the file the focal length came from, when not ``source`` (COLMAP's cameras)
 
 
 def _image_folder(root: Path, images, downscale):
@@ -112,6 +113,10 @@ def _fit(view: _View, remap_cache: dict):
     if abs(H * s - h) > SIZE_SLACK_PX:
         raise InputError(f"image is {w}x{h}, which is not a scaled copy of the {W}x{H} its camera "
                          f"describes (inconsistent size)", view.path)
+    fx, fy = float(view.K[0, 0]), float(view.K[1, 1])
+    if not (np.isfinite(view.K).all() and fx > 0 and fy > 0):
+        raise InputError(f"view {view.name}: focal length fx={fx}, fy={fy} (it must be a finite positive number; "
+                         "corrupt camera intrinsics?)", view.intrinsics or view.source or view.path)
     K = np.diag([w / W, h / H, 1.0]) @ view.K
     remap = None
     if view.dist is not None:
@@ -189,7 +194,7 @@ def _colmap_views(root, model_dir, ext, folder):
         c = cams[im.camera_id]
         K, dist = c.intrinsics()
         views.append(_View(im.name, folder / im.name, im.world_to_camera(), K, (c.width, c.height), dist,
-                           model_dir / f"images{ext}"))
+                           model_dir / f"images{ext}", model_dir / f"cameras{ext}"))
     pfile = model_dir / f"points3D{ext}"
     pts = colmap.read_points3d(pfile) if pfile.is_file() else None
     return views, (None if pts is None else _points(pts.xyz, pts.rgb))

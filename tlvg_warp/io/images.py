@@ -158,7 +158,9 @@ def read_image_fit(path: Path, max_side: int | None = None) -> tuple[np.ndarray,
         a = cv2.cvtColor(a, cv2.COLOR_BGRA2RGBA)
     else:
         a = cv2.cvtColor(a, cv2.COLOR_BGR2RGB)
-    return a.astype(np.float32) / np.float32(scale), (int(full[0]), int(full[1]))
+    f = a.astype(np.float32)
+    f /= np.float32(scale)  # in place: one float copy of the image, not two
+    return f, (int(full[0]), int(full[1]))
 
 
 def composite(img: np.ndarray, background) -> np.ndarray:
