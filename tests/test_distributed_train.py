@@ -34,12 +34,14 @@ from tlvg_warp.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = ["--set", "checkpoint_seconds=0", "--set", "log_every=2"]
-STYLIZE = ["--vgg-weights", "random", "--device", "cpu", "--iterations", "12", "--quiet", "--set", "orbit_frames=0",
+# --keep-checkpoint: the finished runs are compared through their checkpoints (and extended with --resume)
+STYLIZE = ["--vgg-weights", "random", "--device", "cpu", "--iterations", "12", "--quiet", "--keep-checkpoint",
+           "--set", "orbit_frames=0",
            "--set", "comparison_views=1", "--set", "web_formats=false", "--set", "style_height=64",
            "--set", "densify_interval=2", "--set", "densify_grad_threshold=1e-7", *SMALL]
 # the means' learning rate decays over a fixed 1000 steps (by default over the run's own iterations, so an
 # extended run would follow another schedule than a straight one)
-RECON = ["demo", "--downscale", "4", "--device", "cpu", "--quiet", "--set", "max_init_points=400",
+RECON = ["demo", "--downscale", "4", "--device", "cpu", "--quiet", "--keep-checkpoint", "--set", "max_init_points=400",
          "--set", "save_renders=false", "--set", "lr.means_steps=1000", *SMALL]
 
 
@@ -180,14 +182,16 @@ def runs(tmp_path_factory):
                    ["--killed-after-checkpoint", *sty, "--out", root / "s2k", "--set", "views_per_step=1",
                     "--set", f"checkpoint_every={STOP}"],
                    # into another folder: s2k keeps the checkpoint at STOP for the one-process resumes below
-                   ["stylize", "--quiet", "--resume", root / "s2k", "--out", root / "s2r"],
+                   ["stylize", "--quiet", "--keep-checkpoint", "--resume", root / "s2k", "--out", root / "s2r"],
                    ["reconstruct", *RECON, "--iterations", 8, "--out", root / "r2", "--set", "views_per_step=1"],
-                   ["reconstruct", "demo", "--device", "cpu", "--quiet", "--resume", root / "r2", "--iterations", 12],
+                   ["reconstruct", "demo", "--device", "cpu", "--quiet", "--keep-checkpoint", "--resume", root / "r2",
+                    "--iterations", 12],
                    # Ctrl-C on rank 1 alone after step 3 (log points are the even steps)
                    ["--sigint-rank1-after", SIGINT_AT, *sty, "--out", root / "s2i", "--set", "views_per_step=1"])
     ck = torch.load(root / "s2k" / "checkpoint.pt", map_location="cpu", weights_only=False)
     assert (ck["iteration"], ck["note"], ck["step_views"]) == (STOP, "periodic", {"ranks": 2, "per_rank": 1})
-    resumed = {out: resume_here("stylize", "--quiet", "--resume", root / "s2k", "--out", root / out, *extra)
+    resumed = {out: resume_here("stylize", "--quiet", "--keep-checkpoint", "--resume", root / "s2k",
+                                    "--out", root / out, *extra)
                for out, extra in (("s1r", ["--set", "views_per_step=2"]), ("s1m", []))}
     return root, log, resumed
 

@@ -52,9 +52,9 @@ def _temps(folder: Path):
 
 @pytest.fixture(scope="module")
 def reference(valid, tmp_path_factory):
-    """The uninterrupted run, in this process."""
+    """The uninterrupted run, in this process (its checkpoint kept: the full-disk test extends it)."""
     out = tmp_path_factory.mktemp("ref") / "run"
-    assert main(_argv(valid, out)) == 0
+    assert main(_argv(valid, out, "--keep-checkpoint")) == 0
     return out
 
 

@@ -231,7 +231,7 @@ def test_files_we_write_decode_the_same_in_a_scalar_decoder(tmp_path, fmt):
 
 # --- gsply (an independent Python implementation), when installed ---------------------------------------------
 def _gsply():
-    return pytest.importorskip("gsply", reason="gsply is not installed (pip install gsply zstandard)")
+    return pytest.importorskip("gsply", reason="gsply is not installed (pip install -e '.[interop]')")
 
 
 def _as_t(x, flip=1.0):

@@ -193,7 +193,10 @@ def test_cli_refusals_exit_2(tmp_path, capsys):
     assert cli(two, "--out", tmp_path / "o3", "--iterations", 3) == 2  # holds a previous run
     assert "--overwrite" in capsys.readouterr().err
     assert (tmp_path / "o3" / "metrics.json").stat().st_mtime_ns == before
-    assert cli(two, "--out", tmp_path / "o3", "--iterations", 4, "--overwrite") == 0
+    assert not (tmp_path / "o3" / "checkpoint.pt").exists()  # a finished run keeps no checkpoint ...
+    assert cli(two, "--resume", tmp_path / "o3", "--iterations", 6) == 2  # ... so it cannot be extended
+    assert "--keep-checkpoint" in capsys.readouterr().err
+    assert cli(two, "--out", tmp_path / "o3", "--iterations", 4, "--overwrite", "--keep-checkpoint") == 0
     assert json.loads((tmp_path / "o3" / "metrics.json").read_text())["iterations"] == 4
     assert cli(two, "--resume", tmp_path / "o3", "--iterations", 6) == 0  # extend the finished run
     m = json.loads((tmp_path / "o3" / "metrics.json").read_text())

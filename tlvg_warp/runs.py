@@ -332,8 +332,31 @@ class StageTimer:
                 "rare_events": {s: len(v) for s, v in self.rare.items()}}
 
 
+SOURCES = "sources.json"  # where a run's inputs came from, written beside its outputs (plain JSON)
+
+
+def read_sources_json(run) -> dict | None:
+    """A run's sources.json ({name: path}), None when it has none; one line when it is not a JSON object."""
+    import json
+
+    p = Path(run) / SOURCES
+    if not p.is_file():
+        return None
+    try:
+        d = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(f"unreadable {SOURCES} ({type(e).__name__})", p) from None
+    if not isinstance(d, dict):
+        raise InputError("expected a JSON object", p)
+    return {str(k): str(v) for k, v in d.items() if isinstance(v, str)}
+
+
 def run_sources(run) -> dict:
-    """Where a run's inputs came from (checkpoint.pt's ``sources``); {} when there is no checkpoint."""
+    """Where a run's inputs came from: its sources.json, else (a run written before there was one) checkpoint.pt's
+    ``sources``; {} when there is neither."""
+    js = read_sources_json(run)
+    if js is not None:
+        return js
     ck = Path(run) / "checkpoint.pt"
     if not ck.is_file():
         return {}

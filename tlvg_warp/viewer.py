@@ -25,7 +25,7 @@ UP_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0),
 DEFAULT_UP = "-y"  # COLMAP / INRIA scenes: image y points down, so world up is usually -y
 FRUSTUM_SCALE = 0.05  # frustum depth as a fraction of the cameras' distance to the scene center
 FRUSTUM_COLOR = (40, 40, 40)
-PULL_BACK = 0.35  # the starting view: this fraction of the scene depth behind the first training camera
+CENTRAL = 0.5  # the starting view keeps frustums out of this central part of the image (in half-widths)
 INSTALL_HINT = "the viewer needs viser: pip install viser (or pip install -e '.[viewer]')"
 
 
@@ -206,33 +206,67 @@ class SceneViewer:
 
     # -- where the browser starts ----------------------------------------------------------------------------------
     def frame(self, center, up, cams=None, radius: float | None = None) -> None:
-        """The starting view (and "Reset View"): from the first training camera when there are cameras,
-        else from ``radius`` away (above and to the side, relative to ``up``), looking at ``center``."""
+        """The starting view (and "Reset View"): ``initial_view``."""
         up = np.asarray(up, np.float64)
         up = up / np.linalg.norm(up)
-        center = np.asarray(center, np.float64)
         self.server.scene.set_up_direction(tuple(float(v) for v in up))
+        view = initial_view(center, up, cams, radius)
         ic = self.server.initial_camera
-        if cams:
-            R, pos = camera_pose(cams[0])
-            ic.fov = _fov_y(cams[0])
-            depth = float(np.dot(center - pos, R[:, 2]))  # the center's depth along the camera's axis
-            if depth <= 1e-9:
-                ic.position, ic.look_at = pos, pos + R[:, 2]
-            else:  # a step behind the first camera (its own frustum would frame the view), looking the same way
-                ic.position, ic.look_at = pos - PULL_BACK * depth * R[:, 2], pos + depth * R[:, 2]
-        else:
-            side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-            side /= np.linalg.norm(side)
-            r = radius if radius and radius > 0 else 1.0
-            side = side + np.cross(up, side)  # a three-quarter view
-            side /= np.linalg.norm(side)
-            ic.position, ic.look_at = center + 0.8 * r * (0.95 * side + 0.3 * up), center
+        if view["fov"] is not None:
+            ic.fov = view["fov"]
+        ic.position, ic.look_at = view["position"], view["look_at"]
         ic.up = tuple(float(v) for v in up)
 
     def stop(self) -> None:
         with contextlib.redirect_stdout(io.StringIO()):
             self.server.stop()
+
+
+def _obstructed(R: np.ndarray, pos: np.ndarray, cam: Camera, centers: np.ndarray, depth: float, own: int) -> bool:
+    """Whether a frustum (camera center) other than ``own`` lies in front of the subject (0 < z < ``depth``) and
+    projects into the CENTRAL part of the view of a camera at (R, pos) with ``cam``'s intrinsics."""
+    for j, c in enumerate(centers):
+        if j == own:
+            continue
+        x, y, z = R.T @ (c - pos)
+        if not 1e-9 < z < depth:
+            continue
+        u, v = cam.fx * x / z / (cam.width / 2), cam.fy * y / z / (cam.height / 2)
+        if abs(u) < CENTRAL and abs(v) < CENTRAL:
+            return True
+    return False
+
+
+def initial_view(center, up, cams=None, radius: float | None = None) -> dict:
+    """Where the browser starts: {"position", "look_at", "fov" (None: viser's)}.
+
+    With cameras: the pose of a training camera itself (the first one whose view of the subject no other
+    frustum stands in front of, in the central part of the image; else the first), looking along its axis. From
+    a camera's own center its frustum shrinks to the image border, so the subject is seen as in its photo.
+    Without: from ``radius`` away, above and to the side (relative to ``up``), looking at ``center``."""
+    up = np.asarray(up, np.float64)
+    up = up / np.linalg.norm(up)
+    center = np.asarray(center, np.float64)
+    cams = list(cams or [])
+    if cams:
+        poses = [camera_pose(c) for c in cams]
+        centers = np.stack([p for _, p in poses])
+        pick = 0
+        for i, (R, pos) in enumerate(poses):
+            depth = float(np.dot(center - pos, R[:, 2]))
+            if depth > 1e-9 and not _obstructed(R, pos, cams[i], centers, depth, i):
+                pick = i
+                break
+        R, pos = poses[pick]
+        depth = float(np.dot(center - pos, R[:, 2]))
+        look = pos + (depth if depth > 1e-9 else 1.0) * R[:, 2]
+        return {"position": pos, "look_at": look, "fov": _fov_y(cams[pick]), "camera": pick}
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    r = radius if radius and radius > 0 else 1.0
+    side = side + np.cross(up, side)  # a three-quarter view
+    side /= np.linalg.norm(side)
+    return {"position": center + 0.8 * r * (0.95 * side + 0.3 * up), "look_at": center, "fov": None, "camera": None}
 
 
 def scene_radius(g: Gaussians, center=None) -> float:

@@ -1,1 +1,26 @@
 """One module per CLI command: add_arguments(parser), run(args) -> int."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+
+KEEP_CHECKPOINT_HELP = ("keep checkpoint.pt after the run finishes (to extend it later with --resume); by default it "
+                        "is removed once the outputs are written. A run that stops early (Ctrl-C, divergence, a "
+                        "kill) always keeps it")
+
+
+def drop_checkpoints(out: Path, *subdirs: str) -> None:
+    """A finished run: its outputs are written, so checkpoint.pt (most of the folder's size) goes, also in
+    ``subdirs`` (e.g. the reconstruct/ of a scene fitted first)."""
+    for d in (Path(out), *(Path(out) / s for s in subdirs)):
+        (d / "checkpoint.pt").unlink(missing_ok=True)
+
+
+def check_resumable(run) -> None:
+    """--resume of a folder whose run finished (its outputs are there) without --keep-checkpoint: one line that
+    says why there is nothing to resume from."""
+    p = Path(run)
+    if p.is_dir() and not (p / "checkpoint.pt").exists() and (p / "metrics.json").is_file():
+        raise InputError("this run finished and its checkpoint.pt was removed, so it cannot be resumed or extended "
+                         "(run with --keep-checkpoint to keep it)", p)

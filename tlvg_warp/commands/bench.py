@@ -47,7 +47,8 @@ def add_arguments(p):
     p.add_argument("--profile-reps", type=int, default=2, help="raster: renders per view in the GPU stage profile")
     p.add_argument("--data", default=None, help="sweep: dataset the scene was trained from")
     p.add_argument("--style", default=None, help="sweep: painting (default: the built-in one)")
-    p.add_argument("--vgg-weights", default=None, help="sweep: VGG-16 weights path or 'random'")
+    p.add_argument("--vgg-weights", default=None, metavar="PATH|hed|random",
+                   help="sweep: VGG-16 weights, a path, 'hed' or 'random' (as stylize)")
     p.add_argument("--iterations", type=int, default=None, help="sweep: the base point's iterations (default 3000)")
 
 

@@ -2,13 +2,15 @@
 
 Writes DIR/point_cloud.ply (INRIA layout), DIR/cameras.json (INRIA), DIR/config.yaml (resolved),
 DIR/test/*.png (held-out renders), DIR/metrics.json (top-level ``psnr`` = mean over held-out views) and
-DIR/checkpoint.pt. Ctrl-C saves a checkpoint and the PLY; ``--resume DIR`` continues."""
+DIR/checkpoint.pt while the run is unfinished (or with --keep-checkpoint). Ctrl-C saves a checkpoint and the PLY;
+``--resume DIR`` continues."""
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
 from ..errors import InputError
+from . import KEEP_CHECKPOINT_HELP, check_resumable, drop_checkpoints
 
 
 def add_arguments(p):
@@ -25,8 +27,9 @@ def add_arguments(p):
                         "--set lr.means=0.0016 (configs/reconstruct.yaml lists every key)")
     p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR (its checkpoint.pt)")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
+    p.add_argument("--keep-checkpoint", action="store_true", help=KEEP_CHECKPOINT_HELP)
     p.add_argument("--device", default=None, choices=["cuda", "cpu", "auto"], help="(config: device)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
 
 
 def run(args) -> int:
@@ -42,6 +45,7 @@ def run(args) -> int:
     out = Path(args.out if args.out is not None else args.resume)
     base = None
     if args.resume is not None:
+        check_resumable(args.resume)
         base = config_from_dict(load_checkpoint(args.resume)["config"], ReconstructConfig())
     overrides = list(args.set)
     for key, val in (("iterations", args.iterations), ("downscale", args.downscale), ("images", args.images),
@@ -64,6 +68,8 @@ def run(args) -> int:
             return 1
     if not dist.is_main:
         return 0
+    if not args.keep_checkpoint:  # finished: the outputs are written, the checkpoint goes
+        drop_checkpoints(out)
     print(f"{out}: held-out PSNR {m['psnr']:.2f} dB (init {m['psnr_init'] if m['psnr_init'] is None else round(m['psnr_init'], 2)}), "
           f"SSIM {m['ssim']:.4f}, {m['num_gaussians']} Gaussians, {m['ply_bytes'] / 1e6:.1f} MB, "
           f"{m['iterations']} iterations in {m['train_time_s']:.1f} s")

@@ -13,8 +13,9 @@ def add_arguments(p):
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     p.add_argument("--out", default="stability_out", help="folder for stability.json and stability.md")
     p.add_argument("--only", default=None, help="comma-separated scenario names (default: all)")
-    p.add_argument("--vgg-weights", default=None,
-                   help="VGG-16 weights path or 'random' (default: random with --quick, else the usual lookup)")
+    p.add_argument("--vgg-weights", default=None, metavar="PATH|hed|random",
+                   help="VGG-16 weights: a path, 'hed' or 'random' (default: random with --quick, else the usual "
+                        "lookup, as stylize)")
     p.add_argument("--long-iters", type=int, default=10000, help="iterations of the long_run scenario (GPU only)")
 
 

@@ -18,7 +18,8 @@ def add_arguments(p):
     p.add_argument("--out", default=None, help="study folder (default: the YAML's out)")
     p.add_argument("--device", default=None, help="cpu | cuda | auto (default: the YAML's device)")
     p.add_argument("--iterations", type=int, default=None, help="override the YAML's iterations")
-    p.add_argument("--vgg-weights", default=None, help="override the YAML's vgg_weights ('random': smoke runs)")
+    p.add_argument("--vgg-weights", default=None, metavar="PATH|hed|random",
+                   help="override the YAML's vgg_weights: a path, 'hed' or 'random' (smoke runs)")
     p.add_argument("--judge", action="store_true", help="add the VLM panel (ours vs baseline) to the report")
     p.add_argument("--judge-url", default=None, help="OpenAI-compatible endpoint (default: YAML judge.base_url)")
     p.add_argument("--judge-models", default=None, help="comma-separated models (default: YAML judge.models)")

