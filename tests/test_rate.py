@@ -371,7 +371,7 @@ def test_rater_bootstrap_is_the_binomial_interval_for_one_answer_each_and_wider_
     blo, bhi = rate.rater_bootstrap(w, np.full(40, 10))
     wlo, whi = rate.wilson(int(w.sum()), 400)
     assert (bhi - blo) > 2.5 * (whi - wlo)
-    assert all(np.isnan(rate.rater_bootstrap([3], [4])))  # one rater: no interval over raters
+    assert all(np.isnan(rate.rater_bootstrap([3, 1, 2, 4], [4] * 4)))  # too few raters to resample
 
 
 def _cell(per_rater_wins, per=10) -> rate.Cell:
@@ -387,7 +387,10 @@ def test_verdict_is_a_win_only_where_the_intervals_exclude_half():
     # a Wilson interval that excludes 50% is not enough when the raters disagree among themselves
     split = _cell([10] * 6 + [0] * 4)
     assert split.wilson[0] > 0.5 and split.boot[0] < 0.5 and split.verdict() == "none"
-    assert _cell([10]).verdict() == "A"  # one rater: the Wilson interval alone
+    # fewer than MIN_RATERS raters: no verdict however sure the Wilson interval over their answers is
+    few = _cell([10] * (rate.MIN_RATERS - 1))
+    assert few.wilson[0] > 0.9 and np.isnan(few.boot[0]) and few.verdict() == "none"
+    assert _cell([10] * rate.MIN_RATERS).verdict() == "A"
     assert rate.Cell(0, 0, 0, rate.wilson(0, 0), (np.nan, np.nan)).verdict() == "none"
 
 
@@ -429,7 +432,7 @@ def test_report_counts_and_intervals(tmp_path, capsys):
     ci = binomtest(10, 15).proportion_ci(method="wilson")
     row = next(ln for ln in out.splitlines() if ln.startswith("Flow Alignment"))
     assert "all raters" in row and "66.7%" in row and f"[{100 * ci.low:.1f}, {100 * ci.high:.1f}]" in row
-    assert "Flow Alignment: no winner" in out  # 10 of 15 from 3 raters: the intervals include 50%
+    assert "Flow Alignment: no winner (fewer than 5 raters)" in out  # 10 of 15 from 3 raters
     md = (folder / "report.md").read_text()
     assert "| Flow Alignment | art professionals | 5 | 1 | 100.0% |" in md
     png = cv2.imread(str(folder / "report.png"))
@@ -631,3 +634,22 @@ def _side_colors_painting(c: Chromium) -> tuple:
     box = c.eval("(() => { const r = document.querySelector('#painting').getBoundingClientRect(); "
                  "return [r.left, r.top, r.width, r.height]; })()")
     return tuple(int(v) for v in img[int(box[1] + box[3] / 2), int(box[0] + box[2] / 2)])
+
+
+@needs_chromium
+def test_browser_plays_the_orbit_videos_of_a_real_run(tmp_path, real_run):
+    twin = tmp_path / "twin"
+    shutil.copytree(real_run, twin)
+    study = rate.build_study([real_run, twin], tmp_path / "s", media="orbit", seed=0)
+    assert study.items == ["0/orbit.mp4"]
+    srv = _server(study)
+    try:
+        with Chromium(srv.address + "/?rater=viewer", 800, 700) as c:
+            assert _loaded(c) == "0/orbit.mp4"  # both videos decoded their first frame
+            size = c.eval("[...document.querySelectorAll('#pair video')].map(v => [v.videoWidth, v.videoHeight])")
+            cams = json.loads((real_run / "cameras.json").read_text())
+            assert size == [[cams[0]["width"], cams[0]["height"]]] * 2
+            t0 = c.eval("document.querySelector('#left video').currentTime")
+            _wait(c, f"document.querySelector('#left video').currentTime > {t0} + 0.05")  # it plays
+    finally:
+        srv.stop()

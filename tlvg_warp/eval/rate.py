@@ -48,6 +48,9 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".webp")
 RUN_MARKERS = ("stylized.ply", "metrics.json", "config.yaml", "checkpoint.pt", "sources.json")  # a stylize run folder
 Z95 = 1.959963984540054  # the standard normal's 97.5% quantile
 BOOTSTRAP = 2000
+# raters needed for the bootstrap over raters and for a verdict: with fewer, resampling raters has too few
+# distinct outcomes to be an interval (2 raters: 3), and the answers of a few people are not a population
+MIN_RATERS = 5
 RATER_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 CAMERA_REL_TOL = 1e-3  # camera centres of "the same view" agree to this fraction of the cameras' spread
 
@@ -383,11 +386,11 @@ def wilson(k: int, n: int, z: float = Z95) -> tuple:
 
 def rater_bootstrap(wins, counts, n: int = BOOTSTRAP, seed: int = 0) -> tuple:
     """95% percentile interval of the pooled win rate sum(wins)/sum(counts) when the raters are resampled with
-    replacement (answers of one rater are not independent); (nan, nan) with fewer than 2 raters."""
+    replacement (answers of one rater are not independent); (nan, nan) with fewer than ``MIN_RATERS``."""
     wins, counts = np.asarray(wins, float), np.asarray(counts, float)
     keep = counts > 0
     wins, counts = wins[keep], counts[keep]
-    if len(counts) < 2:
+    if len(counts) < MIN_RATERS:
         return (math.nan, math.nan)
     idx = np.random.default_rng(seed).integers(0, len(counts), (n, len(counts)))
     rates = wins[idx].sum(1) / counts[idx].sum(1)
@@ -409,9 +412,10 @@ class Cell:
         return self.wins / self.n if self.n else math.nan
 
     def verdict(self) -> str:
-        """"A", "B" or "none": a win only where every interval that can be computed excludes 50%."""
-        ivs = [iv for iv in (self.wilson, self.boot) if not math.isnan(iv[0])]
-        if not ivs:
+        """"A", "B" or "none": a win only with at least MIN_RATERS raters and where both intervals (Wilson over
+        answers, bootstrap over raters) exclude 50% on the same side."""
+        ivs = (self.wilson, self.boot)
+        if self.raters < MIN_RATERS or any(math.isnan(iv[0]) for iv in ivs):
             return "none"
         if all(lo > 0.5 for lo, _ in ivs):
             return "A"
@@ -486,8 +490,7 @@ def verdict_lines(s: dict) -> list:
         elif v == "B":
             out.append(f"{name}: B ({_who(study, 'B')}) wins: A has {stats}")
         else:
-            why = "one rater: the raters bootstrap needs two" if c.raters < 2 and not math.isnan(c.wilson[0]) \
-                and (c.wilson[0] > 0.5 or c.wilson[1] < 0.5) else "an interval includes 50%"
+            why = f"fewer than {MIN_RATERS} raters" if c.raters < MIN_RATERS else "an interval includes 50%"
             out.append(f"{name}: no winner ({why}): A has {stats}")
     return out
 
@@ -532,8 +535,8 @@ def format_markdown(s: dict, chart: str | None = REPORT_PNG) -> str:
           f"{len(study.pairs)} pair{'s' if len(study.pairs) != 1 else ''}, {len(study.items)} items, "
           f"media: {study.media}. Generated {_now()}.", "",
           "## Verdicts", "", *[f"- {v}" for v in verdict_lines(s)], "",
-          "A win needs both 95% intervals (Wilson over answers; bootstrap over raters, "
-          f"{BOOTSTRAP} resamples) to exclude 50%.", "",
+          f"A win needs at least {MIN_RATERS} raters and both 95% intervals (Wilson over answers; bootstrap over "
+          f"raters, {BOOTSTRAP} resamples) to exclude 50% on the same side.", "",
           "## Win rate of A per criterion", "",
           "| " + " | ".join(HEAD) + " |", "|" + "|".join("---" for _ in HEAD) + "|"]
     md += ["| " + " | ".join(r) + " |" for r in _rows(s)]
@@ -546,7 +549,7 @@ def format_markdown(s: dict, chart: str | None = REPORT_PNG) -> str:
         md.append(f"| {k} | {p['a_name']} | {p['b_name']} | {len(p['views'])} | "
                   + " | ".join(f"{_pct(cells[c].rate)} ({cells[c].n})" for c in CRITERION_KEYS) + " |")
     md += ["", "## Position check", "",
-           "How often raters picked the left image (a 50% interval means no visible side bias):", ""]
+           "How often raters picked the left image (an interval that includes 50% shows no side bias):", ""]
     md += [f"- {n}: {_pct(s['left'][c].rate)} left, Wilson {_iv(s['left'][c].wilson)}" for c, n, _ in CRITERIA]
     if s["unreadable_lines"]:
         md += ["", f"{s['unreadable_lines']} unreadable line(s) in {ANSWERS_FILE} were skipped."]
