@@ -316,6 +316,11 @@ def test_only_registered_files_are_served(tmp_path, pair):
             conn.close()
         for path in ("/rate.js", "/rate.css", n["left"], n["painting"]):
             assert _get(srv.address + path)[0] == 200
+            assert _get(f"http://localhost:{port}{path}")[0] == 200
+            conn = http.client.HTTPConnection(host, port, timeout=10)  # a page elsewhere, its name rebound to us
+            conn.request("GET", path, headers={"Host": f"attacker.example:{port}"})
+            assert conn.getresponse().status == 403
+            conn.close()
         conn = http.client.HTTPConnection(host, port, timeout=10)
         conn.request("GET", n["left"], headers={"Range": "bytes=0-9"})  # video seeking
         r = conn.getresponse()

@@ -55,6 +55,9 @@ class RateServer:
         self._orders: dict = {}
         self.log_requests = log_requests
         self.httpd = _bind(host, port, _handler(self))
+        # bound to this machine only: refuse requests that name another host (a web page elsewhere that makes
+        # the browser resolve its own name to 127.0.0.1 must not read or post to the study)
+        self.local_only = host in ("127.0.0.1", "localhost", "::1")
         self.thread = threading.Thread(target=self.httpd.serve_forever, name="rate-server", daemon=True)
         self.thread.start()
 
@@ -194,7 +197,19 @@ def _handler(srv: RateServer):
         def do_HEAD(self):
             self.do_GET()
 
+        def _foreign_host(self) -> bool:
+            if not srv.local_only:
+                return False
+            host = self.headers.get("Host", "")
+            name = host.rsplit(":", 1)[0] if not host.startswith("[") else host.split("]")[0] + "]"
+            if name in ("127.0.0.1", "localhost", "[::1]"):
+                return False
+            self._send(403, b"this study is served to this machine only\n", "text/plain; charset=utf-8")
+            return True
+
         def do_GET(self):
+            if self._foreign_host():
+                return None
             url = urlsplit(self.path)
             path, query = url.path, parse_qs(url.query)
             if path == "/":
@@ -222,6 +237,8 @@ def _handler(srv: RateServer):
             return self._not_found()
 
         def do_POST(self):
+            if self._foreign_host():
+                return None
             url = urlsplit(self.path)
             if url.path not in ("/api/answer", "/api/expertise"):
                 return self._not_found()
