@@ -2,6 +2,7 @@
 and captions wrapped between words to fit; loss curves that break at phase boundaries; an orbit video of at
 least 4 s at 24 fps at the run's resolution."""
 import math
+import re
 
 import cv2
 import numpy as np
@@ -39,10 +40,14 @@ def test_captions_wrap_between_words_and_fit():
     for width in (200, 400, 900):
         scale = font_scale(width // 5)
         lines = wrap_text(CAPTION, scale, width - 8)
-        assert " ".join(lines).split() == CAPTION.split()  # no word broken or lost
+        assert "".join(lines).replace(" ", "") == CAPTION.replace(" ", "")  # nothing lost or reordered
+        pos = 0
+        for a, b in zip(lines, lines[1:]):  # each break falls at a space or after a "/" (a path), never mid-word
+            pos = CAPTION.index(a, pos) + len(a)
+            assert CAPTION[pos] == " " or a.endswith("/"), (a, b)
         for ln in lines:
             tw = cv2.getTextSize(ln, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0]
-            assert tw <= width - 8 or " " not in ln  # only a single over-long word may overflow
+            assert tw <= width - 8 or not re.search(r"[ /].", ln)  # only an unbreakable word may overflow
     scales = [font_scale(w) for w in (60, 120, 200, 400, 2000)]
     assert scales == sorted(scales) and 0.3 <= scales[0] and scales[-1] <= 0.8
     s = font_scale(200)

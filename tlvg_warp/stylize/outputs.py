@@ -54,18 +54,27 @@ def font_scale(panel_width: int, longest: str = "original render") -> float:
 
 
 def wrap_text(text: str, scale: float, width: int) -> list:
-    """``text`` in lines no wider than ``width`` pixels at ``scale`` (Hershey simplex), broken between words only
-    (a single word wider than the line keeps a line of its own)."""
+    """``text`` in lines no wider than ``width`` pixels at ``scale`` (Hershey simplex), broken between words only;
+    a word wider than a line (a long path) is broken after a "/" (a word with none keeps a line of its own)."""
     import cv2
+
+    def fits(t):
+        return cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] <= width
 
     lines, cur = [], ""
     for word in text.split():
         trial = f"{cur} {word}" if cur else word
-        if cur and cv2.getTextSize(trial, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] > width:
-            lines.append(cur)
-            cur = word
-        else:
+        if fits(trial):
             cur = trial
+            continue
+        if cur:
+            lines.append(cur)
+        cur = word
+        while not fits(cur) and "/" in cur[:-1]:  # the longest head ending in "/" that fits (else the first)
+            cuts = [i + 1 for i, ch in enumerate(cur[:-1]) if ch == "/"]
+            cut = next((i for i in reversed(cuts) if fits(cur[:i])), cuts[0])
+            lines.append(cur[:cut])
+            cur = cur[cut:]
     return lines + [cur] if cur else lines or [""]
 
 
