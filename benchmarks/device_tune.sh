@@ -12,6 +12,7 @@ if [ -f .carry/vgg/vgg16_hed_fp16.pt ] && [ ! -f "$TLVG_VGG_WEIGHTS" ]; then
     .carry/vgg/vgg16_hed_fp16.pt "$TLVG_VGG_WEIGHTS"
 fi
 [ -d .carry/data ] && cp -r .carry/data/* "$D/"
+[ -d .carry/data2 ] && cp -r .carry/data2/* "$D/"
 [ -d .carry/fits ] && cp .carry/fits/*.spz "$F/" 2>/dev/null
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 date -u
@@ -26,9 +27,28 @@ g = load_ply(sys.argv[1]); save_spz(g.with_sh_degree(0), sys.argv[2]); print(sys
 }
 case "${1:-tune}" in
   fit) shift; for s in "$@"; do fit "${s%%:*}" "${s##*:}"; done ;;
-  tune)
+  tune)  # the tuning split: fern x (starry_night, shipwreck)
     shift
+    C="loss.w_style_color=1.0;style_height=0;stroke_scale=2;loss.w_tv=0;loss.w_align=0.5;loss.w_aniso=0.05"
+    V=(--variant "tlvg:" --variant "abcgs:config=configs/abcgs.yaml"
+       --variant "abcgs_split:config=configs/abcgs.yaml;density.size_rules=split"
+       --variant "color:loss.w_style_color=1.0" --variant "big:style_height=0;stroke_scale=2"
+       --variant "nnfm:loss.style_loss=nnfm" --variant "combo:$C" --variant "combo_nnfm:$C;loss.style_loss=nnfm"
+       --variant "combo_s2:$C;loss.strength=2")
+    B="loss.w_content=0.001;loss.strength=4;loss.w_style_color=2;style_height=0;stroke_scale=2;loss.w_tv=0"
+    FREE="loss.w_scale_reg=0;loss.w_opacity_reg=0"
+    [ "${ROUND:-1}" = 2 ] && V=(--variant "tlvg:" --variant "abcgs_split:config=configs/abcgs.yaml;density.size_rules=split"
+       --variant "bold:$B" --variant "bold_free:$B;$FREE" --variant "bold_nnfm:$B;loss.style_loss=nnfm"
+       --variant "bold_free_nnfm:$B;$FREE;loss.style_loss=nnfm" --variant "nolab:loss.w_lab_start=0;loss.w_lab_end=0"
+       --variant "nodens:density.phases=[pre]" --variant "rgb:loss.luminance_only=false;loss.w_lab_start=0;loss.w_lab_end=0"
+       --variant "keepc:keep_colors=true")
+    B2="loss.style_loss=nnfm;$B"; AL="loss.w_align=8;loss.w_aniso=0.8"
+    [ "${ROUND:-1}" = 3 ] && V=(--variant "tlvg:" --variant "abcgs_split:config=configs/abcgs.yaml;density.size_rules=split"
+       --variant "r3a:$B2;loss.w_chroma_tv=1" --variant "r3b:$B2;loss.w_chroma_tv=10"
+       --variant "r3c:$B2;loss.w_chroma_tv=3;$AL" --variant "r3d:$B2;loss.w_chroma_tv=3;$AL;$FREE"
+       --variant "r3e:$B2;loss.w_chroma_tv=3;$AL;loss.strength=2")
     timeout "${TUNE_LIMIT:-520}" python3 benchmarks/tune.py --scene "$F/fern.spz" --data "$D/scenes/fern_llff" \
-      --styles "$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg" --out "$R/tune" "$@" 2>&1 | grep -v "^Module\|^Warp" | tail -n 80
+      --styles "${STYLES:-$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg}" --out "$R/tune" "${V[@]}" "$@" 2>&1 \
+      | grep -v "^Module\|^Warp" | tail -n 80
     ;;
 esac

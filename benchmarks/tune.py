@@ -1,5 +1,5 @@
 """Stylize one scene with several config variants and paintings in ONE process, then score them with `evaluate`
-beside an un-stylized anchor run, print one table per painting and write a picture montage.
+(which adds its anchors: the un-stylized scene and the pasted painting), print one table per painting and write a picture montage.
 
     python benchmarks/tune.py --scene fern.spz --data fern_llff --styles a.jpg,b.jpg --out OUT \
         --variant tlvg: --variant abcgs:config=configs/abcgs.yaml --variant big:stroke_scale=2;loss.w_tv=0
@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -55,27 +54,12 @@ def stylize(args, variants, styles):
             print(f"run {out}: rc {rc}, {time.perf_counter() - t:.1f} s", flush=True)
 
 
-def anchor_run(src: Path, scene: str, dst: Path) -> Path:
-    """A run folder whose 'stylized' scene is the un-stylized input (SH degree 0, as the runs write theirs)."""
-    from tlvg_warp.io.ply import load_ply, save_ply
-
-    if (dst / "stylized.ply").is_file():
-        return dst
-    dst.mkdir(parents=True, exist_ok=True)
-    for f in ("cameras.json", "style.png", "config.yaml", "metrics.json"):
-        shutil.copy(src / f, dst / f)
-    shutil.copytree(src / "photos", dst / "photos", dirs_exist_ok=True)
-    save_ply(load_ply(scene).with_sh_degree(0), dst / "stylized.ply")
-    return dst
-
-
 def evaluate(args, variants, styles):
     for style in styles:
         d = Path(args.out) / Path(style).stem
         runs = [d / n for n, _, _ in variants if (d / n / "metrics.json").is_file()]
         if not runs:
             continue
-        runs.insert(0, anchor_run(runs[0], args.scene, d / "unstylized"))
         t = time.perf_counter()
         cli.main(["evaluate", *map(str, runs), "--scene", args.scene, "--out", str(d / "evaluation")])
         print(f"evaluate {d.name}: {time.perf_counter() - t:.1f} s", flush=True)
@@ -107,15 +91,15 @@ def montage(args, variants, styles, view: int = 0, width: int = 504):
     for style in styles:
         d = Path(args.out) / Path(style).stem
         tiles = []
-        names = ["unstylized"] + [n for n, _, _ in variants]
-        for n in names:
-            folder = d / n / ("renders" if n != "unstylized" else "photos")
+        names = [n for n, _, _ in variants if (d / n / "renders").is_dir()]
+        for n in names[:1] + names:
+            folder = d / n / ("renders" if tiles else "originals")
             files = sorted(folder.glob("*.png")) if folder.is_dir() else []
             if not files:
                 continue
             im = cv2.imread(str(files[min(view, len(files) - 1)]))
             im = cv2.resize(im, (width, round(im.shape[0] * width / im.shape[1])), interpolation=cv2.INTER_AREA)
-            cv2.putText(im, n, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 255), 2)
+            cv2.putText(im, n if len(tiles) else "un-stylized", (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 255), 2)
             tiles.append(im)
         p = cv2.imread(str(style))
         if p is not None and tiles:

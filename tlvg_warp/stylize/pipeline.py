@@ -53,7 +53,7 @@ from ..types import Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_color", "content", "depth", "tv", "opacity_reg", "scale_reg", "lab", "align", "aniso")
+STYLIZE_TERMS = ("style", "style_color", "content", "depth", "tv", "chroma_tv", "opacity_reg", "scale_reg", "lab", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
 POST_TRAINABLE = ("quats", "sh_dc", "sh_rest")  # the post-process fits colors and rotations only
@@ -100,6 +100,13 @@ class StylizeInputs:
 def tv_loss(img: torch.Tensor) -> torch.Tensor:
     """Mean squared difference of horizontal plus vertical neighbours of an [H,W,3] image."""
     return ((img[1:] - img[:-1]) ** 2).mean() + ((img[:, 1:] - img[:, :-1]) ** 2).mean()
+
+
+def chroma_tv_loss(img: torch.Tensor) -> torch.Tensor:
+    """TV of the chroma residual ``img - Y`` (Y = 0.299R+0.587G+0.114B): strokes may vary luminance at any
+    scale while colour stays in clean patches (the "muddy colour" the luminance-only style loss exists to avoid)."""
+    y = img @ img.new_tensor((0.299, 0.587, 0.114))
+    return tv_loss(img - y[..., None])
 
 
 def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
@@ -198,6 +205,7 @@ class Stylize(Phase):
         self.fields = None  # per view [H,W,3] on the device
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
+                      "chroma_tv": w.w_chroma_tv,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
                       "aniso": w.w_aniso}
         # a term weighted 0 over the whole phase is not computed at all
@@ -261,6 +269,8 @@ class Stylize(Phase):
             terms["depth"] = ((inverse_depth(view.out.depth) - tg.inv_depth[vi]) ** 2).mean()
         if on["tv"]:
             terms["tv"] = tv_loss(img)
+        if on["chroma_tv"]:
+            terms["chroma_tv"] = chroma_tv_loss(img)
         if on["opacity_reg"]:
             terms["opacity_reg"] = anchor_norm(p.opacity_logits, anchors["opacity_logits"])
         if on["scale_reg"]:
