@@ -51,4 +51,22 @@ case "${1:-tune}" in
       --styles "${STYLES:-$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg}" --out "$R/tune" "${V[@]}" "$@" 2>&1 \
       | grep -v "^Module\|^Warp" | tail -n 80
     ;;
+  study)  # the study: fern, beer, lego x the four paintings; abcgs and tlvg everywhere, the ablations on the
+          # tuning pairs (fern x starry_night, shipwreck). STUDY_PART: abcgs | tlvg | eval
+    P="$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg,$D/styles/starry_night_over_the_rhone.png,$D/styles/monet_san_giorgio.jpg"
+    ABL=(--variant "no_advection:config=configs/ablation_no_advection.yaml" --variant "rgb_loss:config=configs/ablation_rgb_loss.yaml"
+         --variant "no_density:config=configs/ablation_no_density.yaml" --variant "canvas_field:config=configs/ablation_canvas_field.yaml")
+    for spec in fern:fern_llff:0 beer:beer_colmap:2 lego:lego_blender:0; do
+      IFS=: read -r s d ds <<< "$spec"
+      args=(--scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" --out "$R/study/$s")
+      case "${STUDY_PART:-abcgs}" in
+        abcgs) python3 benchmarks/tune.py "${args[@]}" --styles "$P" --phase run --variant "abcgs:config=configs/abcgs.yaml" ;;
+        tlvg) python3 benchmarks/tune.py "${args[@]}" --styles "$P" --phase run --variant "tlvg:"
+              [ "$s" = fern ] && python3 benchmarks/tune.py "${args[@]}" --styles "$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg" --phase run "${ABL[@]}" ;;
+        eval) python3 benchmarks/tune.py "${args[@]}" --styles "$P" --phase eval --variant "abcgs:" --variant "tlvg:" "${ABL[@]}" \
+                --montage "$OUT/study_$s.jpg" --view "${VIEW:-0}" ;;
+      esac
+    done 2>&1 | grep -v "^Module\|^Warp\|^open \|^orbit\|^\[evaluate" | tail -n 150
+    (cd "$R/study" && tar -czf "$OUT/study_eval.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json 2>/dev/null))
+    ;;
 esac

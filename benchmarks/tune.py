@@ -47,6 +47,8 @@ def stylize(args, variants, styles):
                 continue
             argv = ["stylize", "--scene", args.scene, "--data", args.data, "--style", style, "--config", cfg,
                     "--out", str(out), "--overwrite", "--quiet", *sum((["--set", s] for s in sets), [])]
+            if args.downscale:
+                argv += ["--downscale", str(args.downscale)]
             if args.iterations:
                 argv += ["--iterations", str(args.iterations)]
             t = time.perf_counter()
@@ -121,6 +123,7 @@ def main():
     ap.add_argument("--styles", required=True, help="comma-separated painting paths")
     ap.add_argument("--out", required=True)
     ap.add_argument("--variant", action="append", default=[], help="name:key=value;key=value")
+    ap.add_argument("--downscale", type=float, default=0, help="render resolution divisor (0: the dataset's)")
     ap.add_argument("--iterations", type=int, default=0, help="override every variant's iterations (0: keep)")
     ap.add_argument("--phase", choices=["all", "run", "eval"], default="all")
     ap.add_argument("--montage", default=None, help="write a JPEG montage of view --view of every run here")
