@@ -73,7 +73,7 @@ def cases(net):
 
 @pytest.mark.parametrize("case,metrics", [
     ("sticker", ("consistency_k1", "consistency_k5", "content")),
-    ("unstylized", ("style_gram", "style_nnfm", "stroke_stats")),
+    ("unstylized", ("style_gram", "style_nnfm", "stroke_scales")),
     ("blurred", ("detail",)),
     ("holed", ("holes_1x", "holes_2x", "consistency_k1")),
 ])
@@ -82,6 +82,61 @@ def test_known_cases_lose_to_a_genuine_stylization(cases, case, metrics):
     cmp = R.compare(per["genuine"], per[case])
     for k in metrics:
         assert cmp[k]["better"] == "a", (case, k, cmp[k])
+
+
+def brushed(color, field, length=6, seed=0):
+    """The view painted with strokes along a doubled-angle field [H,W,2]: noise smeared along the field's
+    direction at each pixel (a line integral convolution over ±length px) modulates the view's luminance."""
+    import cv2
+
+    h, w = color.shape[:2]
+    theta = 0.5 * np.arctan2(field[..., 1], field[..., 0])
+    noise = np.random.default_rng(seed).random((h, w)).astype(np.float32)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    acc = np.zeros((h, w), np.float32)
+    for t in range(-length, length + 1):
+        acc += cv2.remap(noise, x + t * np.cos(theta).astype(np.float32), y + t * np.sin(theta).astype(np.float32),
+                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+    strokes = acc / (2 * length + 1)
+    strokes = (strokes - strokes.mean()) / (strokes.std() + 1e-6)
+    return np.clip(color * (1.0 + 0.35 * strokes[..., None]), 0, 1).astype(np.float32)
+
+
+@pytest.mark.parametrize("anchor", ["sticker", "unstylized"])
+def test_anchors_lose_flow_alignment_to_strokes_along_the_painting_flow(cases, anchor):
+    """The un-stylized scene and the painting pasted on the screen both lose the common-field flow alignment to
+    the scene painted with strokes that follow the painting's flow on it (each view brushed along the common
+    field). The brushed views are scored as a run would be."""
+    refs, per = cases
+    views, a2 = R.anchor_views(refs)[M.UNSTYLIZED]
+    painted = [{"color": brushed(v["color"], f, seed=i), "alpha": v["alpha"]}
+               for i, (v, f) in enumerate(zip(views, refs.fields))]
+    fa = [M.flow_alignment(v["color"], f) for v, f in zip(painted, refs.fields)]
+    verdict = M.paired(fa, per[anchor]["flow_alignment"], M.METRICS["flow_alignment"])
+    assert verdict["better"] == "a", verdict
+
+
+def test_evaluate_builds_its_anchors_as_the_cases_are_built(cases, net):
+    """eval/refs.anchor_views against this file's own construction: the un-stylized anchor is the un-stylized
+    scene's render, the sticker the painting center-cropped and resized by the stylize outputs' own crop; scored
+    with the same ruler they give the values the cases give (the sticker's coverage is the full view)."""
+    refs, per = cases
+    anchors = R.anchor_views(refs)
+    views, a2 = anchors[M.UNSTYLIZED]
+    own = R.render_views(demo_scene(n_views=N_VIEWS, width=W, height=H)[0], refs.cameras, BG)
+    for v, o in zip(views, own):
+        np.testing.assert_array_equal(v["color"], o["color"])
+    sviews, _ = anchors[M.STICKER]
+    for v in sviews:
+        np.testing.assert_allclose(v["color"], _fit_painting(refs.painting, H, W), atol=1e-6)
+        assert v["alpha"].min() == 1.0
+    assert R.score_views(views, a2, refs, net) == per["unstylized"]
+
+
+def test_every_metric_has_the_anchor_it_must_beat_declared():
+    per_view = {k for k, m in M.METRICS.items() if m.per_view}
+    assert set(M.ANCHOR_TO_BEAT) == per_view
+    assert set(M.ANCHOR_TO_BEAT.values()) <= {M.UNSTYLIZED, M.STICKER, None}
 
 
 def test_every_metric_declares_direction_and_unit():

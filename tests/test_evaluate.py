@@ -87,14 +87,63 @@ def test_random_weights_report_not_measured(runs, tmp_path):
     assert "not measured" in (out / "evaluation.html").read_text()
 
 
+def _error_lines(err: str) -> str:
+    """stderr without evaluate's progress lines ("[evaluate  1.2s] stage"), which come first."""
+    lines = err.strip().splitlines()
+    assert all(x.startswith("[evaluate") for x in lines[:-1]) or len(lines) < 2, lines
+    return "\n".join(x for x in lines if not x.startswith("[evaluate"))
+
+
+def test_progress_goes_to_stderr_a_line_per_stage(runs, tmp_path, capsys):
+    rc, _ = _evaluate(tmp_path, "p", runs[0], weights="random", extra=("--max-views", "6"))
+    cap = capsys.readouterr()
+    stages = [x for x in cap.err.splitlines() if x.startswith("[evaluate")]
+    assert rc == 0 and "[evaluate" not in cap.out
+    assert stages[0].split("]")[1].strip().startswith("loading VGG")
+    assert any("scored the anchor 'sticker'" in x for x in stages) and stages[-1].endswith("done")
+
+
 def test_bad_input_is_one_line_naming_the_file(runs, tmp_path, capsys):
     rc = main(["evaluate", str(tmp_path / "nope"), "--vgg-weights", "random"])
-    err = capsys.readouterr().err.strip()
+    err = _error_lines(capsys.readouterr().err)
     assert rc == 2 and "nope" in err and "\n" not in err
     other = make_run(tmp_path / "other", n_views=N_VIEWS)[0]
     (other / "style.png").write_bytes((runs[0] / "photos" / "view_000.png").read_bytes()
                                       if (runs[0] / "photos" / "view_000.png").exists()
                                       else next((runs[0] / "photos").iterdir()).read_bytes())
     rc = main(["evaluate", str(runs[0]), str(other), "--vgg-weights", "random", "--out", str(tmp_path / "o")])
-    err = capsys.readouterr().err.strip()
+    err = _error_lines(capsys.readouterr().err)
     assert rc == 2 and "style.png" in err and "not the same painting" in err
+
+
+def test_anchors_are_reference_rows_in_json_table_and_report(both, capsys):
+    _, pair, out, _, _ = both
+    assert [a["name"] for a in pair["anchors"]] == ["no stylization", "sticker"]
+    un = pair["anchors"][0]["summary"]
+    assert un["holes_1x"]["mean"] == 0.0 and un["consistency_k1"]["n"] == N_VIEWS - 1
+    # the sticker is the same image on every view: its multi-view error is the painting against itself moved
+    assert pair["anchors"][1]["summary"]["consistency_k1"]["mean"] > un["consistency_k1"]["mean"]
+    html = (out / "evaluation.html").read_text()
+    for text in ("no stylization", "sticker", "reference", "must beat"):
+        assert text in html, text
+
+
+def _pv(vals):
+    return {"style_gram": list(vals)}
+
+
+def test_a_run_wins_only_where_it_also_beats_its_anchor():
+    """Oracle: hand-made per-view values. Run a beats run b on every view; a win also needs beating the anchor
+    the metric exists to beat (style: no stylization). An anchor better than every run marks the metric."""
+    from tlvg_warp.commands.evaluate import not_discriminating, winners
+
+    rng = np.random.default_rng(0)
+    base = rng.normal(1.0, 0.1, 12)
+    a, b = _pv(base), _pv(base + 0.5)  # lower is better: a beats b
+    good_anchor = {"no stylization": _pv(base - 0.5), "sticker": _pv(base + 9)}
+    weak_anchor = {"no stylization": _pv(base + 0.3), "sticker": _pv(base - 9)}
+    assert winners(["a", "b"], [a, b], weak_anchor).get("style_gram") == "a"
+    assert winners(["a", "b"], [a, b], good_anchor).get("style_gram") is None
+    assert not_discriminating([a, b], good_anchor) == {"style_gram": "no stylization"}
+    # the sticker beating every run on style is expected (it is the painting): not a verdict
+    assert not_discriminating([a, b], weak_anchor) == {}

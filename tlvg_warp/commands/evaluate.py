@@ -4,13 +4,17 @@ photos and the painting; nothing a run stored about its own targets is read).
 
 A run folder gives stylized.ply, cameras.json, photos/, style.png (or config.yaml's style), metrics.json
 (times, counts) and orbit.mp4. The un-stylized scene: --scene, else the one the run's checkpoint.pt names,
-else RUN/reconstruct/point_cloud.ply, else the built-in demo when the run was made on it. Writes
-evaluation.json and evaluation.html (self-contained) to --out.
+else RUN/reconstruct/point_cloud.ply, else the built-in demo (at the density the run used) when the run was made
+on it. Beside the runs, the same ruler scores two anchors that evaluate builds itself: the un-stylized scene
+("no stylization") and the painting pasted over every view ("sticker"); a run wins a metric only where it also
+beats the anchor that metric exists to beat (eval/metrics.py ANCHOR_TO_BEAT). Writes evaluation.json and
+evaluation.html (self-contained) to --out; a line per stage goes to stderr.
 """
 from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -22,6 +26,23 @@ from ..fileio import write_json, write_text
 
 MAX_REPORT_VIEWS = 4  # views shown as thumbnails (evenly spaced)
 CAM_TOL = 1e-4  # cameras.json round trip (float32 positions): runs of the same views agree far closer
+DEFAULT_EVAL_HEIGHT = 256  # style/content size (the style loss's working height, SPEC §3)
+MIN_EVAL_HEIGHT = 64  # smaller views are enlarged to this (VGG's relu4 needs a few cells)
+
+
+def auto_eval_height(cameras) -> int:
+    """The style/content evaluation height for views of this size: their own height within
+    [MIN_EVAL_HEIGHT, DEFAULT_EVAL_HEIGHT] (enlarging a small render to 256 rows adds VGG work, not detail)."""
+    return int(min(DEFAULT_EVAL_HEIGHT, max(MIN_EVAL_HEIGHT, max(c.height for c in cameras))))
+
+
+def stage_logger(stream=None):
+    """A log function that writes each stage as one line with the seconds since it was made."""
+    t0 = time.perf_counter()
+
+    def log(msg: str) -> None:
+        print(f"[evaluate {time.perf_counter() - t0:6.1f}s] {msg}", file=stream or sys.stderr, flush=True)
+    return log
 
 
 def default_cache() -> Path:
@@ -38,7 +59,8 @@ def add_arguments(p):
                    "else RUN's parent/evaluation)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     p.add_argument("--max-views", type=int, default=0, help="evaluate only the first N cameras (0: all)")
-    p.add_argument("--eval-height", type=int, default=256, help="height of the style/content evaluation size")
+    p.add_argument("--eval-height", type=int, default=None, help="height of the style/content evaluation size "
+                   f"(default: the views' height, between {MIN_EVAL_HEIGHT} and {DEFAULT_EVAL_HEIGHT})")
     p.add_argument("--cache", default=None, help=f"reference cache folder (default {default_cache()})")
 
 
@@ -125,15 +147,31 @@ def resolve_scene(run: dict, scene=None):
         if cand and Path(cand).is_file():
             return load_ply(Path(cand))
     if not src.get("data"):
-        from ..io.demo import demo_scene
-
-        c = run["cameras"][0]
-        g, cams = demo_scene(n_views=run["n_total"], width=c.width, height=c.height)
-        if all(
-                torch.allclose(a.world_to_camera.double(), b.world_to_camera.double(), atol=CAM_TOL)
-                for a, b in zip(cams, run["cameras"])):
+        g = demo_original(run["dir"], run["cameras"], run["n_total"])
+        if g is not None:
             return g
     raise InputError("cannot find the un-stylized scene of this run; pass --scene PLY", run["dir"])
+
+
+def demo_original(run_dir, cameras, n_total: int | None = None):
+    """The built-in demo scene a demo run started from, or None when the cameras are not the demo's orbit. The
+    demo samples its surfaces more sparsely at a larger downscale (stylize: spacing = max(1, downscale)), so the
+    run's config.yaml downscale picks the same density (e.g. 4,678 Gaussians at downscale 2, not 18,733)."""
+    from ..io.demo import demo_scene
+
+    if not cameras:
+        return None
+    try:
+        downscale = float(_yaml(Path(run_dir) / "config.yaml").get("downscale") or 1.0)
+    except (TypeError, ValueError):
+        downscale = 1.0
+    c = cameras[0]
+    g, cams = demo_scene(n_views=n_total or len(cameras), width=c.width, height=c.height,
+                         spacing=max(1.0, downscale))
+    if all(torch.allclose(a.world_to_camera.double(), b.world_to_camera.double(), atol=CAM_TOL)
+           for a, b in zip(cams, cameras)):
+        return g
+    return None
 
 
 def check_same_setting(runs: list) -> None:
@@ -164,37 +202,67 @@ def wall_time(m: dict):
     return None
 
 
-def winners(names, per_views) -> dict:
-    """Per metric: the run whose paired difference to every other run favours it (95%), else absent."""
+def winners(names, per_views, anchors: dict | None = None) -> dict:
+    """Per metric: the run whose paired difference to every other run favours it (95%) and that also beats the
+    anchor the metric exists to beat (metrics.ANCHOR_TO_BEAT; ``anchors``: {anchor name: per-view dict}),
+    else absent."""
     from ..eval import metrics as M
     from ..eval.refs import compare
 
     out = {}
-    if len(names) < 2:
-        return out
+    anchors = anchors or {}
     for k in M.METRICS:
         if not M.METRICS[k].per_view:
             continue
         for i, n in enumerate(names):
             if per_views[i].get(k) is None:
                 continue
-            if all(compare({k: per_views[i][k]}, {k: per_views[j][k]}).get(k, {}).get("better") == "a"
-                   for j in range(len(names)) if j != i):
+            rivals = [per_views[j] for j in range(len(names)) if j != i]
+            target = M.ANCHOR_TO_BEAT.get(k)
+            if target in anchors and anchors[target].get(k) is not None:
+                rivals.append(anchors[target])
+            if rivals and all(compare({k: per_views[i][k]}, {k: r[k]}).get(k, {}).get("better") == "a"
+                              for r in rivals):
                 out[k] = n
     return out
 
 
-def evaluate_runs(run_dirs, net, device, *, scene=None, max_views: int = 0, eval_height: int = 256,
-                  cache_dir=None, log=print) -> tuple[dict, list, "object"]:
-    """Score every run with one set of references. Returns (result dict, loaded runs, refs)."""
-    from ..eval.refs import build_references, compare, score_views, stylized_views, summarize
+def not_discriminating(per_views, anchors: dict) -> dict:
+    """{metric: the anchor it exists to beat (metrics.ANCHOR_TO_BEAT)} where that anchor beats every run (95%):
+    on this scene the metric does not tell the runs from doing nothing (flow, style, strokes, detail) or from
+    pasting the painting (content, multi-view, chroma noise). The other anchor winning is expected (the painting
+    has the painting's style; the un-stylized scene is the scene) and is not a verdict."""
+    from ..eval import metrics as M
+    from ..eval.refs import compare
 
+    out = {}
+    for k, target in M.ANCHOR_TO_BEAT.items():
+        pa = anchors.get(target) if target else None
+        if not per_views or pa is None or pa.get(k) is None:
+            continue
+        if all(pv.get(k) is not None and compare({k: pa[k]}, {k: pv[k]}).get(k, {}).get("better") == "a"
+               for pv in per_views):
+            out[k] = target
+    return out
+
+
+def evaluate_runs(run_dirs, net, device, *, scene=None, max_views: int = 0, eval_height: int | None = None,
+                  cache_dir=None, log=print) -> tuple[dict, list, "object"]:
+    """Score every run, and the two anchors, with one set of references. Returns (result dict, loaded runs,
+    refs)."""
+    from ..eval import metrics as M
+    from ..eval.refs import anchor_views, build_references, compare, score_views, stylized_views, summarize
+
+    log(f"reading {len(run_dirs)} run folder(s)")
     runs = [load_run(d, max_views) for d in run_dirs]
     check_same_setting(runs)
+    if eval_height is None:
+        eval_height = auto_eval_height(runs[0]["cameras"])
+    log("finding the un-stylized scene")
     g0 = resolve_scene(runs[0], scene)
     t0 = time.perf_counter()
     refs = build_references(g0, runs[0]["cameras"], runs[0]["background"], runs[0]["painting"], runs[0]["photos"],
-                            net, eval_height=eval_height, cache_dir=cache_dir, device=device)
+                            net, eval_height=eval_height, cache_dir=cache_dir, device=device, log=log)
     log(f"references: {refs.key} ({time.perf_counter() - t0:.1f}s)")
     per, results = [], []
     for r in runs:
@@ -209,12 +277,22 @@ def evaluate_runs(run_dirs, net, device, *, scene=None, max_views: int = 0, eval
                         "per_view": pv, "phase_times_s": m.get("time_per_phase_s"),
                         "eval_time_s": round(time.perf_counter() - t1, 3)})
         log(f"scored {r['dir']} ({time.perf_counter() - t1:.1f}s)")
+    anchors, anchor_per = [], {}
+    for a, (views, a2) in anchor_views(refs).items():
+        t1 = time.perf_counter()
+        pv = score_views(views, a2, refs, net)
+        anchor_per[a] = pv
+        anchors.append({"name": a, "summary": summarize(pv), "per_view": pv})
+        log(f"scored the anchor '{a}' ({time.perf_counter() - t1:.1f}s)")
     names = unique_names(runs)
     pairs = {f"{names[i]} vs {names[j]}": compare(per[i], per[j])
              for i in range(len(runs)) for j in range(i + 1, len(runs))}
+    pairs |= {f"{n} vs {a}": compare(p, anchor_per[a]) for n, p in zip(names, per) for a in anchor_per}
     res = {"vgg": net.source, "vgg_random": bool(net.is_random), "references": refs.key,
            "eval_height": eval_height, "views": runs[0]["names"], "names": names, "runs": results,
-           "comparisons": pairs, "winners": winners(names, per),
+           "anchors": anchors, "anchor_to_beat": dict(M.ANCHOR_TO_BEAT),
+           "comparisons": pairs, "winners": winners(names, per, anchor_per),
+           "not_discriminating": not_discriminating(per, anchor_per),
            "not_measured": [k for k, v in per[0].items() if v is None]}
     return res, runs, refs
 
@@ -229,22 +307,28 @@ def unique_names(runs) -> list[str]:
 
 
 def report_html(res: dict, runs: list, refs) -> str:
+    from ..eval import metrics as M
     from ..eval import report as H
     from ..losses.stroke_field import field_picture, stroke_field
     from ..losses.vgg import resize_style
 
     names = res["names"]
     sums = [r["summary"] for r in res["runs"]]
+    anchors = res.get("anchors") or []
     warn = ("<p class=warn>VGG-16 weights are random: style, content and flow-alignment metrics are not "
             "measured.</p>" if res["vgg_random"] else "")
     body = [f"<p>{len(names)} run(s): " + ", ".join(H.esc(r['run']) for r in res["runs"]) + "</p>", warn,
             f"<p class=small>VGG: {H.esc(res['vgg'])}; references {res['references']}; "
             f"{len(res['views'])} views; style/content measured at height {res['eval_height']} px.</p>",
-            H.METHOD_NOTE, "<h2>Results</h2>", H.results_table(names, sums, res["winners"])]
+            H.METHOD_NOTE, H.ANCHOR_NOTE, "<h2>Results</h2>",
+            H.results_table(names, sums, res["winners"], anchors=anchors,
+                            not_discriminating=res.get("not_discriminating"))]
     if res["comparisons"]:
         body.append("<h2>Paired comparisons</h2>" + comparisons_table(res["comparisons"]))
-    body += ["<h2>Means with 95% intervals</h2>", H.bars_chart(names, sums),
-             "<h2>Per view</h2>", H.per_view_chart(names, [r["per_view"] for r in res["runs"]]),
+    an = [a["name"] for a in anchors]
+    body += ["<h2>Means with 95% intervals</h2>", H.bars_chart(names + an, sums + [a["summary"] for a in anchors]),
+             "<h2>Per view</h2>", H.per_view_chart(names + an, [r["per_view"] for r in res["runs"]]
+                                                   + [a["per_view"] for a in anchors]),
              "<h2>Speed and quality</h2>",
              H.speed_chart(names, [s.get("wall_time_s") for s in sums], sums)]
     work = resize_style(refs.painting)
@@ -256,7 +340,8 @@ def report_html(res: dict, runs: list, refs) -> str:
     stylized = {name: [r["colors"][i] for i in pick] for r, name in zip(runs, names)}
     body.append("<h2>Views</h2>")
     for k, i in enumerate(pick):
-        cells = [H.figure(refs.photos[i], "photo"), H.figure(refs.base[i]["color"], "un-stylized")]
+        cells = [H.figure(refs.photos[i], "photo"), H.figure(refs.base[i]["color"], "no stylization (anchor)"),
+                 H.figure(M.sticker(refs.painting, *refs.base[i]["color"].shape[:2]), "sticker (anchor)")]
         cells += [H.figure(stylized[nm][k], nm) for nm in names]
         if refs.fields is not None:
             th, c = 0.5 * np.arctan2(refs.fields[i][..., 1], refs.fields[i][..., 0]), np.linalg.norm(refs.fields[i], axis=-1)
@@ -295,19 +380,26 @@ def _print_table(res: dict) -> None:
     from ..eval.report import fmt
 
     names = res["names"]
-    print(f"{'metric':<16}" + "".join(f"{n[:22]:>24}" for n in names))
+    anchors = res.get("anchors") or []
+    cols = names + [f"[{a['name']}]" for a in anchors]
+    print(f"{'metric':<16}" + "".join(f"{n[:22]:>24}" for n in cols))
     for k in M.METRICS:
         vals = []
-        for r in res["runs"]:
-            s = r["summary"].get(k)
-            if s is None:
+        for s in [r["summary"] for r in res["runs"]] + [a["summary"] for a in anchors]:
+            v = s.get(k, "")
+            if v is None:
                 vals.append("not measured")
-            elif isinstance(s, dict):
-                vals.append("–" if s["mean"] is None else f"{fmt(s['mean'], 3)} [{fmt(s['lo'], 2)},{fmt(s['hi'], 2)}]")
+            elif isinstance(v, dict):
+                vals.append("–" if v["mean"] is None
+                            else f"{fmt(v['mean'], 3)} [{fmt(v['lo'], 2)},{fmt(v['hi'], 2)}]")
             else:
-                vals.append(fmt(s))
+                vals.append(fmt(v) if v != "" else "")
         w = res["winners"].get(k)
-        print(f"{k:<16}" + "".join(f"{v:>24}" for v in vals) + (f"   winner: {w}" if w else ""))
+        nd = (res.get("not_discriminating") or {}).get(k)
+        note = (f"   winner: {w}" if w else "") + (f"   not discriminating: {nd} beats every run" if nd else "")
+        print(f"{k:<16}" + "".join(f"{v:>24}" for v in vals) + note)
+    print("[anchors] are references scored with the same ruler; a winner also beats the anchor its metric exists "
+          "to beat: " + ", ".join(f"{k} vs {a}" for k, a in M.ANCHOR_TO_BEAT.items() if a))
 
 
 def pick_weights(args_weights, run_dirs):
@@ -328,16 +420,21 @@ def pick_weights(args_weights, run_dirs):
 def run(args) -> int:
     from ..losses.vgg import load_vgg
 
+    log = stage_logger()
     dirs = list(dict.fromkeys([*args.runs, *args.against]))
-    if args.eval_height < 16:
+    if args.eval_height is not None and args.eval_height < 16:
         raise InputError(f"--eval-height must be at least 16, got {args.eval_height}")
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     out = Path(args.out) if args.out else (Path(dirs[0]) if len(dirs) == 1 else Path(dirs[0]).parent / "evaluation")
+    log(f"loading VGG-16 on {device}")
     net = load_vgg(pick_weights(args.vgg_weights, dirs), device=device)
     res, runs, refs = evaluate_runs(dirs, net, device, scene=args.scene, max_views=args.max_views,
-                                    eval_height=args.eval_height, cache_dir=Path(args.cache) if args.cache else default_cache())
+                                    eval_height=args.eval_height, log=log,
+                                    cache_dir=Path(args.cache) if args.cache else default_cache())
     write_json(out / "evaluation.json", res)
+    log("writing the report")
     write_text(out / "evaluation.html", report_html(res, runs, refs))
+    log("done")
     _print_table(res)
     if net.is_random:
         print("note: VGG-16 weights are random: style, content and flow alignment are not measured")

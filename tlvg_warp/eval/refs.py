@@ -19,7 +19,7 @@ from ..errors import InputError
 from ..fileio import write_bytes
 from . import metrics as M
 
-REFS_VERSION = 1  # bump when what the references contain changes: old cache entries are then ignored
+REFS_VERSION = 2  # bump when what the references contain changes: old cache entries are then ignored
 EVAL_HEIGHT = 256  # style / content / stroke statistics / detail are measured at this height (SPEC §3 style)
 FIELD_SCALE = 0.5  # the un-stylized render is matched at x0.5, as training feeds renders to VGG (SPEC §3)
 
@@ -39,6 +39,7 @@ class Refs:
     key: str = ""
     painting_stats: dict = field(default_factory=dict)
     photo_feats: list = field(default_factory=list)  # per view VGG content features of the photo (in memory)
+    corr: dict = field(default_factory=dict)  # (i, k) -> correspondences of views i and i+k (built on first use)
 
 
 def scaled(cam, f: float):
@@ -95,7 +96,7 @@ def _painting_side(net, painting: np.ndarray, eval_height: int, pretrained: bool
     from ..losses.vgg import flatten_feats, resize_style
 
     p_eval = M.resize_to_height(painting, eval_height)
-    out = {"coherence_q": M.coherence_quantiles(p_eval), "hf": M.hf_energy(M.luma(p_eval))}
+    out = {"strokes": M.stroke_descriptor(painting), "hf": M.hf_energy(M.luma(p_eval))}
     if pretrained:
         out |= M.vgg_feats(net, p_eval)
         work = resize_style(painting)  # the field's working size (SPEC §3: height 256)
@@ -108,9 +109,10 @@ def _painting_side(net, painting: np.ndarray, eval_height: int, pretrained: bool
 
 
 def build_references(scene, cameras, background, painting, photos, net, *, eval_height: int = EVAL_HEIGHT,
-                     cache_dir=None, device="cpu") -> Refs:
+                     cache_dir=None, device="cpu", log=None) -> Refs:
     """References of (scene, painting, views). ``net`` a VGG16Features; without pretrained weights the
-    common field is not built (flow alignment is then not measured)."""
+    common field is not built (flow alignment is then not measured). ``log``: a line per stage."""
+    log = log or (lambda msg: None)
     from ..losses.color import color_transfer
 
     painting = np.ascontiguousarray(M._np(painting)[..., :3], np.float32)
@@ -118,16 +120,26 @@ def build_references(scene, cameras, background, painting, photos, net, *, eval_
     pretrained = not net.is_random
     key = content_key(scene, cameras, background, painting, photos, net, eval_height)
     refs = Refs(list(cameras), [], [], photos, [], None, painting, tuple(background), eval_height, pretrained, key)
+    log("references: the painting's statistics")
     refs.painting_stats = _painting_side(net, painting, eval_height, pretrained)
-    if pretrained:
-        refs.photo_feats = [M.vgg_feats(net, M.resize_to_height(p, eval_height))["content"] for p in photos]
     path = None if cache_dir is None else (Path(cache_dir) / f"{key}.npz")
     if path is not None and path.is_file():
-        return _load_cached(refs, path)
+        log(f"references: cached ({path})")
+        refs = _load_cached(refs, path)
+        if pretrained:
+            dev = next(net.parameters()).device
+            refs.photo_feats = [{k: v.to(dev) for k, v in f.items()} for f in refs.photo_feats]
+        return refs
+    if pretrained:
+        log(f"references: content features of {len(photos)} photos")
+        refs.photo_feats = [f["content"] for f in M.vgg_feats_batch(
+            net, [M.resize_to_height(p, eval_height) for p in photos])]
+    log(f"references: rendering the un-stylized scene ({len(cameras)} views, 1x and 2x)")
     refs.base = render_views(scene, cameras, background, device)
     refs.alpha2x = [v["alpha"] for v in render_views(scene, [scaled(c, 2.0) for c in cameras], background, device)]
     refs.recolored = [np.asarray(x, np.float32) for x in color_transfer(photos, painting)[0]]
     if pretrained:
+        log("references: the common stroke field of every view")
         ps = refs.painting_stats
         refs.fields = [common_field(net, b["color"], painting, ps["cells_field"], ps["cells_feats"])
                        for b in refs.base]
@@ -143,6 +155,8 @@ def _save_cached(refs: Refs, path) -> None:
                  f"alpha2x{i}": refs.alpha2x[i], f"recolored{i}": refs.recolored[i]}
         if refs.fields is not None:
             arrs[f"field{i}"] = refs.fields[i]
+        for k, f in (refs.photo_feats[i].items() if refs.photo_feats else ()):
+            arrs[f"photo_{k}_{i}"] = f.cpu().numpy()
     buf = io.BytesIO()
     np.savez(buf, **arrs)
     write_bytes(path, buf.getvalue())
@@ -165,11 +179,14 @@ def _load_cached(refs: Refs, path) -> Refs:
             alpha2x = [get(f"alpha2x{i}") for i in range(n)]
             recolored = [get(f"recolored{i}") for i in range(n)]
             fields = [get(f"field{i}") for i in range(n)] if refs.pretrained else None
+            photo_feats = [{k: torch.from_numpy(get(f"photo_{k}_{i}")) for k in M.CONTENT_LAYERS}
+                           for i in range(n)] if refs.pretrained else []
     except Exception as e:  # noqa: BLE001 - a damaged or foreign cache file is one line, never code
         why = "it holds Python objects, which are never unpickled" if "allow_pickle" in str(e) else \
             f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
         raise InputError(f"unreadable reference cache ({why}); delete it to rebuild it", path) from None
     refs.base, refs.alpha2x, refs.recolored, refs.fields = base, alpha2x, recolored, fields
+    refs.photo_feats = photo_feats
     return refs
 
 
@@ -187,29 +204,47 @@ def score_views(views: list, alpha2x: list, refs: Refs, net) -> dict:
     n = len(views)
     per = {k: [] for k, m in M.METRICS.items() if m.per_view}
     ps = refs.painting_stats
+    imgs = [np.ascontiguousarray(v["color"], np.float32) for v in views]
+    evs = [M.resize_to_height(img, refs.eval_height) for img in imgs]
+    measured = refs.pretrained and not net.is_random
+    feats = M.vgg_feats_batch(net, evs) if measured else [None] * n
     for i, v in enumerate(views):
-        img = np.ascontiguousarray(v["color"], np.float32)
-        ev = M.resize_to_height(img, refs.eval_height)
-        per["stroke_stats"].append(M.stroke_stats(ev, ps["coherence_q"]))
+        img, ev, f = imgs[i], evs[i], feats[i]
+        per["stroke_scales"].append(M.stroke_distance(M.stroke_descriptor(img, refs.base[i]["alpha"]),
+                                                      ps["strokes"]))
         per["detail"].append(M.hf_energy(M.luma(ev)) / max(ps["hf"], 1e-12))
         per["holes_1x"].append(M.holes(v["alpha"], refs.base[i]["alpha"]))
         per["holes_2x"].append(M.holes(alpha2x[i], refs.alpha2x[i]))
         per["chroma_noise"].append(M.hf_energy(M.lab_ab(img)) / max(M.hf_energy(M.lab_ab(refs.recolored[i])), 1e-12))
-        if refs.pretrained and not net.is_random:
+        if measured:
             per["flow_alignment"].append(M.flow_alignment(img, refs.fields[i]))
-            f = M.vgg_feats(net, ev)
             per["style_gram"].append(M.style_gram(f["grams"], ps["grams"]))
             per["style_nnfm"].append(M.style_nnfm(f["relu3"], ps["relu3"]))
             per["content"].append(M.content(f["content"], refs.photo_feats[i]))
     for k in M.KS:
-        per[f"consistency_k{k}"] = [
-            M.pair_error(views[i], views[i + k], M.correspondences(refs.base[i], refs.base[i + k],
-                                                                   refs.cameras[i], refs.cameras[i + k]))
-            for i in range(n - k)]
+        per[f"consistency_k{k}"] = [M.pair_error(views[i], views[i + k], correspondences(refs, i, k))
+                                    for i in range(n - k)]
     for k, m in M.METRICS.items():
         if m.per_view and m.pretrained and not per[k]:
             per[k] = None  # not measured
     return per
+
+
+def correspondences(refs: Refs, i: int, k: int):
+    """The un-stylized scene's correspondences of views i and i+k (the same for every run: built once)."""
+    if (i, k) not in refs.corr:
+        refs.corr[(i, k)] = M.correspondences(refs.base[i], refs.base[i + k], refs.cameras[i], refs.cameras[i + k])
+    return refs.corr[(i, k)]
+
+
+def anchor_views(refs: Refs) -> dict:
+    """The anchors every evaluation scores beside the runs, as (views, alphas at 2x) like ``stylized_views``:
+    "no stylization" (the un-stylized scene's own renders and coverage) and "sticker" (the painting
+    center-cropped and resized over the whole of every view: full coverage, no scene, no 3D)."""
+    un = [{"color": b["color"], "alpha": b["alpha"]} for b in refs.base]
+    st = [{"color": M.sticker(refs.painting, *b["color"].shape[:2]), "alpha": np.ones_like(b["alpha"])}
+          for b in refs.base]
+    return {M.UNSTYLIZED: (un, list(refs.alpha2x)), M.STICKER: (st, [np.ones_like(a) for a in refs.alpha2x])}
 
 
 def summarize(per: dict) -> dict:
@@ -223,4 +258,4 @@ def compare(per_a: dict, per_b: dict) -> dict:
 
 
 __all__ = ["Refs", "build_references", "score_views", "stylized_views", "summarize", "compare", "render_views",
-           "scaled"]
+           "scaled", "anchor_views"]

@@ -17,7 +17,8 @@ CSS = """body{font-family:system-ui,sans-serif;margin:1.5em;max-width:1400px;col
 table{border-collapse:collapse;margin:.6em 0}td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}
 th{background:#f3f3f3}td.l,th.l{text-align:left}.win{background:#d8f5d0;font-weight:bold}
 .row{display:flex;gap:8px;flex-wrap:wrap}figure{margin:0}figcaption,.small{font-size:13px;color:#555}
-.warn{color:#b00;font-weight:bold}.nm{color:#999;font-style:italic}"""
+.warn{color:#b00;font-weight:bold}.nm{color:#999;font-style:italic}td.ref,th.ref{background:#f6f6fa;color:#555}
+.nd{color:#b60}"""
 
 
 def esc(x) -> str:
@@ -78,17 +79,30 @@ def metric_head(k: str) -> str:
     return f"<td class=l><b>{esc(m.words)}</b><br><span class=small>{esc(m.unit)}; {m.direction}</span></td>"
 
 
-def results_table(names, summaries, winners, keys=None) -> str:
-    """One row per metric, one column per run; the winner's cell green (a win needs every paired interval
-    against the others to exclude 0; otherwise the row says 'no clear winner')."""
-    keys = keys or [k for k in M.METRICS if any(k in s for s in summaries)]
-    head = "<tr><th class=l>metric</th>" + "".join(f"<th>{esc(n)}</th>" for n in names) + "<th>verdict</th></tr>"
+def results_table(names, summaries, winners, keys=None, anchors=None, not_discriminating=None) -> str:
+    """One row per metric, one column per run, then one grey reference column per anchor ({"name", "summary"});
+    the winner's cell green (a win needs every paired interval against the others, and against the anchor the
+    metric exists to beat, to exclude 0; otherwise 'no clear winner'); a metric that an anchor wins against
+    every run says 'not discriminating'."""
+    anchors = anchors or []
+    nd = not_discriminating or {}
+    sums = list(summaries) + [a["summary"] for a in anchors]
+    keys = keys or [k for k in M.METRICS if any(k in s for s in sums)]
+    head = ("<tr><th class=l>metric</th>" + "".join(f"<th>{esc(n)}</th>" for n in names)
+            + "".join(f"<th class=ref>{esc(a['name'])}<br><span class=small>reference</span></th>" for a in anchors)
+            + "<th>must beat</th><th>verdict</th></tr>")
     rows = []
     for k in keys:
         w = winners.get(k)
         cells = "".join(f"<td{' class=win' if w == n else ''}>{cell(s.get(k))}</td>" for n, s in zip(names, summaries))
-        verdict = f"{esc(w)} wins" if w else ("no clear winner" if len(names) > 1 else "")
-        rows.append(f"<tr>{metric_head(k)}{cells}<td>{verdict}</td></tr>")
+        cells += "".join(f"<td class=ref>{cell(a['summary'].get(k)) if k in a['summary'] else ''}</td>"
+                         for a in anchors)
+        verdict = f"{esc(w)} wins" if w else ("no clear winner" if M.METRICS[k].per_view and (
+            len(names) > 1 or anchors) else "")
+        if nd.get(k):
+            verdict += f"<br><span class=nd>not discriminating: {esc(nd[k])} beats every run</span>"
+        target = M.ANCHOR_TO_BEAT.get(k) if anchors else None
+        rows.append(f"<tr>{metric_head(k)}{cells}<td class=small>{esc(target or '')}</td><td>{verdict}</td></tr>")
     return f"<table>{head}{''.join(rows)}</table>"
 
 
@@ -98,6 +112,11 @@ def _measured(summaries):
 
 
 PANEL_COLS = 4
+
+
+def _margins(fig) -> None:
+    """Fixed margins for a grid of panels (tight_layout measures every label: seconds per chart on a CPU)."""
+    fig.subplots_adjust(left=0.05, right=0.98, bottom=0.12, top=0.88, wspace=0.3, hspace=0.75)
 
 
 def _panels(keys, panel_height: float):
@@ -125,7 +144,7 @@ def bars_chart(names, summaries) -> str:
         m = M.METRICS[k]
         ax.set_title(f"{m.words}\n({'↑' if m.higher_better else '↓'} {m.direction})", fontsize=8)
         ax.tick_params(labelsize=7)
-    fig.tight_layout()
+    _margins(fig)
     return f"<img src='{png_uri(fig)}' style='max-width:100%'>"
 
 
@@ -144,7 +163,7 @@ def per_view_chart(names, per_views) -> str:
         ax.tick_params(labelsize=7)
         if i == 0:
             ax.legend(fontsize=7)
-    fig.tight_layout()
+    _margins(fig)
     return f"<img src='{png_uri(fig)}' style='max-width:100%'>"
 
 
@@ -172,7 +191,7 @@ def speed_chart(names, times, summaries) -> str:
         ax.set_xlabel("wall time (s)", fontsize=7)
         ax.set_title(f"{m.words}\n({m.direction})", fontsize=8)
         ax.tick_params(labelsize=7)
-    fig.tight_layout()
+    _margins(fig)
     return f"<img src='{png_uri(fig)}' style='max-width:100%'>"
 
 
@@ -180,6 +199,13 @@ def page(title: str, body: str) -> str:
     return (f"<!doctype html><html><head><meta charset=utf-8><title>{esc(title)}</title><style>{CSS}</style>"
             f"</head><body><h1>{esc(title)}</h1>{body}</body></html>\n")
 
+
+ANCHOR_NOTE = ("<p class=small>Grey columns are anchors, scored with the same ruler and built by the evaluation "
+               "itself: <b>no stylization</b> (the un-stylized scene's renders) and <b>sticker</b> (the painting "
+               "center-cropped and resized over every view). A run wins a metric only where it also beats the "
+               "anchor in the 'must beat' column: doing nothing must lose on flow, style, strokes and detail; the "
+               "pasted painting must lose on content, multi-view consistency and chroma noise. A metric whose "
+               "'must beat' anchor wins against every run is marked 'not discriminating' for this scene.</p>")
 
 METHOD_NOTE = ("<p class=small>Every run is measured with the same ruler: references (the un-stylized scene's "
                "renders, depth and coverage; a common stroke field per view from a nearest-neighbour match of "
