@@ -1,5 +1,6 @@
-"""`python -m tlvg_warp study`: a tiny CPU study (the demo scene, 2 configs, 4 iterations, random VGG so the
-style metrics are 'not measured'): tables, CSV, report; a second invocation skips every finished run."""
+"""`python -m tlvg_warp study`: a tiny CPU study (the demo scene, 2 configs x 2 seeds, 4 iterations, random VGG so
+the style metrics are 'not measured'): tables with the anchors, CSV, report; a second invocation skips every
+finished run; each config keeps its own schedule unless the study forces one; --only-configs."""
 import csv
 import json
 from pathlib import Path
@@ -20,6 +21,7 @@ def study(tmp_path_factory):
     y.write_text(f"""out: out
 device: cpu
 iterations: 4
+seeds: 2
 vgg_weights: random
 eval_height: 32
 max_views: 6
@@ -45,35 +47,49 @@ def test_study_writes_table_per_scene_ablation_and_report(study):
     res = json.loads((out / "study.json").read_text())
     assert set(res["status"].values()) == {"ran"}
     rows = res["tables"]["demo"]["rows"]
-    assert [r["config"] for r in rows] == ["tlvg", "abcgs"]
+    assert [r["config"] for r in rows] == ["tlvg", "abcgs", "no stylization", "sticker"]
+    assert [bool(r.get("anchor")) for r in rows] == [False, False, True, True]
     for r in rows:
         assert r["style_gram"] is None and r["flow_alignment"] is None  # random VGG: not measured
         c = r["consistency_k1"]
-        assert c["lo"] <= c["mean"] <= c["hi"] and c["n"] == 5  # 6 views -> 5 pairs
-    # the evaluation is the one `evaluate` writes for the same runs (one ruler)
+        assert c["lo"] <= c["mean"] <= c["hi"] and c["n"] == 2 * 5  # 2 seeds x (6 views -> 5 pairs)
+    # the evaluation is the one `evaluate` writes for the same runs (one ruler), pooled over the seeds in order
     ev = json.loads((out / "eval" / "demo__starry" / "evaluation.json").read_text())
-    by = {r["name"]: r for r in ev["runs"]}
+    by = dict(zip(ev["names"], ev["runs"]))
+    anchors = {a["name"]: a for a in ev["anchors"]}
     for r in rows:
-        assert interval(by[r["config"]]["per_view"]["consistency_k1"]) == r["consistency_k1"]
+        if r.get("anchor"):
+            pv = anchors[r["config"]]["per_view"]["consistency_k1"] * 2  # paired with each seed's views
+        else:
+            pv = by[f"{r['config']}/seed_0"]["per_view"]["consistency_k1"] + \
+                by[f"{r['config']}/seed_1"]["per_view"]["consistency_k1"]
+        assert interval(pv) == r["consistency_k1"]
+    import yaml
+
+    seeds = [yaml.safe_load((out / "runs" / "demo" / "starry" / "tlvg" / f"seed_{k}" / "config.yaml").read_text())
+             ["seed"] for k in (0, 1)]
+    assert seeds == [0, 1]
+    assert all(r["wall_time_s"] > 0 for r in rows if not r.get("anchor"))
     assert [r["config"] for r in res["ablation"]] == ["abcgs"]
     with open(out / "study.csv") as f:
         table = list(csv.DictReader(f))
     assert {r["metric"] for r in table if r["mean"] == "not measured"} == {"flow_alignment", "style_gram",
                                                                              "style_nnfm", "content"}
     html = (out / "study.html").read_text()
-    for text in ("Scene demo", "Ablations", "Speed and quality", "Multi-view error", "not measured", "base64"):
+    for text in ("Scene demo", "Ablations", "Speed and quality", "Multi-view error", "not measured", "base64",
+                 "no stylization", "sticker", "(reference)", "2 seed(s)"):
         assert text in html, text
 
 
 def test_study_resume_skips_finished_runs(study, capsys):
     out, y = study
-    stamps = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/*/*/stylized.ply")}
-    assert len(stamps) == 2
+    stamps = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/*/*/*/stylized.ply")}
+    assert len(stamps) == 4
     assert main(["study", str(y)]) == 0
     res = json.loads((out / "study.json").read_text())
     assert set(res["status"].values()) == {"skipped"}
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
-    assert capsys.readouterr().out.count("skip demo/starry/") == 2
+    assert capsys.readouterr().out.count("skip demo/starry/") == 4
 
 
 def _same(a, b, path=""):
@@ -113,9 +129,10 @@ def test_split_study_over_two_ranks_gives_the_one_process_table(study, tmp_path)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     assert p.stdout.count("wrote ") == 1 and "with 2 ranks" in p.stdout  # the main rank alone reports
     two = json.loads((out2 / "study.json").read_text())
-    assert two["status"] == {"demo/starry/tlvg": "ran", "demo/starry/abcgs": "ran"}
+    assert two["status"] == {f"demo/starry/{c}/seed_{k}": "ran" for c in ("tlvg", "abcgs") for k in (0, 1)}
     assert two["ranks"]["world"] == 2
-    assert sorted(two["ranks"]["stylized_by"].values()) == [0, 1]  # one job per rank, each run once
+    assert set(two["ranks"]["stylized_by"].values()) == {0, 1}  # both ranks took jobs; each run once
+    assert len(two["ranks"]["stylized_by"]) == 4
     for key in ("tables", "ablation", "overall"):
         _same(one[key], two[key], key)
     assert not list((out2 / ".claims").iterdir())  # the launch's claims are removed at the end
@@ -123,3 +140,69 @@ def test_split_study_over_two_ranks_gives_the_one_process_table(study, tmp_path)
     again = json.loads((out2 / "study.json").read_text())
     assert set(again["status"].values()) == {"skipped"}
     _same(one["tables"], again["tables"], "tables")
+
+
+def _study(tmp_path, body: str):
+    from tlvg_warp.eval.study import load_study
+
+    y = tmp_path / "s.yaml"
+    y.write_text(f"""out: out
+configs: {{tlvg: {REPO}/configs/tlvg.yaml, abcgs: {REPO}/configs/abcgs.yaml}}
+ours: tlvg
+baseline: abcgs
+ablations: [abcgs]
+scenes: {{demo: {{demo: true}}}}
+paintings: {{starry: builtin}}
+{body}""")
+    return load_study(y)
+
+
+def test_each_config_keeps_its_own_schedule_unless_the_study_forces_one(tmp_path):
+    """Oracle: the schedule each config file states (read with yaml.safe_load) is what stylize runs when the study
+    sets no iterations; a study that sets them passes them to every run."""
+    import yaml
+
+    from tlvg_warp.eval.study import stylize_argv
+    from tlvg_warp.stylize.config import load_config
+
+    st = _study(tmp_path, "")
+    assert st.iterations is None and st.seeds == 3
+    for c, want in (("abcgs", 1400), ("tlvg", 3000)):
+        argv = stylize_argv(st, "demo", None, "starry", c, seed=2, device="cpu")
+        assert "--iterations" not in argv and argv[argv.index("--set") + 1] == "seed=2"
+        cfg_file = argv[argv.index("--config") + 1]
+        assert yaml.safe_load(Path(cfg_file).read_text())["iterations"] == want
+        assert load_config(cfg_file).iterations == want
+    assert load_config(f"{REPO}/configs/abcgs.yaml").phase_steps() == (400, 600, 400)
+    forced = _study(tmp_path, "iterations: 4\nseeds: 1")
+    argv = stylize_argv(forced, "demo", None, "starry", "abcgs", seed=0, device="cpu")
+    assert argv[argv.index("--iterations") + 1] == "4"
+
+
+def test_only_configs_keeps_a_subset_and_drops_orphan_roles(tmp_path):
+    from tlvg_warp.errors import InputError
+    from tlvg_warp.eval.study import only_configs
+
+    st = only_configs(_study(tmp_path, ""), ["tlvg"])
+    assert list(st.configs) == ["tlvg"] and st.ours == "tlvg" and st.baseline is None and st.ablations == []
+    with pytest.raises(InputError, match="nope"):
+        only_configs(_study(tmp_path, ""), ["nope"])
+
+
+def test_paper_study_and_ablations_are_the_papers(tmp_path):
+    """configs/study_paper.yaml: fern, beer, lego x the four paintings, 3 seeds, each config's own schedule; the
+    RGB-loss ablation replaces the colour preservation (luminance-only style AND the Lab loss), nothing else."""
+    import yaml
+
+    from tlvg_warp.eval.study import load_study
+    from tlvg_warp.stylize.config import load_config
+
+    st = load_study(REPO / "configs" / "study_paper.yaml")
+    assert set(st.scenes) == {"fern", "beer", "lego"} and st.seeds == 3 and st.iterations is None
+    assert set(st.paintings) == {"starry_night", "shipwreck", "starry_night_over_the_rhone", "monet_san_giorgio"}
+    assert set(st.ablations) == {"no_advection", "rgb_loss", "no_density", "canvas_field"}
+    ours, rgb = load_config(REPO / "configs" / "tlvg.yaml"), load_config(REPO / "configs" / "ablation_rgb_loss.yaml")
+    assert ours.loss.luminance_only and ours.loss.w_lab_start > 0
+    assert not rgb.loss.luminance_only and rgb.loss.w_lab_start == 0 and rgb.loss.w_lab_end == 0
+    raw = yaml.safe_load((REPO / "configs" / "ablation_rgb_loss.yaml").read_text())
+    assert set(raw) == {"base", "loss"} and set(raw["loss"]) == {"luminance_only", "w_lab_start", "w_lab_end"}

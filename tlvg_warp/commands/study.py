@@ -17,7 +17,12 @@ def add_arguments(p):
     p.add_argument("study", metavar="STUDY.yaml", help="the study (configs, scenes, paintings; see eval/study.py)")
     p.add_argument("--out", default=None, help="study folder (default: the YAML's out)")
     p.add_argument("--device", default=None, help="cpu | cuda | auto (default: the YAML's device)")
-    p.add_argument("--iterations", type=int, default=None, help="override the YAML's iterations")
+    p.add_argument("--iterations", type=int, default=None, help="force this many steps on every config (default: "
+                   "the YAML's iterations; null there: each config's own schedule)")
+    p.add_argument("--seeds", type=int, default=None, help="stylizations per (scene, painting, config) (default: "
+                   "the YAML's seeds, else 3)")
+    p.add_argument("--only-configs", default=None, metavar="A,B",
+                   help="run and tabulate only these configs of the YAML (comma-separated), e.g. tlvg,abcgs")
     p.add_argument("--vgg-weights", default=None, metavar="PATH|hed|random",
                    help="override the YAML's vgg_weights: a path, 'hed' or 'random' (smoke runs)")
     p.add_argument("--judge", action="store_true", help="add the VLM panel (ours vs baseline) to the report")
@@ -40,6 +45,14 @@ def run(args) -> int:
         if args.iterations < 1:
             raise InputError(f"--iterations must be >= 1, got {args.iterations}")
         st.iterations = args.iterations
+    if args.seeds is not None:
+        if args.seeds < 1:
+            raise InputError(f"--seeds must be >= 1, got {args.seeds}")
+        st.seeds = args.seeds
+    if args.only_configs:
+        from ..eval.study import only_configs
+
+        only_configs(st, [c.strip() for c in args.only_configs.split(",") if c.strip()])
     if args.vgg_weights is not None:
         st.vgg_weights = args.vgg_weights
     jc = None

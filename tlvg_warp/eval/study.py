@@ -1,12 +1,15 @@
-"""A study: configs x scenes x paintings, each scene fitted once, every stylization run once (finished runs are
-skipped, interrupted ones resumed), every (scene, painting) evaluated with one ruler, then the paper's Table 1
-per scene (a row per config), the ablation table, the speed-quality chart, optionally the VLM panel; written
-as study.json, study.csv and study.html.
+"""A study: configs x scenes x paintings x seeds, each scene fitted once, every stylization run once (finished
+runs are skipped, interrupted ones resumed), every (scene, painting) evaluated with one ruler together with its
+anchors (the un-stylized scene and the painting pasted over every view), then the paper's Table 1 per scene (a
+row per config with its wall time, the anchors as reference rows), the ablation table, the speed-quality chart,
+optionally the VLM panel; written as study.json, study.csv and study.html. Intervals are over seeds and views.
 
 STUDY.yaml (paths relative to the YAML file):
     out: runs/study            # study folder
     device: auto               # cpu | cuda | auto (stylize and evaluate)
-    iterations: 3000           # per stylization
+    iterations: null           # null: each config's own schedule (abcgs 1400 = 400/600/400, tlvg 3000);
+                               # a number forces that many steps on every config (smoke runs)
+    seeds: 3                   # stylizations per (scene, painting, config), seeds 0..N-1
     vgg_weights: null          # null: the default resolution (SPEC §3); random: smoke runs
     eval_height: 256           # style/content evaluation height
     max_views: 0               # evaluate the first N views (0: all)
@@ -31,8 +34,9 @@ from ..errors import InputError
 from ..fileio import write_json, write_text
 from . import metrics as M
 
-TOP_KEYS = {"out", "device", "iterations", "vgg_weights", "eval_height", "max_views", "set", "configs", "ours",
-            "baseline", "ablations", "scenes", "paintings", "judge"}
+TOP_KEYS = {"out", "device", "iterations", "seeds", "vgg_weights", "eval_height", "max_views", "set", "configs",
+            "ours", "baseline", "ablations", "scenes", "paintings", "judge"}
+DEFAULT_SEEDS = 3
 
 
 @dataclass
@@ -43,7 +47,8 @@ class Study:
     scenes: dict
     paintings: dict
     device: str = "auto"
-    iterations: int = 3000
+    iterations: int | None = None  # None: each config's own schedule
+    seeds: int = DEFAULT_SEEDS
     vgg_weights: str | None = None
     eval_height: int = 256
     max_views: int = 0
@@ -83,14 +88,33 @@ def load_study(path) -> Study:
     for n, p in paintings.items():
         if p != "builtin" and not Path(p).is_file():
             raise InputError(f"painting {n!r}: {p} not found", path)
+    iters = d.get("iterations")
+    seeds = d.get("seeds", DEFAULT_SEEDS)
+    if iters is not None and (not isinstance(iters, int) or iters < 1):
+        raise InputError(f"iterations must be null (each config's own schedule) or >= 1, got {iters!r}", path)
+    if not isinstance(seeds, int) or seeds < 1:
+        raise InputError(f"seeds must be an integer >= 1, got {seeds!r}", path)
     st = Study(path, Path(rel(d.get("out", "study"))), configs, scenes, paintings, str(d.get("device", "auto")),
-               int(d.get("iterations", 3000)), d.get("vgg_weights"), int(d.get("eval_height", 256)),
+               iters, seeds, d.get("vgg_weights"), int(d.get("eval_height", 256)),
                int(d.get("max_views", 0)), list(d.get("set") or []), d.get("ours"), d.get("baseline"),
                list(d.get("ablations") or []), dict(d.get("judge") or {}))
     for role in ("ours", "baseline", *st.ablations):
         name = getattr(st, role) if role in ("ours", "baseline") else role
         if name is not None and name not in configs:
             raise InputError(f"{role} {name!r} is not one of the configs {sorted(configs)}", path)
+    return st
+
+
+def only_configs(st: Study, names) -> Study:
+    """Keep the named configs (a subset, e.g. to spend less device time); roles that lose their config are
+    dropped (no ablation row without ours)."""
+    unknown = [n for n in names if n not in st.configs]
+    if unknown or not names:
+        raise InputError(f"--only-configs: {unknown or 'nothing'} not among the configs {sorted(st.configs)}", st.path)
+    st.configs = {n: p for n, p in st.configs.items() if n in names}
+    st.ours = st.ours if st.ours in st.configs else None
+    st.baseline = st.baseline if st.baseline in st.configs else None
+    st.ablations = [a for a in st.ablations if a in st.configs]
     return st
 
 
@@ -121,25 +145,26 @@ def fit_scene_once(st: Study, name: str, log, device: str | None = None) -> Path
     return ply
 
 
-def run_dir(st: Study, scene: str, painting: str, config: str) -> Path:
-    return st.out / "runs" / scene / painting / config
+def run_dir(st: Study, scene: str, painting: str, config: str, seed: int = 0) -> Path:
+    return st.out / "runs" / scene / painting / config / f"seed_{seed}"
+
+
+def run_dirs(st: Study, scene: str, painting: str, config: str) -> list[Path]:
+    return [run_dir(st, scene, painting, config, k) for k in range(st.seeds)]
 
 
 def finished(d: Path) -> bool:
     return (d / "metrics.json").is_file() and (d / "stylized.ply").is_file()
 
 
-def stylize_once(st: Study, scene: str, ply, painting: str, config: str, log, device: str | None = None) -> str:
-    """'skipped' (finished before), 'ran', or 'failed (rc)'."""
-    from ..cli import main
-
-    d = run_dir(st, scene, painting, config)
-    if finished(d):
-        log(f"skip {scene}/{painting}/{config}: finished")
-        return "skipped"
+def stylize_argv(st: Study, scene: str, ply, painting: str, config: str, seed: int, device: str | None = None):
+    """The `stylize` command line of one run: the config's own schedule unless the study forces `iterations`."""
     s = st.scenes[scene]
-    argv = ["stylize", "--config", st.configs[config], "--out", str(d), "--iterations", str(st.iterations),
-            "--device", device or resolve_device(st.device), "--quiet"]
+    d = run_dir(st, scene, painting, config, seed)
+    argv = ["stylize", "--config", st.configs[config], "--out", str(d),
+            "--device", device or resolve_device(st.device), "--quiet", "--set", f"seed={seed}"]
+    if st.iterations is not None:
+        argv += ["--iterations", str(st.iterations)]
     if st.paintings[painting] != "builtin":
         argv += ["--style", st.paintings[painting]]
     if ply is not None:
@@ -150,11 +175,25 @@ def stylize_once(st: Study, scene: str, ply, painting: str, config: str, log, de
         argv += ["--vgg-weights", str(st.vgg_weights)]
     for o in st.overrides:
         argv += ["--set", str(o)]
+    return argv
+
+
+def stylize_once(st: Study, scene: str, ply, painting: str, config: str, log, device: str | None = None,
+                 seed: int = 0) -> str:
+    """'skipped' (finished before), 'ran', or 'failed (rc)'."""
+    from ..cli import main
+
+    d = run_dir(st, scene, painting, config, seed)
+    key = f"{scene}/{painting}/{config}/seed_{seed}"
+    if finished(d):
+        log(f"skip {key}: finished")
+        return "skipped"
+    argv = stylize_argv(st, scene, ply, painting, config, seed, device)
     if (d / "checkpoint.pt").is_file():
         argv += ["--resume", str(d)]
     elif d.exists():
         argv += ["--overwrite"]
-    log(f"stylize {scene}/{painting}/{config} ...")
+    log(f"stylize {key} ...")
     rc = main(argv)
     return "ran" if rc == 0 and finished(d) else f"failed ({rc})"
 
@@ -170,14 +209,19 @@ def pooled(per_lists: list) -> dict:
     return out
 
 
-def config_rows(names, per_views, times, counts) -> tuple[list, dict]:
-    from ..commands.evaluate import winners
+def config_rows(names, per_views, times, counts, anchors: dict | None = None) -> tuple[list, dict, dict]:
+    """(rows: one per config, then one per anchor with "anchor": True; winners; not-discriminating marks). A
+    config wins a metric only where it also beats the anchor the metric exists to beat (evaluate's rule)."""
+    from ..commands.evaluate import not_discriminating, winners
 
+    anchors = anchors or {}
     rows = []
     for n, pv, t, c in zip(names, per_views, times, counts):
         rows.append({"config": n, **{k: (None if v is None else M.interval(v)) for k, v in pv.items()},
                      "gaussians": c, "wall_time_s": t})
-    return rows, winners(names, per_views)
+    for a, pv in anchors.items():
+        rows.append({"config": a, "anchor": True, **{k: (None if v is None else M.interval(v)) for k, v in pv.items()}})
+    return rows, winners(names, per_views, anchors), not_discriminating(per_views, anchors)
 
 
 def ablation_rows(st: Study, pooled_all: dict) -> list:
@@ -195,23 +239,29 @@ def ablation_rows(st: Study, pooled_all: dict) -> list:
 def csv_text(tables: dict, ablation: list) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["table", "config", "metric", "mean", "lo", "hi", "n", "winner_or_verdict"])
+    w.writerow(["table", "config", "kind", "metric", "mean", "lo", "hi", "n", "winner_or_verdict"])
     for scene, t in tables.items():
+        nd = t.get("not_discriminating") or {}
         for r in t["rows"]:
+            kind = "anchor" if r.get("anchor") else "config"
             for k in M.METRICS:
+                if r.get("anchor") and k not in r:
+                    continue
                 v = r.get(k)
+                verdict = "winner" if t["winners"].get(k) == r["config"] else ""
+                if r.get("anchor") and nd.get(k) == r["config"]:
+                    verdict = "beats every config: not discriminating"
                 if isinstance(v, dict):
-                    w.writerow([scene, r["config"], k, v["mean"], v["lo"], v["hi"], v["n"],
-                                "winner" if t["winners"].get(k) == r["config"] else ""])
+                    w.writerow([scene, r["config"], kind, k, v["mean"], v["lo"], v["hi"], v["n"], verdict])
                 elif v is not None:
-                    w.writerow([scene, r["config"], k, v, "", "", "", ""])
+                    w.writerow([scene, r["config"], kind, k, v, "", "", "", ""])
                 elif M.METRICS[k].per_view:
-                    w.writerow([scene, r["config"], k, "not measured", "", "", "", ""])
+                    w.writerow([scene, r["config"], kind, k, "not measured", "", "", "", ""])
     for r in ablation:
         for k, v in r.items():
             if k != "config" and isinstance(v, dict):
-                w.writerow(["ablation (config - ours)", r["config"], k, v["mean"], v["lo"], v["hi"], v["n"],
-                            v["better"]])
+                w.writerow(["ablation (config - ours)", r["config"], "config", k, v["mean"], v["lo"], v["hi"],
+                            v["n"], v["better"]])
     return buf.getvalue()
 
 
@@ -272,11 +322,12 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
         dist.barrier()  # every scene is fitted before any stylization reads it
         plys = {s: (None if st.scenes[s].get("demo") else st.out / "scenes" / s / "point_cloud.ply")
                 for s in st.scenes}
-        keys = [f"{s}/{p}/{c}" for s in st.scenes for p in st.paintings for c in st.configs]
+        keys = [f"{s}/{p}/{c}/seed_{k}" for s in st.scenes for p in st.paintings for c in st.configs
+                for k in range(st.seeds)]
         status, ranks = {}, {}
         for key in job_queue(st, dist, launch, "stylize", keys):
-            s, p, c = key.split("/")
-            status[key] = stylize_once(st, s, plys[s], p, c, log, device=dev_name)
+            s, p, c, sd = key.split("/")
+            status[key] = stylize_once(st, s, plys[s], p, c, log, device=dev_name, seed=int(sd.split("_")[1]))
             ranks[key] = dist.rank
         dist.barrier()  # every run is finished (or failed) before any evaluation reads them
         net = None
@@ -284,7 +335,7 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
         groups = [f"{s}/{p}" for s in st.scenes for p in st.paintings]
         for g in job_queue(st, dist, launch, "evaluate", groups):
             s, p = g.split("/")
-            dirs = [run_dir(st, s, p, c) for c in st.configs if finished(run_dir(st, s, p, c))]
+            dirs = [d for c in st.configs for d in run_dirs(st, s, p, c) if finished(d)]
             if not dirs:
                 continue
             if net is None:
@@ -295,7 +346,8 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
             out = st.out / "eval" / f"{s}__{p}"
             write_json(out / "evaluation.json", res)
             write_text(out / "evaluation.html", report_html(res, runs, refs))
-            evals[(s, p)] = {Path(r["run"]).name: r for r in res["runs"]}
+            evals[(s, p)] = {f"{Path(r['run']).parent.name}/{Path(r['run']).name}": r for r in res["runs"]}
+            evals[(s, p)]["__anchors__"] = {a["name"]: a for a in res.get("anchors") or []}
     parts = dist.gather_objects({"status": status, "ranks": ranks, "evals": evals})
     if not dist.is_main:
         dist.barrier()  # the main rank's report is written before any rank returns
@@ -309,23 +361,36 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
     if net is None:
         net = load_vgg(st.vgg_weights, device=device)
     configs = list(st.configs)
-    tables, pooled_all = {}, {}
+    seeds = [f"seed_{k}" for k in range(st.seeds)]
+    tables, pooled_all, anchors_all = {}, {}, {}
     for s in st.scenes:
-        have = [c for c in configs if all(c in evals.get((s, p), {}) for p in st.paintings)]
-        pv = [pooled([evals[(s, p)][c]["per_view"] for p in st.paintings]) for c in have]
-        times = [_mean([evals[(s, p)][c]["summary"]["wall_time_s"] for p in st.paintings]) for c in have]
-        counts = [_mean([evals[(s, p)][c]["summary"]["gaussians"] for p in st.paintings]) for c in have]
-        rows, win = config_rows(have, pv, times, counts)
-        tables[s] = {"rows": rows, "winners": win}
+        # a config counts where every (painting, seed) run finished; its views are pooled in the order (painting,
+        # seed, view), and each anchor's views are repeated per seed in the same order, so every row stays paired
+        have = [c for c in configs if all(f"{c}/{k}" in evals.get((s, p), {}) for p in st.paintings for k in seeds)]
+        runs_of = lambda c: [evals[(s, p)][f"{c}/{k}"] for p in st.paintings for k in seeds]  # noqa: E731
+        pv = [pooled([r["per_view"] for r in runs_of(c)]) for c in have]
+        times = [_mean([r["summary"]["wall_time_s"] for r in runs_of(c)]) for c in have]
+        counts = [_mean([r["summary"]["gaussians"] for r in runs_of(c)]) for c in have]
+        names_a = [a for a in M.ANCHORS if all(a in evals.get((s, p), {}).get("__anchors__", {}) for p in st.paintings)]
+        anchors = {a: pooled([evals[(s, p)]["__anchors__"][a]["per_view"] for p in st.paintings for _ in seeds])
+                   for a in names_a} if have else {}
+        rows, win, nd = config_rows(have, pv, times, counts, anchors)
+        tables[s] = {"rows": rows, "winners": win, "not_discriminating": nd, "seeds": st.seeds}
         for c, v in zip(have, pv):
             pooled_all.setdefault(c, []).append(v)
+        for a, v in anchors.items():
+            anchors_all.setdefault(a, []).append(v)
     pooled_all = {c: pooled(v) for c, v in pooled_all.items() if len(v) == len(tables)}
+    anchors_all = {a: pooled(v) for a, v in anchors_all.items() if len(v) == len(tables)}
     overall = {c: {k: (None if v is None else M.interval(v)) for k, v in pv.items()} for c, pv in pooled_all.items()}
+    overall_anchors = {a: {k: (None if v is None else M.interval(v)) for k, v in pv.items()}
+                       for a, pv in anchors_all.items()}
     all_times = {c: _mean([r["wall_time_s"] for t in tables.values() for r in t["rows"] if r["config"] == c])
                  for c in pooled_all}
     result = {"study": str(st.path), "out": str(st.out), "device": str(device), "vgg": net.source,
-              "vgg_random": bool(net.is_random), "iterations": st.iterations, "status": status,
+              "vgg_random": bool(net.is_random), "iterations": st.iterations, "seeds": st.seeds, "status": status,
               "tables": tables, "ablation": ablation_rows(st, pooled_all), "overall": overall,
+              "overall_anchors": overall_anchors,
               "times": all_times, "ours": st.ours, "baseline": st.baseline,
               "ranks": {"world": dist.world, "stylized_by": {k: ranks[k] for k in keys if k in ranks}}}
     if judge_cfg:
@@ -353,7 +418,7 @@ def run_panel(st: Study, jc: dict, log) -> dict:
     out = {}
     for s in st.scenes:
         for p in st.paintings:
-            a, b = run_dir(st, s, p, st.ours), run_dir(st, s, p, st.baseline)
+            a, b = run_dir(st, s, p, st.ours), run_dir(st, s, p, st.baseline)  # seed 0 of each
             if finished(a) and finished(b):
                 res = judge.run_judge(a, b, jc["models"], jc["base_url"], jc.get("api_key"),
                                       max_views=jc.get("max_views"), log=None)
@@ -364,19 +429,29 @@ def run_panel(st: Study, jc: dict, log) -> dict:
 
 
 # ---------------------------------------------------------------- report
-def config_table_html(rows, winners) -> str:
+def config_table_html(rows, winners, not_disc=None) -> str:
+    """Table 1 of one scene: a row per config, then the anchors as grey reference rows; the winner's cell green;
+    a metric whose anchor beats every config says so under the table."""
     from . import report as H
 
+    nd = not_disc or {}
     keys = [k for k in M.METRICS if any(k in r for r in rows)]
     head = "<tr><th class=l>config</th>" + "".join(
         f"<th title='{H.esc(M.METRICS[k].unit)}'>{H.esc(M.METRICS[k].words)}<br><span class=small>"
         f"{H.esc(M.METRICS[k].unit)}; {'↑' if M.METRICS[k].higher_better else '↓'}</span></th>" for k in keys) + "</tr>"
     body = []
     for r in rows:
+        if r.get("anchor"):
+            tds = "".join(f"<td class=ref>{H.cell(r.get(k)) if k in r else ''}</td>" for k in keys)
+            body.append(f"<tr><td class='l ref'><i>{H.esc(r['config'])}</i> <span class=small>(reference)"
+                        f"</span></td>{tds}</tr>")
+            continue
         tds = "".join(f"<td{' class=win' if winners.get(k) == r['config'] else ''}>{H.cell(r.get(k))}</td>"
                       for k in keys)
         body.append(f"<tr><td class=l><b>{H.esc(r['config'])}</b></td>{tds}</tr>")
-    return f"<table>{head}{''.join(body)}</table>"
+    notes = "".join(f"<li><span class=nd>{H.esc(M.METRICS[k].words)}: not discriminating</span> ({H.esc(a)} "
+                    f"beats every config)</li>" for k, a in nd.items())
+    return f"<table>{head}{''.join(body)}</table>" + (f"<ul class=small>{notes}</ul>" if notes else "")
 
 
 def ablation_html(rows, ours) -> str:
@@ -418,20 +493,25 @@ def judge_html(panel: dict) -> str:
 def study_html(res: dict) -> str:
     from . import report as H
 
-    body = [f"<p>{H.esc(res['study'])}: {res['iterations']} iterations per run on {H.esc(res['device'])}; "
-            f"VGG: {H.esc(res['vgg'])}</p>"]
+    iters = ("each config's own schedule" if res.get("iterations") is None
+             else f"{res['iterations']} iterations per run")
+    body = [f"<p>{H.esc(res['study'])}: {iters}, {res.get('seeds', 1)} seed(s) per config (intervals over seeds "
+            f"and views) on {H.esc(res['device'])}; VGG: {H.esc(res['vgg'])}</p>"]
     if res["vgg_random"]:
         body.append("<p class=warn>VGG-16 weights are random: style, content and flow alignment are not measured."
                     "</p>")
-    body.append(H.METHOD_NOTE)
+    body += [H.METHOD_NOTE, H.ANCHOR_NOTE]
     for s, t in res["tables"].items():
-        body.append(f"<h2>Scene {H.esc(s)}</h2>" + config_table_html(t["rows"], t["winners"]))
+        body.append(f"<h2>Scene {H.esc(s)}</h2>" + config_table_html(t["rows"], t["winners"],
+                                                                      t.get("not_discriminating")))
     body.append(f"<h2>Ablations (vs {H.esc(res['ours'])})</h2>" + ablation_html(res["ablation"], res["ours"]))
     names = list(res["overall"])
     sums = [res["overall"][n] for n in names]
     body.append("<h2>Speed and quality (all scenes)</h2>"
                 + H.speed_chart(names, [res["times"].get(n) for n in names], sums))
-    body.append("<h2>Means with 95% intervals (all scenes)</h2>" + H.bars_chart(names, sums))
+    an = list(res.get("overall_anchors") or {})
+    body.append("<h2>Means with 95% intervals (all scenes)</h2>"
+                + H.bars_chart(names + an, sums + [res["overall_anchors"][a] for a in an]))
     if res.get("judge"):
         body.append("<h2>VLM-as-a-judge</h2>" + judge_html(res["judge"]))
     links = "".join(f"<li>{H.esc(k)}: {H.esc(v)}</li>" for k, v in res["status"].items())
