@@ -76,8 +76,15 @@ def test_scores_per_criterion_aggregate_like_table_1(server, runs):
             for r in ("A", "B"):  # oracle: the stub's rule applied to each run's own images, whatever the shuffle
                 want = np.mean([score_of(imgs[(r, v)])[c] for v in range(N_VIEWS)])
                 assert agg["scores"][c][r.lower()] == pytest.approx(want, abs=EXACT)
+        for r in ("A", "B"):  # Table 1's Average: the mean over the three criteria of the stub's per-view rule
+            want = np.mean([np.mean([score_of(imgs[(r, v)])[c] for c in judge.CRITERIA]) for v in range(N_VIEWS)])
+            assert agg["scores"]["average"][r.lower()] == pytest.approx(want, abs=1e-9)
     table = judge.format_table(res)
     assert "B score" in table and f"{res['panel']['scores']['flow_alignment']['a']:4.2f}" in table
+    avg = next(x for x in table.splitlines() if x.startswith("Average"))
+    a, b = res["panel"]["scores"]["average"]["a"], res["panel"]["scores"]["average"]["b"]
+    assert avg.split()[-2:] == [f"{b:4.2f}", f"{a:4.2f}"]
+    assert a != res["panel"]["authenticity"]["a"]  # the stub's authenticity is 5: not what the row shows
 
 
 def test_parse_rejects_out_of_range_scores():

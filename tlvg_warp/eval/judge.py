@@ -264,7 +264,9 @@ def _mean(xs):
 
 
 def aggregate(records) -> dict:
-    """Win rate of --a per criterion (ties count 1/2) over valid verdicts, counts, mean authenticity."""
+    """Win rate of --a per criterion (ties count 1/2) over valid verdicts, counts, mean authenticity, mean 1-10
+    score per criterion and side, and the paper's Table 1 "Average": per side, the mean of the three criteria's
+    mean scores (the paper's 7.19 / 8.36 are those means), None unless all three are scored."""
     valid = [r for r in records if r["valid"]]
     out = {"n": len(records), "valid": len(valid), "invalid": len(records) - len(valid),
            "win_rate": {}, "counts": {}}
@@ -277,6 +279,9 @@ def aggregate(records) -> dict:
     out["authenticity"] = {k: _mean([r["authenticity"][k] for r in valid]) for k in ("a", "b")}
     scored = [r for r in valid if r.get("scores")]
     out["scores"] = {c: {k: _mean([r["scores"][c][k] for r in scored]) for k in ("a", "b")} for c in CRITERIA}
+    out["scores"]["average"] = {k: (_mean([out["scores"][c][k] for c in CRITERIA])
+                                    if all(out["scores"][c][k] is not None for c in CRITERIA) else None)
+                                for k in ("a", "b")}
     out["scored"] = len(scored)
     return out
 
@@ -353,11 +358,12 @@ def format_table(result) -> str:
         sc = p.get("scores", {}).get(c, {})
         lines.append(f"{CRITERION_NAMES[c]:<16}{_pct(p['win_rate'][c]):>13}{counts:>12}"
                      f"{_score(sc.get('b')):>9}{_score(sc.get('a')):>9}")
-    au = p["authenticity"]
+    au, av = p["authenticity"], p.get("scores", {}).get("average", {})
     lines.append(f"{'Average':<16}{_pct(p['win_rate']['average']):>13}{'':>12}"
-                 f"{_score(au['b']):>9}{_score(au['a']):>9}")
+                 f"{_score(av.get('b')):>9}{_score(av.get('a')):>9}")
+    lines.append(f"{'Authenticity':<16}{'':>13}{'':>12}{_score(au['b']):>9}{_score(au['a']):>9}")
     lines.append(f"Invalid answers: {p['invalid']} of {p['n']}   (scores: mean 1-10 per criterion; Average row: "
-                 f"Authenticity)")
+                 f"the mean of the three criteria, as the paper's Table 1)")
     lines.append("")
     lines.append(f"{'Model':<24}{'Flow':>9}{'Mater.':>9}{'Aesth.':>9}{'B auth':>8}{'A auth':>8}{'invalid':>9}"
                  "   B/A score: flow, materiality, aesthetics")
