@@ -147,3 +147,28 @@ def test_a_run_wins_only_where_it_also_beats_its_anchor():
     assert not_discriminating([a, b], good_anchor) == {"style_gram": "no stylization"}
     # the sticker beating every run on style is expected (it is the painting): not a verdict
     assert not_discriminating([a, b], weak_anchor) == {}
+
+
+def test_demo_runs_are_compared_with_the_scene_they_started_from(tmp_path):
+    """A demo run at downscale 2 starts from the demo sampled at spacing 2 (stylize's build_inputs): `evaluate` and
+    `view` rebuild that scene from the run's config.yaml, not the default density."""
+    import yaml
+
+    from _eval_helpers import cameras_json
+    from tlvg_warp.commands.evaluate import demo_original
+    from tlvg_warp.commands.view import find_original
+    from tlvg_warp.io.datasets import read_inria_cameras
+    from tlvg_warp.io.demo import demo_dataset, demo_scene
+
+    started = demo_dataset(n_views=4, width=80, height=60, spacing=2.0).gaussians  # what stylize trained from
+    default = demo_scene(n_views=4, width=80, height=60)[0]
+    assert started.num < default.num / 3
+    (tmp_path / "cameras.json").write_text(json.dumps(cameras_json(demo_scene(n_views=4, width=80, height=60)[1])))
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({"downscale": 2.0}))
+    cams = read_inria_cameras(tmp_path / "cameras.json")[1]
+    g = demo_original(tmp_path, cams)
+    assert g.num == started.num and np.array_equal(g.means.numpy(), started.means.numpy())
+    g2, where = find_original(tmp_path, cams)
+    assert g2.num == started.num and f"{started.num:,} Gaussians" in where
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({"downscale": 1.0}))
+    assert demo_original(tmp_path, cams).num == default.num

@@ -302,7 +302,8 @@ def _run(args, cfg, sources, out, device, vgg, wall0, dist, t_vgg=0.0) -> int:
     if not getattr(args, "keep_checkpoint", False):  # finished: the outputs are written, the checkpoint goes
         drop_checkpoints(out, "reconstruct")
     tp = m["time_per_phase_s"]
-    print(f"{out}: flow alignment {m['flow_alignment']:.3f} (original {m['flow_alignment_original']:.3f}), "
+    print(f"{out}: alignment to its training field {m['training_field_alignment']:.3f} (un-stylized "
+          f"{m['training_field_alignment_unstylized']:.3f}; `evaluate` scores all runs against one common field), "
           f"Gaussians {m['gaussians_input']} -> {m['gaussians_final']}, {m['bytes_out'] / 1e6:.2f} MB, "
           f"phases pre {tp['pre']:.1f}s / stylize {tp['stylize']:.1f}s / post {tp['post']:.1f}s, "
           f"wall {m['wall_time_s']:.1f}s")
@@ -315,7 +316,7 @@ def _run(args, cfg, sources, out, device, vgg, wall0, dist, t_vgg=0.0) -> int:
         from .view import serve_forever
 
         serve_forever(viewer, quiet=True)
-    if not math.isfinite(m["flow_alignment"]):
+    if not math.isfinite(m["training_field_alignment"]):
         return 1
     return 0
 

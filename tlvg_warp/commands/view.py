@@ -14,11 +14,7 @@ import threading
 import time
 from pathlib import Path
 
-import torch
-
 from ..errors import InputError
-
-CAM_TOL = 1e-4  # the demo cameras are regenerated from the same formula: float32 round-off only
 
 
 def add_arguments(p):
@@ -49,12 +45,11 @@ def find_original(run: Path, cams: list):
         if cand and Path(cand).is_file():
             return load_ply(Path(cand)), str(cand)
     if cams and not src.get("data") and not src.get("scene"):
-        from ..io.demo import demo_scene
+        from .evaluate import demo_original
 
-        g, dc = demo_scene(n_views=len(cams), width=cams[0].width, height=cams[0].height)
-        if all(torch.allclose(a.world_to_camera.double(), b.world_to_camera.double(), atol=CAM_TOL)
-               for a, b in zip(dc, cams)):
-            return g, "the built-in demo scene"
+        g = demo_original(run, cams)  # at the density the run started from (its config.yaml downscale)
+        if g is not None:
+            return g, f"the built-in demo scene ({g.num:,} Gaussians)"
     if src.get("scene"):
         return None, f"the un-stylized scene {src['scene']} no longer exists; pass --original PLY"
     return None, ("this run does not record its un-stylized scene (no sources.json or checkpoint.pt, no "
