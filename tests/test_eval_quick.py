@@ -160,7 +160,13 @@ def test_vgg_distances_zero_for_identical_and_positive_otherwise():
     other = torch.flip(img, [1])
     d2 = M.vgg_distances(net, other, img, sf)
     assert d2["content"] > 0
-    assert d["style_gram"] >= 0 and d["style_fast"] >= 0
+    # the painting's own features at the render's size: Gram distance 0 for the same image, not for another
+    from tlvg_warp.losses.vgg import flatten_feats
+
+    with torch.no_grad():
+        own = flatten_feats(net(img, 0.5))
+    assert M.vgg_distances(net, img, img, own)["style_gram"] < 1e-12
+    assert M.vgg_distances(net, torch.rand_like(img), img, own)["style_gram"] > 1e-6
     small = M.vgg_distances(net, img[:6, :8], img[:6, :8], sf)  # 8x6: too small at x0.5, measured at x1
     assert small["content"] == 0.0 and small["style_gram"] is not None
     tiny = M.vgg_distances(net, img[:3, :3], img[:3, :3], sf)  # VGG's two 2x2 pools need at least 4 px

@@ -1,6 +1,7 @@
 """StylizeConfig: YAML `base:` inheritance, key=value overrides (dotted keys; old flat names with a note), bad
 keys/values naming their file, the Lab chroma schedule and the phase split. Oracles: the YAML files as written
 (read with plain yaml), hand-computed schedule values."""
+import re
 from pathlib import Path
 
 import pytest
@@ -19,7 +20,9 @@ SCHEDULE_TOL = 1e-12  # the schedule is one affine expression in float64
 ABLATIONS = {
     # the advection branch: flow gradients + moving μ
     "ablation_no_advection": {"geometry.lock_xyz", "loss.w_align", "loss.w_aniso"},
-    "ablation_rgb_loss": {"loss.luminance_only"},  # the style term's input
+    # the colour preservation: the style term's input AND the Lab chroma loss (a colour style term, off: the style
+    # term already sees RGB)
+    "ablation_rgb_loss": {"loss.luminance_only", "loss.w_lab_start", "loss.w_lab_end", "loss.w_style_color"},
     "ablation_no_density": {"density.phases"},  # [pre, stylize] -> [pre]
     "ablation_canvas_field": {"loss.field_mapping"},
 }
@@ -45,43 +48,93 @@ def test_every_shipped_config_loads_and_ablations_change_one_thing(capsys):
     from tlvg_warp.train.reconstruct import load_config as load_reconstruct
 
     for p in CONFIGS.glob("*.yaml"):  # the shipped files use the current names only (no deprecation note)
-        if p.stem != "study_paper":
+        if not p.stem.startswith("study_"):  # study files are not stylize configs
             (load_reconstruct if p.stem == "reconstruct" else load_config)(p)
     assert "note" not in capsys.readouterr().err
 
 
-# ABC-GS as released (vpx-ecnu/ABC-GS): configs/llff_single.yaml, abcgs/configs/__init__.py, abcgs/phases/*.py,
-# gs/scene/gaussian_model.py. Our key -> its value (translated to our units where the comment says so).
-ABCGS = {
-    "iterations": 1400, "phases": [400, 600, 400],  # iterations_pre_process / _stylize / _post_process (LLFF)
-    "loss.style_loss": "fast", "loss.luminance_only": False,
-    "loss.w_style": 2.0, "loss.w_content": 0.005, "loss.w_depth": 0.01,
-    "loss.w_tv": 0.01,  # lambda_img_tv 0.02 on a mean of two
-    "loss.w_opacity_reg": 1.0, "loss.w_scale_reg": 1.0, "loss.w_lab_start": 0.0, "loss.w_lab_end": 0.0,
-    "loss.w_align": 0.0, "loss.w_aniso": 0.0, "geometry.tangential_lambda": 0.0,
-    "lr.means": 0.0, "lr.means_final": 0.0, "geometry.lock_xyz": True,  # spatial_lr_scale stays 0 for a loaded PLY
-    "lr.sh_dc": 0.0025, "lr.sh_rest": 0.000125, "lr.opacity": 0.05, "lr.scales": 0.005, "lr.quats": 0.001,
-    "density.phases": ["pre"], "density.interval": 50, "density.grad_threshold": 2e-4,
-    "density.percent_dense": 0.01, "density.split_mode": "3dgs", "density.min_opacity": 0.005,
-    "density.max_screen_size": 20.0, "density.size_rules": "always", "density.max_world_size": 0.1,
-    "density.opacity_reset_interval": 0, "density.use_budget": False, "density.prune_unseen": False,
-    "palette_init": False, "keep_sh": True, "vgg_scale": 0.5, "style_height": 256,
-}
+FILE_NAMED = re.compile(r"[\w./-]+\.(py|yaml)\b")  # a file of the released repository, e.g. gs/scene/gaussian_model.py
 
 
-def test_abcgs_is_the_released_code():
+def _value_comments(path):
+    """{dotted key: its comment} of every value line of a YAML file, the comment being the line's own plus the
+    comment-only lines that continue it; and {section: the comment lines just above its header}."""
+    comments, sections, section, above, last = {}, {}, "", [], None
+    for line in path.read_text().splitlines():
+        stripped = line.strip()
+        if not stripped:
+            continue
+        if stripped.startswith("#"):
+            if last is not None and line.startswith(" " * 2) and line.index("#") > 4:  # continuation of a value
+                comments[last] += " " + stripped
+            else:
+                above.append(stripped)
+                last = None
+            continue
+        head, _, comment = line.partition("#")
+        key, _, value = head.partition(":")
+        if not line.startswith(" "):
+            section = key.strip()
+        if not value.strip():  # a section header
+            sections[section], above = " ".join(above), []
+            continue
+        last = f"{section}.{key.strip()}" if line.startswith(" ") else key.strip()
+        comments[last] = comment.strip()
+        above = []
+    return comments, sections
+
+
+def test_abcgs_values_each_name_their_source_file():
+    """Every value of abcgs.yaml says where in the released code it comes from: its comment names a file, or
+    continues the comment of the value just above it in the same section, which names one ("(same)";
+    "position_lr_final x 0" under "position_lr_init x 0 (gs/scene/gaussian_model.py)"), or the section's header
+    comment names the file the section follows. A value without a comment never passes. Oracle: the file's text
+    (a value added without a source fails)."""
+    comments, sections = _value_comments(CONFIGS / "abcgs.yaml")
+    assert len(comments) >= 30
+    prev_key, prev_named = None, False
+    for key, c in comments.items():
+        section = key.split(".")[0] if "." in key else ""
+        same_section = prev_key is not None and prev_key.split(".")[0] == section and section != ""
+        named = bool(c) and (bool(FILE_NAMED.search(c)) or (same_section and prev_named)
+                             or bool(section and FILE_NAMED.search(sections.get(section, ""))))
+        assert named, (key, c)
+        prev_key, prev_named = key, named
+
+
+def test_abcgs_loads_as_written_and_runs_with_its_values(tmp_path):
+    """abcgs.yaml read by plain yaml.safe_load (the oracle) against the config loader: every key it states is the
+    value the loader hands the run, nothing inherited (no `base:`). Then a short run: its phases split as
+    400/600/400 do (here 4/6/4 of 14 steps), xyz never moves (lr 0, no hook, density not due), the Lab and flow
+    terms stay 0, and the optimizer's xyz learning rate is 0 at every step of the real 1400-step schedule."""
+    import json
+
+    import torch
+
+    from _demo_helpers import demo_stylize_inputs
+    from tlvg_warp.stylize import run_stylize
+    from tlvg_warp.train.optim import GaussianOptimizer, GaussianParams
+
     raw = yaml.safe_load((CONFIGS / "abcgs.yaml").read_text())
     assert "base" not in raw  # not TLVG with parts switched off
-    b = flatten(load_config(CONFIGS / "abcgs.yaml"))
-    for k, v in ABCGS.items():
-        assert b[k] == v, k
-    assert load_config(CONFIGS / "abcgs.yaml").phase_steps() == (400, 600, 400)
-    # every value in the file carries a comment naming where it comes from (or is a continuation of one);
-    # section headers (a key with a nested mapping) carry none
-    for line in (CONFIGS / "abcgs.yaml").read_text().splitlines():
-        head = line.split("#")[0]
-        if line.strip() and not line.lstrip().startswith("#") and ":" in head and head.split(":", 1)[1].strip():
-            assert "#" in line, line
+    cfg = load_config(CONFIGS / "abcgs.yaml")
+    loaded = flatten(cfg)
+    for k, v in _dotted(raw).items():
+        assert loaded[k] == v, (k, loaded[k], v)
+    steps = cfg.phase_steps()
+    assert steps == tuple(raw["phases"]) and sum(steps) == raw["iterations"]
+    _, inp = demo_stylize_inputs(3, 24, 18, every=8)
+    opt = GaussianOptimizer(GaussianParams(inp.gaussians), cfg.lr, 2.0, cfg.lr.means_steps or cfg.iterations)
+    assert all(opt.set_step(k) == 0.0 and opt.lr("means") == 0.0 for k in range(0, raw["iterations"], 50))
+    short = load_config(CONFIGS / "abcgs.yaml", ["iterations=14", "device=cpu", "vgg_weights=random",
+                                                 "log_every=1", "orbit_frames=0", "comparison_views=1"])
+    assert short.phase_steps() == (4, 6, 4)
+    res = run_stylize(inp, short, tmp_path / "run", progress=False, quiet=True)
+    phases = [r["phase"] for r in res.log]
+    assert phases == ["pre"] * 4 + ["stylize"] * 6 + ["post"] * 4
+    assert res.gaussians.num == inp.gaussians.num
+    assert torch.equal(res.gaussians.means.cpu(), inp.gaussians.means)
+    assert all(r["lab"] == 0.0 and r["align"] == 0.0 and r["aniso"] == 0.0 for r in res.log), json.dumps(res.log[5])
 
 
 def test_tlvg_is_what_spec_says():
