@@ -172,3 +172,24 @@ def test_demo_runs_are_compared_with_the_scene_they_started_from(tmp_path):
     assert g2.num == started.num and f"{started.num:,} Gaussians" in where
     (tmp_path / "config.yaml").write_text(yaml.safe_dump({"downscale": 1.0}))
     assert demo_original(tmp_path, cams).num == default.num
+
+
+def test_docs_table_gives_every_metric_its_direction_and_anchor():
+    """docs/evaluation.md's metric table against eval/metrics.py: every metric listed, with its direction and the
+    anchor it must beat."""
+    import re
+    from pathlib import Path
+
+    from tlvg_warp.eval import metrics as M
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "evaluation.md").read_text()
+    table = text.split("## Metrics", 1)[1].split("\n\n")[2]
+    seen = {}
+    for row in table.splitlines()[2:]:
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        for key in re.findall(r"`(\w+)`", cells[0]):
+            seen[key] = (cells[-2], cells[-1])
+    assert set(seen) == set(M.METRICS)
+    for k, (better, anchor) in seen.items():
+        assert better == ("higher" if M.METRICS[k].higher_better else "lower"), k
+        assert anchor == (M.ANCHOR_TO_BEAT.get(k) or "–"), k
