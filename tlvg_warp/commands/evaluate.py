@@ -382,7 +382,7 @@ def _print_table(res: dict) -> None:
     names = res["names"]
     anchors = res.get("anchors") or []
     cols = names + [f"[{a['name']}]" for a in anchors]
-    print(f"{'metric':<16}" + "".join(f"{n[:22]:>24}" for n in cols))
+    print(f"{'metric':<16}" + "".join(f" {n[:24]:>25}" for n in cols))
     for k in M.METRICS:
         vals = []
         for s in [r["summary"] for r in res["runs"]] + [a["summary"] for a in anchors]:
@@ -397,7 +397,7 @@ def _print_table(res: dict) -> None:
         w = res["winners"].get(k)
         nd = (res.get("not_discriminating") or {}).get(k)
         note = (f"   winner: {w}" if w else "") + (f"   not discriminating: {nd} beats every run" if nd else "")
-        print(f"{k:<16}" + "".join(f"{v:>24}" for v in vals) + note)
+        print(f"{k:<16}" + "".join(f" {v:>25}" for v in vals) + note)
     print("[anchors] are references scored with the same ruler; a winner also beats the anchor its metric exists "
           "to beat: " + ", ".join(f"{k} vs {a}" for k, a in M.ANCHOR_TO_BEAT.items() if a))
 
