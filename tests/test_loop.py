@@ -75,7 +75,7 @@ def _view(run, vi):
 # --- each phase's terms ----------------------------------------------------------------------------------------
 def test_stylize_terms_against_closed_forms(demo):
     net = StubFeatures()
-    run, cfg, tg = _stylize_run(demo, net)
+    run, cfg, tg = _stylize_run(demo, net, **{"loss.w_style_color": 0.5, "loss.w_chroma_tv": 0.3})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -85,7 +85,11 @@ def test_stylize_terms_against_closed_forms(demo):
     view = _view(run, 2)
     terms = sty.terms(run, view)
     assert tuple(terms) == STYLIZE_TERMS  # every term, in the summation order
-    img = view.out.color.detach().double()
+    with torch.no_grad():  # the terms see the render over the background where the un-stylized scene was empty
+        ro0 = render(demo.gaussians, run.cams[2], run.background)
+    cov = ro0.alpha.double().clamp(0, 1)[..., None]
+    bgc = torch.tensor(run.background, dtype=torch.float64)
+    img = cov * view.out.color.detach().double() + (1 - cov) * bgc
     # the style term saw luminance (R = G = B), the content term RGB, in one batch
     (batch,) = net.calls  # [2,3,H,W]
     y = (img * torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)).sum(-1)
@@ -95,12 +99,13 @@ def test_stylize_terms_against_closed_forms(demo):
     photo = demo.photos[2].double()
     content = ((pool(img) - pool(photo)) ** 2).mean()
     inv = lambda d: torch.where(d > 0, 1 / d.clamp_min(1e-6), torch.zeros_like(d))  # noqa: E731
-    with torch.no_grad():
-        d0 = render(demo.gaussians, run.cams[2], run.background).depth.double()
+    d0 = ro0.depth.double()
     depth = ((inv(view.out.depth.detach().double()) - inv(d0)) ** 2).mean()
     tv = ((img[1:] - img[:-1]) ** 2).mean() + ((img[:, 1:] - img[:, :-1]) ** 2).mean()
     n = run.params.num
-    want = {"content": content, "depth": depth, "tv": tv,
+    chroma = img - y[..., None]
+    chroma_tv = ((chroma[1:] - chroma[:-1]) ** 2).mean() + ((chroma[:, 1:] - chroma[:, :-1]) ** 2).mean()
+    want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv,
             "opacity_reg": math.sqrt(n * 0.25 ** 2), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k

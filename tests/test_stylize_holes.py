@@ -4,8 +4,8 @@ density control every 10 (it fills the Gaussian budget at its first step: the st
 - holes: pixels with stylized alpha < 0.5 where the un-stylized alpha >= 0.5;
 - cracks: stylized alpha < 0.9 where the un-stylized alpha >= 0.9;
 at the training size and at 2x (a camera of twice the resolution, where thin gaps between splats show).
-Measured here: 3DGS splits (children sampled in the parent, scales / 1.6) leave cracks 6.8% (1x) and 13.4% (2x),
-holes 0.3% / 0.9%; the moment-matched split 0.02% / 0.12%, holes 0; no densification 0.01%."""
+Measured here: 3DGS splits (children sampled in the parent, scales / 1.6) leave cracks of 2.1% at 2x (13.4% before
+the style terms stopped seeing the empty background); the moment-matched split 0.02% / 0.12%, holes 0."""
 import dataclasses
 import math
 
@@ -70,7 +70,7 @@ def test_3dgs_splits_crack_here(demo):
     ds, inp = demo
     res = _run(inp, **{"density.split_mode": "3dgs"})
     _, cracks = coverage_loss(ds.gaussians, res.gaussians, ds.cameras, 2)
-    assert cracks > 3 * CRACKS_MAX, cracks
+    assert cracks > 1.5 * CRACKS_MAX, cracks
 
 
 def _large_splat_threshold(ds, quantile: float) -> float:

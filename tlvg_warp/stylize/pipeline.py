@@ -148,6 +148,7 @@ class Targets:
     photo_feats: list  # per view [768, Nc]: RGB VGG features of the photo (content)
     inv_depth: list  # per view [H,W]: the un-stylized scene's inverse depth
     originals: list  # per view [H,W,3] (CPU): renders of the un-stylized scene
+    coverage: list = field(default_factory=list)  # per view [H,W,1]: the un-stylized scene's alpha (on the device)
 
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
@@ -172,17 +173,28 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     else:
         recolored, pal_m, pal_t = color_transfer(photos, style_work.to(device))
     g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
-    inv_depth, photo_feats, originals = [], [], []
+    inv_depth, photo_feats, originals, coverage = [], [], [], []
     with torch.no_grad():
-        for photo, cam in zip(photos, inp.cameras):
+        for i, (photo, cam) in enumerate(zip(photos, inp.cameras)):
             ro = render(g_in, cam, bg)
             inv_depth.append(inverse_depth(ro.depth))
             originals.append(ro.color.clamp(0, 1).cpu())
+            coverage.append(ro.alpha.clamp(0, 1)[..., None].contiguous())
             photo_feats.append(flatten_feats(vgg(photo, scale=cfg.vgg_scale)))  # content: RGB
+            if not cfg.keep_colors:  # the background the scene does not cover stays the photo's (a Blender
+                # scene's white): a recoloured background would make the fit grow splats to paint it
+                recolored[i] = over_background(recolored[i], coverage[i], photo)
     return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
                    None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
                    flatten_feats(sf_lum).contiguous(), cells, recolored, [lab_chroma_stats(r) for r in recolored],
-                   (pal_m, pal_t), photo_feats, inv_depth, originals)
+                   (pal_m, pal_t), photo_feats, inv_depth, originals, coverage)
+
+
+def over_background(img: torch.Tensor, coverage: torch.Tensor, background) -> torch.Tensor:
+    """``img`` where the un-stylized scene covers the view (alpha ``coverage`` [H,W,1]), ``background`` (an image
+    or an RGB triple) where it does not. Real captures are covered everywhere: there it returns ``img``."""
+    bg = background if torch.is_tensor(background) else img.new_tensor(background)
+    return coverage * img + (1.0 - coverage) * bg
 
 
 # --- the Stylize phase -------------------------------------------------------------------------------------------
@@ -250,7 +262,10 @@ class Stylize(Phase):
         from ..losses import content_loss, lab_chroma_loss, luminance
 
         tg, on, t, vi = self.tg, self.on, run.timer, view.index
-        img, p, anchors = view.out.color, run.params, run.density.tracked
+        p, anchors = run.params, run.density.tracked
+        # the style and content terms see the render only where the scene was: pixels of an empty background
+        # (a Blender scene's white) would otherwise pull splats out to paint them
+        img = over_background(view.out.color, tg.coverage[vi], run.background)
         terms = {}
         if self.vgg_on:
             if self.cfg.loss.luminance_only:  # the style term sees luminance, the content term RGB: one batch
@@ -362,7 +377,10 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
         with torch.no_grad():
             g = run.params.gaussians()
             rs = [render(g, cam, bg).color.clamp(0, 1) for cam in cams]
-        return rs if cfg.keep_colors else color_transfer(rs, tg.style_work.to(device))[0]
+        if cfg.keep_colors:
+            return rs
+        rec = color_transfer(rs, tg.style_work.to(device))[0]
+        return [over_background(r, c, x) for r, c, x in zip(rec, tg.coverage, rs)]
 
     dens = set(cfg.density.phases)
     hook = [(tangential_hook(cfg.geometry.tangential_lambda), ("means",))] if cfg.geometry.tangential_lambda > 0 else []

@@ -1,0 +1,108 @@
+"""Markdown tables from the `evaluation.json` files of a study laid out as STUDY/<scene>/<painting>/evaluation/.
+
+    python benchmarks/study_table.py STUDY [--tuning fern:starry_night,fern:shipwreck] > docs/study.md
+
+One table per metric (rows: scene x painting, split into the tuning pairs and the validation pairs; columns:
+every run and both anchors, mean with the 95% interval over views), then the issue-style checks of tlvg against
+abcgs and the anchors on every pair (paired intervals from `evaluate`'s comparisons).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+METRICS = [("flow_alignment", "higher"), ("stroke_scales", "lower"), ("style_gram", "lower"), ("style_nnfm", "lower"),
+           ("content", "lower"), ("consistency_k1", "lower"), ("detail", "higher"), ("holes_1x", "lower"),
+           ("holes_2x", "lower"), ("chroma_noise", "lower")]
+
+
+def load(study: Path):
+    out = {}
+    for f in sorted(study.glob("*/*/evaluation/evaluation.json")):
+        out[(f.parents[2].name, f.parents[1].name)] = json.loads(f.read_text())
+    return out
+
+
+def cell(s):
+    if not s or s.get("mean") is None:
+        return "-"
+    m, lo, hi = s["mean"], s.get("lo"), s.get("hi")
+    fmt = (lambda v: f"{v:.2e}") if abs(m) < 1e-2 and m != 0 else (lambda v: f"{v:.3f}")
+    return f"{fmt(m)} [{fmt(lo)}, {fmt(hi)}]" if lo is not None else fmt(m)
+
+
+def rows_of(res):
+    runs = {r["name"]: r["summary"] for r in res["runs"]}
+    runs.update({f"[{a['name']}]": a["summary"] for a in res.get("anchors", [])})
+    return runs
+
+
+def paired(res, a, b, k):
+    """Mean and interval of b - a per view (``evaluate``'s comparison of a vs b, oriented as b minus a)."""
+    c = res["comparisons"].get(f"{a} vs {b}", {}).get(k)  # evaluate's "a vs b" holds a - b
+    if c is not None:
+        return -c["mean"], -c["hi"], -c["lo"]
+    c = res["comparisons"].get(f"{b} vs {a}", {}).get(k)
+    return None if c is None else (c["mean"], c["lo"], c["hi"])
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("study")
+    ap.add_argument("--tuning", default="fern:starry_night,fern:shipwreck")
+    args = ap.parse_args()
+    data = load(Path(args.study))
+    tuning = {tuple(x.split(":")) for x in args.tuning.split(",")}
+    order = sorted(data, key=lambda k: (k not in tuning, k))
+    cols = []
+    for res in data.values():
+        for n in rows_of(res):
+            if n not in cols:
+                cols.append(n)
+    for k, better in METRICS:
+        print(f"\n### {k} ({better} is better)\n")
+        print("| pair | split | " + " | ".join(cols) + " |")
+        print("|" + " --- |" * (len(cols) + 2))
+        for key in order:
+            r = rows_of(data[key])
+            split = "tuning" if key in tuning else "validation"
+            print(f"| {key[0]} x {key[1]} | {split} | " + " | ".join(cell(r.get(c, {}).get(k)) for c in cols) + " |")
+    print("\n### tlvg against abcgs and the un-stylized scene (paired per-view differences, 95% intervals)\n")
+    print("| pair | split | flow vs un-stylized | flow vs abcgs | Gram vs abcgs | NNFM vs abcgs | detail | chroma vs abcgs "
+          "| MV k1 / un-stylized | Gaussians / input |")
+    print("|" + " --- |" * 10)
+    for key in order:
+        res = data[key]
+        r = rows_of(res)
+        t, u = r.get("tlvg", {}), r.get("[no stylization]", {})
+
+        def pd(b, k, sign=1):
+            p = paired(res, b, "tlvg", k)
+            if p is None:
+                return "-"
+            m, lo, hi = (sign * p[0], sign * p[1], sign * p[2])
+            if sign < 0:
+                lo, hi = hi, lo
+            mark = "yes" if lo > 0 else ("no" if hi < 0 else "tie")
+            return f"{mark} ({m:+.3f})"
+
+        fu = t.get("flow_alignment", {}), u.get("flow_alignment", {})
+        flow_u = "-"
+        if fu[0].get("lo") is not None and fu[1].get("hi") is not None:
+            flow_u = ("yes" if fu[0]["lo"] > fu[1]["hi"] else "no") + f" ({fu[0]['mean'] - fu[1]['mean']:+.3f})"
+        mv = "-"
+        if t.get("consistency_k1") and u.get("consistency_k1"):
+            mv = f"{t['consistency_k1']['mean'] / max(u['consistency_k1']['mean'], 1e-12):.2f}"
+        g = "-"
+        for rr in res["runs"]:
+            if rr["name"] == "tlvg" and rr["summary"].get("gaussians"):
+                g = rr["summary"]["gaussians"]
+        det = t.get("detail", {}).get("mean")
+        print(f"| {key[0]} x {key[1]} | {'tuning' if key in tuning else 'validation'} | {flow_u} | "
+              f"{pd('abcgs', 'flow_alignment')} | {pd('abcgs', 'style_gram', -1)} | {pd('abcgs', 'style_nnfm', -1)} | "
+              f"{'-' if det is None else f'{det:.2f}'} | {pd('abcgs', 'chroma_noise', -1)} | {mv} | {g} |")
+
+
+if __name__ == "__main__":
+    main()
