@@ -69,4 +69,11 @@ case "${1:-tune}" in
     done 2>&1 | grep -v "^Module\|^Warp\|^open \|^orbit\|^\[evaluate" | tail -n 150
     (cd "$R/study" && tar -czf "$OUT/study_eval.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json 2>/dev/null))
     ;;
+  controls)  # the stylize controls on fern x The Starry Night: --strength, --stroke-scale, --keep-colors
+    timeout 560 python3 benchmarks/tune.py --scene "$F/fern.spz" --data "$D/scenes/fern_llff" \
+      --styles "$D/styles/starry_night.jpg" --out "$R/controls" --variant "tlvg:" --variant "strength_0.5:loss.strength=0.5" \
+      --variant "strength_2:loss.strength=2" --variant "stroke_1:stroke_scale=1" --variant "stroke_4:stroke_scale=4" \
+      --variant "keep_colors:keep_colors=true" --montage "$OUT/controls.jpg" --view 3 2>&1 | grep "^|\|^run\|^evaluate" | tail -30
+    (cd "$R/controls" && tar -czf "$OUT/controls_eval.tgz" $(ls -d */evaluation/evaluation.json */*/metrics.json 2>/dev/null))
+    ;;
 esac
