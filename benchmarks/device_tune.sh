@@ -56,7 +56,7 @@ case "${1:-tune}" in
     P="$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg,$D/styles/starry_night_over_the_rhone.png,$D/styles/monet_san_giorgio.jpg"
     ABL=(--variant "no_advection:config=configs/ablation_no_advection.yaml" --variant "rgb_loss:config=configs/ablation_rgb_loss.yaml"
          --variant "no_density:config=configs/ablation_no_density.yaml" --variant "canvas_field:config=configs/ablation_canvas_field.yaml")
-    for spec in fern:fern_llff:0 beer:beer_colmap:2 lego:lego_blender:0; do
+    for spec in ${STUDY_SCENES:-fern:fern_llff:0 beer:beer_colmap:2 lego:lego_blender:0}; do
       IFS=: read -r s d ds <<< "$spec"
       args=(--scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" --out "$R/study/$s")
       case "${STUDY_PART:-abcgs}" in
