@@ -1,4 +1,4 @@
-"""Fused SSIM and photometric fit loss (issue 15): a·mean|x − y| + b·mean SSIM(x, y) + c in four Warp kernels,
+"""Fused SSIM and photometric fit loss: a·mean|x − y| + b·mean SSIM(x, y) + c in four Warp kernels,
 two forward and two backward, instead of ~30 torch launches forward and more backward.
 
 SSIM as 3DGS: per channel, an 11x11 Gaussian window (σ 1.5, normalized) with zero padding, C1 = 0.01², C2 = 0.03²:

@@ -1,4 +1,4 @@
-"""Help texts speak to users and are complete (issue 17)."""
+"""Help texts speak to users and are complete."""
 import pytest
 
 from tlvg_warp.cli import main

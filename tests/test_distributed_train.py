@@ -1,4 +1,4 @@
-"""One scene on two ranks (issue 18): `torchrun --nproc-per-node 2 -m tlvg_warp stylize|reconstruct` with two
+"""One scene on two ranks: `torchrun --nproc-per-node 2 -m tlvg_warp stylize|reconstruct` with two
 gloo processes on the CPU equals the one-process run with views_per_step=2 (the same views per step), and so do
 runs that stop and are resumed:
 - a 2-rank reconstruct resumed (in place, to more iterations) by a second 2-rank command;

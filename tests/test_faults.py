@@ -1,4 +1,4 @@
-"""Faults around a run folder (issue 17), with real processes where the fault needs one: SIGINT and SIGKILL at a
+"""Faults around a run folder, with real processes where the fault needs one: SIGINT and SIGKILL at a
 random point and then --resume; two runs on one --out (the lock, and a killed run's lock recovered); temporary
 files of a killed run removed; a full disk while saving (a small tmpfs, root only).
 

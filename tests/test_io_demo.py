@@ -7,7 +7,7 @@ import torch
 from _io_helpers import data_root, rot_from_quat_rodrigues
 from tlvg_warp.io.demo import ASSETS, builtin_painting, demo_dataset, demo_scene
 
-MAX_GAUSSIANS = 20_000  # the issue: "tens of thousands at most"; the brief: <= 20k
+MAX_GAUSSIANS = 20_000  # the demo stays small: "tens of thousands at most", here <= 20k
 GROUND_TOL = 1e-6  # the floor is built at z = 0 exactly; float32 storage only
 OBJECT_INSIDE_MIN = 0.95  # the orbit frames the still life: nearly every object splat is in every view
 RENDER_TOL = 1e-3  # Warp float32 vs the float64 torch reference at 32x24; measured ~2e-5

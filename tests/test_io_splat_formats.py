@@ -1,4 +1,4 @@
-"""PlayCanvas compressed PLY and Niantic SPZ (issue 16): the two shipped biker files agree within their
+"""PlayCanvas compressed PLY and Niantic SPZ: the two shipped biker files agree within their
 quantization, our writers round-trip within the formats' closed-form step sizes, files we write decode the
 same in an independent scalar decoder (and in gsply when installed), and bad files fail with one line."""
 from __future__ import annotations

@@ -103,7 +103,7 @@ def test_gram_and_content_vs_brute_force():
     assert abs(content_loss(torch.from_numpy(a), torch.from_numpy(b)).item() - ((a - b) ** 2).mean()) < ORACLE_TOL
 
 
-# ----------------------------------------------------------------------------- issue 15: the cheaper FAST
+# ----------------------------------------------------------------------------- the cheaper FAST
 def ill_conditioned(seed=11, c=40, nc=120, ns=90):
     """ReLU-like features with what relu3 features have: dead channels (all zero), an exact duplicate, an exact
     linear combination and a near-collinear pair (A's live spectrum then spans ~10 decades)."""
@@ -124,7 +124,7 @@ def rel(x, y):
 # cholesky64 (the default for float32 features) against the float64 LU oracle. Well-conditioned: round-off only.
 # Ill-conditioned: its Jacobi ridge (1e-10 of each channel's diagonal, there for a safe float64 Cholesky) shifts
 # the eigen-directions near 1e-9 by a few percent of their share; measured 2.4e-3 (float64 in) and 3.8e-3
-# (float32 in), where the reference code's LU of the float32-formed A (the loop before issue 15) is off by 4e-2.
+# (float32 in), where the reference code's LU of the float32-formed A (the loop before the cheaper FAST) is off by 4e-2.
 CHOL64_TOL_WELL = 1e-7
 CHOL64_TOL_ILL = 1e-2
 

@@ -1,4 +1,4 @@
-"""A corpus of malformed inputs for every format the CLI reads (issue 17): each must end in exactly one line on stderr
+"""A corpus of malformed inputs for every format the CLI reads: each must end in exactly one line on stderr
 that names the culprit (file, flag or endpoint) and the problem, exit 2, no traceback, nothing left in --out, and the
 input files untouched (hashed before and after).
 

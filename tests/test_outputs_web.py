@@ -1,4 +1,4 @@
-"""Outputs others can use (issue 16): orbit.mp4 in H.264 that browsers play, and files as readable as the
+"""Outputs others can use: orbit.mp4 in H.264 that browsers play, and files as readable as the
 umask allows (not mkstemp's private 0600)."""
 from __future__ import annotations
 

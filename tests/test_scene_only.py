@@ -1,4 +1,4 @@
-"""`stylize --scene FILE` without photos (issue 16): cameras orbit the scene (or come from an INRIA
+"""`stylize --scene FILE` without photos: cameras orbit the scene (or come from an INRIA
 cameras.json) and the scene's own renders stand in for the photos."""
 from __future__ import annotations
 

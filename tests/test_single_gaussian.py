@@ -1,4 +1,4 @@
-"""One Gaussian through the rasterizer's forward and backward (issue 17). A [1, 3] column slice of a PLY table is
+"""One Gaussian through the rasterizer's forward and backward. A [1, 3] column slice of a PLY table is
 'contiguous' to torch with a stride of 26 on its size-1 dimension; Warp compares strides literally, so the backward
 used to fail with a gradient-stride error. Compared with the float64 torch reference."""
 import pytest

@@ -1,4 +1,4 @@
-"""The browser viewer (issue 16): the Gaussians -> viser conversion against an independent computation
+"""The browser viewer: the Gaussians -> viser conversion against an independent computation
 (scipy's Rotation, numpy), what `view` loads from a run folder / scene file, the live hook of run_stylize, and
 a headless Chromium that loads the page from a viewer the test starts and checks the canvas is drawn:
 the splat colour covers the view, an empty scene shows none of it, and the dropdown's other scene replaces it.

@@ -22,7 +22,8 @@ COMMANDS = {
     "stylize": "stylize a 3DGS scene with a painting's brushstrokes; with no arguments, the built-in demo scene "
                "and The Starry Night",
     "reconstruct": "fit a 3DGS scene to posed photos",
-    "evaluate": "SPEC §4 metrics of stylization runs of one scene and painting, one ruler for all",
+    "evaluate": "score stylization runs of one scene and painting (flow alignment, style, content, consistency, "
+                "holes), one ruler for all",
     "judge": "VLM-as-a-judge pairwise comparison of two runs",
     "bench": "speed against quality: the stylization sweep by default (`bench sweep`); `bench raster` times the "
              "rasterizer alone",

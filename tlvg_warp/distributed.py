@@ -1,4 +1,4 @@
-"""torch.distributed for tlvg_warp: one small handle, `Dist`, that every command takes (issue 18).
+"""torch.distributed for tlvg_warp: one small handle, `Dist`, that every command takes.
 
 `Dist.from_env(device)` reads torchrun's environment (WORLD_SIZE, RANK, LOCAL_RANK, MASTER_ADDR/PORT). With
 WORLD_SIZE > 1 it joins the process group (NCCL for a CUDA device, gloo for the CPU) and picks

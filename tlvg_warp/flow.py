@@ -4,8 +4,8 @@ weighted by target coherence × each Gaussian's blend weight in the view, normal
 ``flow_terms`` runs two Warp kernels inside one torch autograd Function: the targets (this file: projected center,
 bilinear field sample with border padding, coherence, weight, and their sum; no gradient) and the energies
 (kernels/flow.py, on a Warp tape), then one matrix-vector product for the weighted means: about ten kernel
-launches per call where the torch-side targets and weighting took ~60 (issue 15: the stylize loop is
-launch-bound). ``flow_targets`` and ``flow_terms_reference`` are the pure-torch twins (same signatures) the
+launches per call where the torch-side targets and weighting took ~60 (the stylize loop is
+bound by kernel launches). ``flow_targets`` and ``flow_terms_reference`` are the pure-torch twins (same signatures) the
 tests compare with.
 (No ``from __future__ import annotations`` here: Warp reads the kernel's annotations as objects.)"""
 import functools
@@ -211,7 +211,7 @@ def flow_terms(g: Gaussians, cam: Camera, field: torch.Tensor, weights: torch.Te
 
 
 def flow_terms_unfused(g: Gaussians, cam: Camera, field: torch.Tensor, weights: torch.Tensor):
-    """``flow_terms`` as it was before issue 15: torch targets, per-Gaussian Warp energies, torch weighting
+    """``flow_terms`` as it was before the fused version: torch targets, per-Gaussian Warp energies, torch weighting
     (kept for the tests and the loss microbenchmark)."""
     target, coh, active = flow_targets(g, cam, field)
     align_i, aniso_i = FlowTermsFn.apply(g.means, g.quats, g.log_scales, target.contiguous(), active, cam)

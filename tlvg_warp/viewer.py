@@ -1,4 +1,4 @@
-"""The interactive browser viewer (issue 16): a viser server (https://viser.studio, the web viewer gsplat and
+"""The interactive browser viewer: a viser server (https://viser.studio, the web viewer gsplat and
 nerfstudio use; its client is bundled in the wheel, so it works offline) showing Gaussian scenes as splats,
 a dropdown to switch between them (stylized / un-stylized), and the training cameras as frustums.
 

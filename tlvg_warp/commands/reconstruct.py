@@ -1,4 +1,4 @@
-"""`python -m tlvg_warp reconstruct DATA --out DIR`: fit a 3DGS scene to posed photos (issue 4).
+"""`python -m tlvg_warp reconstruct DATA --out DIR`: fit a 3DGS scene to posed photos.
 
 Writes DIR/point_cloud.ply (INRIA layout), DIR/cameras.json (INRIA), DIR/config.yaml (resolved),
 DIR/test/*.png (held-out renders), DIR/metrics.json (top-level ``psnr`` = mean over held-out views) and

@@ -1,4 +1,4 @@
-"""`python -m tlvg_warp stylize`: turn a 3DGS scene into a walkable painting (issue 5).
+"""`python -m tlvg_warp stylize`: turn a 3DGS scene into a walkable painting.
 
 No arguments: the built-in demo still life with Van Gogh's The Starry Night, sized for a few minutes on a CPU
 (DEMO_CPU on a CPU, DEMO_GPU on a GPU, unless flags or --set say otherwise).
@@ -151,7 +151,7 @@ def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool, dist=None):
 
     style = load_style(sources["style"]) if sources.get("style") else builtin_painting()
     scene, data = sources.get("scene"), sources.get("data")
-    if scene is not None and data is None:  # no photos: the scene's own renders stand in (issue 16)
+    if scene is not None and data is None:  # no photos: the scene's own renders stand in
         return _scene_only_inputs(Path(scene), cfg, style, sources)
     if data is None:  # the demo
         w, h = max(8, round(160 / cfg.downscale)), max(8, round(120 / cfg.downscale))

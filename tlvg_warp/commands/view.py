@@ -1,4 +1,4 @@
-"""`python -m tlvg_warp view RUN|FILE`: the scene in the browser (viser; issue 16).
+"""`python -m tlvg_warp view RUN|FILE`: the scene in the browser (viser).
 
 RUN (a stylization run folder): stylized.ply, a "Scene" dropdown to switch to the un-stylized scene, and the
 training cameras of cameras.json as frustums. The run folder does not copy the un-stylized scene; it is found

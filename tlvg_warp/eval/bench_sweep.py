@@ -1,4 +1,4 @@
-"""`python -m tlvg_warp bench [sweep]`: speed against quality, charted (issue 6).
+"""`python -m tlvg_warp bench [sweep]`: speed against quality, charted.
 
 Stylization sweep: one setting varied at a time around a base point (iterations, render resolution, VGG
 input scale, Gaussian budget, style loss variant) on a scene + painting (the demo by default). Each point is

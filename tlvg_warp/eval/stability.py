@@ -1,4 +1,4 @@
-"""Stability where 3DGS stylization breaks (issue 6): drive the pipeline into hard cases and record what
+"""Stability where 3DGS stylization breaks: drive the pipeline into hard cases and record what
 happens — finished or not (exceptions are caught and recorded, never re-raised), NaN count in every output
 (Gaussian parameters and renders), hole fraction (pixels whose alpha fell below 0.5 that were covered, alpha
 >= 0.5, by the input scene), the quality metrics, Gaussian count in and out, wall time.

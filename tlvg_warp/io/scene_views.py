@@ -1,4 +1,4 @@
-"""Views for a scene that comes without photos (issue 16: ``stylize --scene FILE`` and no ``--data``).
+"""Views for a scene that comes without photos (``stylize --scene FILE`` and no ``--data``).
 
 Cameras come from an INRIA ``cameras.json`` when one is given, else from an orbit generated around the scene;
 the un-stylized scene rendered into them stands in for the photos (what the content loss and the recolored

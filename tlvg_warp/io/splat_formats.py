@@ -1,4 +1,4 @@
-"""Compressed Gaussian scene formats that viewers and other tools already use (issue 16):
+"""Compressed Gaussian scene formats that viewers and other tools already use:
 
 * the PlayCanvas / SuperSplat **compressed PLY** (``*.compressed.ply``): chunks of 256 Gaussians with
   min/max bounds, each Gaussian packed into four uint32 (position 11/10/11 bits, rotation 2 + 3x10 bits,

@@ -1,4 +1,4 @@
-"""The Lab chroma statistics loss as two Warp kernels (issue 15: the stylize loop is bound by the host's kernel
+"""The Lab chroma statistics loss as two Warp kernels (the stylize loop is bound by the host's kernel
 launches; through torch this loss took ~50 launches per step, here ~8).
 
 Forward: one kernel per pixel computes Lab (a, b) and their 2x3 Jacobian with respect to the sRGB input (the same

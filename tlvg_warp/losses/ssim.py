@@ -5,7 +5,7 @@ Images are [H,W,3] (channel-last, one image) or [B,3,H,W]; values in [0,1] (take
 differentiable with respect to the image; the reference is a constant.
 
 ``ssim`` and ``fit_loss`` run fused in Warp (kernels/ssim.py: two kernels forward, two backward, the L1 in the same
-kernels; issue 15: through torch they took ~30 launches forward and more backward) for float32 and float64
+kernels; through torch they took ~30 launches forward and more backward) for float32 and float64
 images on the CPU and CUDA. ``ssim_torch`` / ``fit_loss_torch`` are their pure-torch twins: the tests' oracle,
 and the fallback for anything else (other dtypes or devices, a reference that requires grad, an empty image,
 shapes that differ). ``TLVG_WARP_FUSED_SSIM=0`` forces the twins (for A/B runs).

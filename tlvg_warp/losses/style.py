@@ -4,7 +4,7 @@ FAST (ABC-GS reference code, SPEC §3), NNFM (ARF), Gram, content MSE, and the r
 "matched" stroke-field mapping reuses. Similarity matrices are built in row chunks so a ~100k x 20k match
 never materializes at once.
 
-Per-call cost (issue 15: the stylize loop is bound by the host's kernel launches): nothing here reads a value
+Per-call cost (the stylize loop is bound by the host's kernel launches): nothing here reads a value
 back to the host (no ``.item()``, no data-dependent shapes, no sparse tensors), the painting's side is
 computed once (:class:`StyleFeatures`), and :class:`StyleLoss` adds an optional per-view cache of the FAST
 projection (``key``/``refresh_every``).
@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 K_CROSS = 5  # FAST's mutual top-k (reference code)
 RIDGE = 1e-12  # FAST's A + 1e-12*I (reference code)
-# FAST's solve (issue 15). A = a·diag(U1)·aᵀ is a Gram matrix of highly correlated relu3 channels: on fern x Starry
+# FAST's solve. A = a·diag(U1)·aᵀ is a Gram matrix of highly correlated relu3 channels: on fern x Starry
 # Night with the pretrained backbone 83 channels are dead and the live spectrum spans 12 decades. Measured against
 # a float64 LU of the float64 A (rel. error of the target b / of the loss's gradient):
 #   lu64 of the float32 A (the reference code, the loop before):  4e-5 / 1.4e-4,   2.30 ms on the H200

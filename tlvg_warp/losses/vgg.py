@@ -75,7 +75,7 @@ class VGG16Features(nn.Module):
         self._graphed: dict = {}  # (shape, dtype, device, scale, layout, precision) -> its _GraphedPass
 
     def set_precision(self, dtype: torch.dtype | None = None, channels_last: bool = False) -> "VGG16Features":
-        """Speed options for the loss features (off by default; issue 15). ``dtype`` (torch.bfloat16 or
+        """Speed options for the loss features (off by default). ``dtype`` (torch.bfloat16 or
         torch.float16) runs the convolutions in that precision from low-precision copies of the weights made
         here (no per-call weight casts, unlike autocast; the modules keep their float32 weights, so ``hed`` and
         evaluation are unaffected); the input is cast once and the outputs come back in the input's dtype.

@@ -1,4 +1,4 @@
-"""The one training loop (issue 14): a run is a list of phases over one set of parameters, one Adam, one
+"""The one training loop: a run is a list of phases over one set of parameters, one Adam, one
 density control and one run state.
 
     run = Run(params, opt, density, [Fit(...), Stylize(...), Fit(...)], cameras, LoopSettings(...), out=dir)
