@@ -1,0 +1,135 @@
+"""The stylize controls a user reaches for: --stroke-scale (the painting's working size relative to the view),
+--strength (style against content) and --keep-colors (the scene's own colours), and the background rule (the
+style terms see the render only where the un-stylized scene was). Oracles: closed forms of the sizes and
+weights, the photos themselves, and a float64 blend; one in-process CLI run checks that the flags reach the run's
+resolved config.yaml."""
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+import yaml
+
+from _demo_helpers import demo_stylize_inputs
+from tlvg_warp.distributed import Dist
+from tlvg_warp.stylize.config import config_from_dict
+from tlvg_warp.stylize.pipeline import build_run, over_background, prepare
+
+W, H, VIEWS = 32, 24, 3
+
+
+class StubFeatures(torch.nn.Module):
+    """Closed-form 'features' (4x4 average pooling): the controls do not depend on what VGG computes."""
+
+    is_random, source = True, "stub"
+
+    def forward(self, img, scale=1.0):
+        x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img
+        return F.avg_pool2d(x.float(), 4)
+
+    def features_of(self, images, scale=1.0):
+        f = self(torch.stack([im.permute(2, 0, 1) for im in images]), scale)
+        return [fi.reshape(3, -1) for fi in f]
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return demo_stylize_inputs(VIEWS, W, H, 8)[1]
+
+
+def _cfg(**over):
+    return config_from_dict({"iterations": 6, "device": "cpu", "background": [1.0, 1.0, 1.0], **over}).validate()
+
+
+def _targets(inp, cfg):
+    return prepare(inp, cfg, StubFeatures(), torch.device("cpu"), (1.0, 1.0, 1.0))
+
+
+@pytest.mark.parametrize("vgg_scale", [0.5, 1.0])
+def test_stroke_scale_sizes_the_painting_relative_to_the_view(demo, vgg_scale):
+    """style_height 0: the painting's working height is stroke_scale x the view height as VGG sees it."""
+    heights = {}
+    for k in (1.0, 2.0, 3.0):
+        tg = _targets(demo, _cfg(style_height=0, stroke_scale=k, vgg_scale=vgg_scale))
+        heights[k] = tg.style_work.shape[0]
+        assert heights[k] == max(16, round(H * vgg_scale * k))
+    ph, pw = demo.style.shape[:2]  # the aspect ratio is kept
+    assert tg.style_work.shape[1] == max(1, round(pw * heights[3.0] / ph))
+    # a fixed style_height is scaled too, so --stroke-scale acts on every config
+    assert _targets(demo, _cfg(style_height=40, stroke_scale=2.0)).style_work.shape[0] == 80
+
+
+def test_strength_scales_the_style_terms_and_nothing_else(demo):
+    from tlvg_warp.stylize.pipeline import Stylize
+
+    base = {"loss.w_style_color": 0.5, "loss.w_chroma_tv": 0.25}
+    w = {}
+    for s in (1.0, 2.5):
+        cfg = _cfg(**base, **{"loss.strength": s})
+        tg = _targets(demo, cfg)
+        w[s] = Stylize(10, cfg, tg, StubFeatures()).weights(3)
+    for term, v in w[1.0].items():
+        want = v * 2.5 if term in ("style", "style_color") else v
+        assert w[2.5][term] == pytest.approx(want, rel=1e-12), term
+    assert w[1.0]["style"] == 2.0 and w[1.0]["style_color"] == 0.5  # the built-in weights, unscaled at 1
+
+
+def test_keep_colors_keeps_the_photos_colours(demo):
+    cfg = _cfg(keep_colors=True, **{"loss.luminance_only": False, "loss.w_style_color": 1.0})
+    assert cfg.loss.luminance_only and cfg.loss.w_style_color == 0  # the style may shape luminance only
+    tg = _targets(demo, cfg)
+    for rec, photo in zip(tg.recolored, demo.photos):  # pre-process and Lab targets: the photos themselves
+        assert torch.equal(rec, photo.to(rec))
+    m, t = tg.palette
+    assert torch.equal(m, torch.eye(3, dtype=m.dtype)) and not t.any()
+    run = build_run(demo, cfg, tg, StubFeatures(), torch.device("cpu"), Dist(), None)
+    g0 = demo.gaussians.with_sh_degree(0)  # no palette applied to the starting colours either
+    assert torch.equal(run.params.sh_dc.detach().reshape(-1, 3), g0.sh[:, 0].to(run.params.sh_dc).reshape(-1, 3))
+    # without it, the targets are recoloured to the painting's palette
+    tg_pal = _targets(demo, _cfg())
+    assert max(float((a - b).abs().max()) for a, b in zip(tg_pal.recolored, demo.photos)) > 0.05
+
+
+def test_over_background_blends_by_the_unstylized_alpha():
+    torch.manual_seed(0)
+    img = torch.rand(5, 7, 3, dtype=torch.float64)
+    cov = torch.rand(5, 7, 1, dtype=torch.float64)
+    cov[0, 0], cov[0, 1] = 1.0, 0.0
+    bg = (0.2, 0.4, 0.9)
+    out = over_background(img, cov, bg)
+    want = cov * img + (1 - cov) * torch.tensor(bg, dtype=torch.float64)
+    assert torch.allclose(out, want, atol=1e-15)
+    assert torch.equal(out[0, 0], img[0, 0]) and torch.allclose(out[0, 1], torch.tensor(bg, dtype=torch.float64))
+    photo = torch.rand(5, 7, 3, dtype=torch.float64)  # an image as the background (the recoloured targets)
+    assert torch.allclose(over_background(img, cov, photo), cov * img + (1 - cov) * photo, atol=1e-15)
+
+
+def test_recoloured_targets_keep_the_empty_background(demo):
+    """Where the un-stylized scene leaves the view empty, the pre-process target is the photo's background, not
+    the painting's palette (a recoloured white background would make the fit grow splats to paint it)."""
+    from tlvg_warp import render
+    from tlvg_warp.losses import color_transfer
+
+    tg = _targets(demo, _cfg())
+    palette = color_transfer([p.float() for p in demo.photos], tg.style_work)[0]  # the whole-image transfer
+    for i, (rec, photo) in enumerate(zip(tg.recolored, demo.photos)):
+        with torch.no_grad():
+            cov = render(demo.gaussians, demo.cameras[i], (1.0, 1.0, 1.0)).alpha.clamp(0, 1).double()[..., None]
+        want = cov * palette[i].double() + (1 - cov) * photo.double()
+        assert torch.allclose(rec.double(), want, atol=1e-5)
+        empty = cov[..., 0] < 1e-6
+        assert empty.any() and torch.allclose(rec[empty].double(), photo.double()[empty], atol=1e-6)
+        assert float((rec.double() - photo.double()).abs().max()) > 0.05  # covered pixels do change
+
+
+def test_flags_reach_the_resolved_config(tmp_path):
+    from tlvg_warp import cli
+
+    out = tmp_path / "run"
+    rc = cli.main(["stylize", "--out", str(out), "--iterations", "1", "--downscale", "4", "--vgg-weights", "random",
+                   "--quiet", "--strength", "0.5", "--stroke-scale", "3", "--keep-colors", "--set", "web_formats=false",
+                   "--set", "orbit_frames=2"])
+    assert rc == 0
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    assert cfg["stroke_scale"] == 3.0 and cfg["keep_colors"] is True and cfg["loss"]["strength"] == 0.5
+    assert cfg["loss"]["luminance_only"] is True and math.isclose(cfg["loss"]["w_style_color"], 0.0)
