@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Issue 15, tenth session: the rasterizer's stress cases against gsplat 1.5.3, each case run in one process with
-# gsplat in it (ratio = ours / gsplat in the same process). On the device, after the two staging calls:
-#   source /tmp/tlvg-gpu/env.sh && bash .ci/gpu_stress.sh [many] [4k] [huge]
+# The rasterizer's stress cases against gsplat 1.5.3, each case run in one process with
+# gsplat in it (ratio = ours / gsplat in the same process). Through the entry point:
+#   bash benchmarks/run.sh stress [many] [4k] [huge]
 #   many: 3M, 10M and 20M random Gaussians at 1008x756 (log-scale -4, SH degree 3)
 #   4k:   1M and 3M random Gaussians at 3840x2160
 #   huge: huge footprints at 1008x756: 1M at log-scale -2.5 (~70 px radius), 100k at -1.5 (~190 px)

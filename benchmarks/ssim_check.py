@@ -1,6 +1,6 @@
-"""The fused Warp SSIM / fit loss on CUDA against its torch twin (issue 15; development aid, run on the device).
+"""The fused Warp SSIM / fit loss on CUDA against its torch twin (development aid, run on a GPU).
 
-python3 .ci/ssim_cuda_check.py  -> value and gradient differences (float32 and float64) and the forward+backward
+python3 benchmarks/ssim_check.py  -> value and gradient differences (float32 and float64) and the forward+backward
 time of both at the fit's 1008x756 and the stylize pre/post 504x378 (CUDA events, median of 50 after warm-up)."""
 import torch
 

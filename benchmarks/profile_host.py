@@ -1,6 +1,6 @@
-"""Host vs GPU timeline of our render (development aid, issue 15): where the GPU waits for the host.
+"""Host vs GPU timeline of our render (development aid): where the GPU waits for the host.
 
-python3 .ci/profile_host.py [SCENE_SPEC] [fwd|fwd_bwd]   (SCENE_SPEC as `bench raster --scene`; default: random 1M)
+python3 benchmarks/profile_host.py [SCENE_SPEC] [fwd|fwd_bwd]   (SCENE_SPEC as `bench raster --scene`; default: random 1M)
 
 A CUDA event is recorded at every mark (each stage function's entry and exit, each launch, each sort, the host
 sync); per mark: host time since the step started, GPU time at which the event ran, and the gap. Where GPU - host

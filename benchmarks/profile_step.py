@@ -1,6 +1,6 @@
-"""Is a training step host-bound or GPU-bound? (development aid, issue 15)
+"""Is a training step host-bound or GPU-bound? (development aid)
 
-python3 .ci/profile_step.py stylize|reconstruct -- <command arguments>
+python3 benchmarks/profile_step.py stylize|reconstruct -- <command arguments>
 Runs the command in this process; its training loop gets a callback that (1) times steps WARM..WARM+TIMED
 with a synchronize at both ends and nothing in between (the wall per step, as the run sees it), then (2) runs
 torch.profiler (CPU + CUDA) over the next ACTIVE steps: GPU kernel time per step (the sum of kernel durations:

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 18 on the device's nvidia-h200-x2 (2 GPUs of one host, NCCL): what a second GPU buys.
+# Many GPUs: what a second GPU of the same host buys (2 GPUs, NCCL).
 #   1. one-scene stylization: fern (fitted by reconstruct), 1 GPU with views_per_step=2 against
 #      `torchrun --nproc-per-node 2` with views_per_step=1 (the same 2 views per step, the same iterations,
 #      so the same total views); iterations/s from each run's train_time_s (the loop, not setup/outputs).
@@ -9,9 +9,9 @@
 #      stylizations, evaluations, report): jobs per minute.
 #   3. NCCL: all-reduce of a fern-sized gradient (300k Gaussians x 59 floats), the per-step price of data
 #      parallelism, and the GPUs' link (nvidia-smi topo).
-# Staging as for .ci/gpu_study.sh (env.sh, /tmp/tlvg-data with fern_llff and styles/, the converted VGG at
-# /tmp/tlvg-gpu/vgg16_hed.pt). On the device:
-#   source /tmp/tlvg-gpu/env.sh && bash .ci/gpu_scaling.sh [stage] [fit] [stylize] [study] [nccl] [table]
+# Needs /tmp/tlvg-data with fern_llff and styles/ (starry_night.jpg, shipwreck.jpg) and a converted VGG at
+# $TLVG_VGG_WEIGHTS (default /tmp/tlvg-gpu/vgg16_hed.pt). Through the entry point:
+#   bash benchmarks/run.sh scaling [stage] [fit] [stylize] [study] [nccl] [table]
 # (`stage` alone: only copy a carried .gpu/vgg or .gpu/data to /tmp, in calls of their own: 64 MiB a call)
 # No argument: all of them (about 8-9 minutes: fit ~55 s, warm-up ~30 s, stylize runs ~3 min, studies
 # ~4 min). Split over two calls if needed: `fit stylize nccl` then `study table` (runs stay in /tmp while
@@ -29,14 +29,14 @@ FERN="--scene $R/fern/point_cloud.ply --data $D/fern_llff --downscale 2 --style 
 QUICK="--quiet --overwrite --set orbit_frames=0 --set comparison_views=1 --set checkpoint_seconds=0 --set loss.fast_refresh=1"  # reuse off: ranks do not share it
 now() { date +%s.%N; }
 [ $# -eq 0 ] && set -- fit stylize nccl study table
-# staging as .ci/gpu_study.sh: a call that carries .gpu/vgg or .gpu/data copies it to /tmp (kept while warm)
+# staging: a call that carries .gpu/vgg or .gpu/data copies it to /tmp (kept while warm)
 [ -d .gpu/vgg ] && mkdir -p /tmp/tlvg-gpu && cp .gpu/vgg/*.pt "$TLVG_VGG_WEIGHTS"
 [ -d .gpu/data ] && mkdir -p $D && cp -r .gpu/data/* $D/
 [ "$*" = stage ] && { ls -la "$TLVG_VGG_WEIGHTS" $D 2>&1; exit 0; }
 [ -f "$TLVG_VGG_WEIGHTS" ] && [ -d $D/fern_llff ] && [ -d $D/styles ] || { echo "weights or data not staged"; exit 1; }
 nvidia-smi --query-gpu=index,name,memory.total --format=csv,noheader | tee "$L/gpus.txt"
 python3 -c 'import torch, sys; n = torch.cuda.device_count(); print("torch", torch.__version__, "GPUs", n); sys.exit(n < 2)' \
-  || { echo "needs 2 GPUs (kind nvidia-h200-x2)"; exit 1; }
+  || { echo "needs 2 GPUs of one host"; exit 1; }
 
 for job in "$@"; do
   case "$job" in

@@ -1,0 +1,115 @@
+#!/usr/bin/env bash
+# The one entry point for the GPU benchmarks: every figure in docs/performance.md (and the README's table) names
+# the subcommand that reproduces it. Run from the repository root on a machine with an NVIDIA GPU.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+
+usage() {
+  cat <<'EOF'
+usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
+
+  fit [NAME ...]     fit scenes with `reconstruct` (7000 iterations) and keep each as $FITS/NAME.spz: fern
+                     (fern_llff, images_4), beer (beer_colmap), lego (lego_blender); default: those whose data is
+                     present. Reproduces: fit time and held-out PSNR (performance.md, "Scene fitting").
+  raster             `bench raster` on the fitted fern, beer and lego (every view) and a random 1M scene against
+                     gsplat, REPS processes (default 2), each with gsplat in it. Reproduces: "Rasterizer on fitted
+                     scenes" (ours / gsplat, peak memory, GPU time per stage, list lengths).
+  stress [many] [4k] [huge]
+                     random scenes of 3M-20M Gaussians, 4K frames and huge footprints against gsplat.
+                     Reproduces: "Stress cases".
+  stylize            fern (fern.spz, 504x378, The Starry Night) stylized 3000 iterations, RUNS processes (default
+                     2) after a 300-iteration warm-up. Reproduces: "Stylization" (process wall, flow alignment).
+  quality            `evaluate` on the runs of `stylize` (first 10 views, one ruler). Reproduces: "Stylization",
+                     the quality row.
+  demo               the CPU demo with empty kernel and weight caches (`python -m tlvg_warp stylize`).
+                     Reproduces: "The demo".
+  scaling [JOB ...]  one GPU against two of one host (benchmarks/scaling.sh: fit stylize nccl study table).
+                     Reproduces: "Many GPUs".
+  cuda-tests         the CUDA tests (rasterizer against the float64 reference, graphed VGG).
+  host-profile [SCENE_SPEC] [fwd|fwd_bwd]
+                     host against GPU timeline of one render (benchmarks/profile_host.py): where the GPU waits.
+  step-profile       is a fern stylize step host-bound? (benchmarks/profile_step.py: wall per step, GPU time
+                     per step, top kernels).
+  ssim               the fused SSIM against its torch twin on CUDA: differences and forward+backward time
+                     (benchmarks/ssim_check.py). Reproduces: "Scene fitting", the fused loss.
+  tune | study       the tuning variants and the study runs (benchmarks/device_tune.sh; docs/study.md).
+  study-table        the study's tables from its runs (benchmarks/study_table.py).
+
+Environment: DATA (default /tmp/tlvg-data: fern_llff, beer_colmap, lego_blender, styles/starry_night.jpg),
+FITS (default /tmp/tlvg-fits), OUT (default /tmp/tlvg-out: logs and JSON), TLVG_VGG_WEIGHTS (the pretrained
+VGG-16; see docs/install.md). raster and stress need gsplat importable (e.g. `pip install gsplat`); a folder
+/tmp/tlvg-gpu/site, when present, is put on PYTHONPATH for it.
+EOF
+}
+
+D=${DATA:-/tmp/tlvg-data}; F=${FITS:-/tmp/tlvg-fits}; OUT=${OUT:-/tmp/tlvg-out}; R=/tmp/tlvg-runs
+mkdir -p "$F" "$OUT" "$R"
+export OUT PYTHONUNBUFFERED=1
+[ -d /tmp/tlvg-gpu/site ] && export PYTHONPATH=/tmp/tlvg-gpu/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
+FERN="--scene $F/fern.spz --data $D/fern_llff --downscale 2 --style $D/styles/starry_night.jpg"
+metrics() { python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print({k: m.get(k) for k in sys.argv[2:]})" "$@"; }
+gpu() { nvidia-smi --query-gpu=name,memory.total --format=csv,noheader; date -u; }
+
+fit_one() {  # NAME DATASET [reconstruct arguments]
+  local name=$1 data=$2; shift 2
+  [ -d "$D/$data" ] || { echo "$name: $D/$data missing, skipped"; return; }
+  /usr/bin/time -f "fit $name wall %e s" python3 -m tlvg_warp reconstruct "$D/$data" "$@" --iterations 7000 \
+    --out "$R/fit_$name" --overwrite --quiet > "$R/fit_$name.log" 2>&1; tail -n 1 "$R/fit_$name.log"
+  metrics "$R/fit_$name/metrics.json" psnr ssim num_gaussians train_time_s wall_time_s
+  python3 -c "import sys; from tlvg_warp.io.ply import load_ply; from tlvg_warp.io.splat_formats import save_spz; \
+save_spz(load_ply(sys.argv[1]), sys.argv[2])" "$R/fit_$name/point_cloud.ply" "$F/$name.spz"
+}
+
+cmd=${1:-}; [ $# -gt 0 ] && shift
+case "$cmd" in
+  fit)
+    gpu; [ $# -eq 0 ] && set -- fern beer lego
+    for s in "$@"; do
+      case "$s" in
+        fern) fit_one fern fern_llff --images images_4;;
+        beer) fit_one beer beer_colmap --images images;;
+        lego) fit_one lego lego_blender;;
+        *) echo "unknown scene $s (fern, beer, lego)";;
+      esac
+    done;;
+  raster)
+    gpu; SCENES=""
+    [ -f "$F/fern.spz" ] && SCENES="$SCENES --scene $F/fern.spz:$D/fern_llff:images_4"
+    [ -f "$F/beer.spz" ] && SCENES="$SCENES --scene $F/beer.spz:$D/beer_colmap:images"
+    [ -f "$F/lego.spz" ] && SCENES="$SCENES --scene $F/lego.spz:$D/lego_blender"
+    for i in $(seq 1 "${REPS:-2}"); do
+      echo "== bench raster, process $i"
+      timeout 300 python3 -m tlvg_warp bench raster --sizes 1000000 --garden "" --peers tlvg_warp,gsplat $SCENES \
+        --repeats 10 --out "$R/bench_$i" > "$R/bench_$i.log" 2>&1
+      grep "^|" "$R/bench_$i.log" | tail -n "${RASTER_ROWS:-10}"
+    done
+    tar -czf "$OUT/bench_logs.tgz" -C "$R" $(cd "$R" && ls -d bench_* 2>/dev/null);;
+  stress) exec bash benchmarks/stress.sh "$@";;
+  stylize)
+    gpu
+    python3 -m tlvg_warp stylize $FERN --iterations 300 --out "$R/warm" --overwrite --quiet > /dev/null 2>&1
+    for i in $(seq 1 "${RUNS:-2}"); do
+      /usr/bin/time -f "fern stylize $i 3000 wall %e s" python3 -m tlvg_warp stylize $FERN --iterations 3000 \
+        --out "$R/fern_$i" --overwrite --quiet > "$R/fern_$i.log" 2>&1; tail -n 2 "$R/fern_$i.log"
+      metrics "$R/fern_$i/metrics.json" wall_time_s train_time_s flow_alignment time_per_phase_s
+    done;;
+  quality)
+    runs=$(ls -d "$R"/fern_[0-9]* 2>/dev/null | grep -v "\.log$")
+    [ -n "$runs" ] || { echo "no runs: run \`stylize\` first"; exit 1; }
+    timeout 400 python3 -m tlvg_warp evaluate $runs --max-views 10 --out "$R/fern_eval" > "$R/fern_eval.log" 2>&1
+    tail -n 24 "$R/fern_eval.log"; cp "$R/fern_eval/evaluation.json" "$OUT/" 2>/dev/null;;
+  demo)
+    tmp=$(mktemp -d)
+    WARP_CACHE_PATH=$tmp/warp TLVG_CACHE_DIR=$tmp/tlvg /usr/bin/time -f "demo wall %e s" \
+      python3 -m tlvg_warp stylize --out "$R/demo" --overwrite
+    rm -rf "$tmp";;
+  scaling) exec bash benchmarks/scaling.sh "$@";;
+  cuda-tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py tests/test_losses_vgg.py;;
+  host-profile) exec python3 benchmarks/profile_host.py "$@";;
+  step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet;;
+  ssim) exec python3 benchmarks/ssim_check.py;;
+  tune|study) exec bash benchmarks/device_tune.sh "$cmd" "$@";;
+  study-table) exec python3 benchmarks/study_table.py "$@";;
+  -h|--help|help|"") usage;;
+  *) echo "unknown subcommand: $cmd"; usage; exit 2;;
+esac
