@@ -22,13 +22,13 @@ import torch
 from ..errors import InputError
 from . import KEEP_CHECKPOINT_HELP, check_resumable, drop_checkpoints
 
-# The no-argument demo's settings (a user's flag or --set wins). On 2 CPU cores: 80x60 views (discs sized to
-# those pixels, so 4,678 of them), the painting at height 128 and the render fed to VGG at full size (at x0.5
-# an 80x60 view leaves 10x7 feature cells, too few for brush texture), SH DC learning rate x4 so that a
-# preview of 300 iterations moves the colours: 65 s from an empty kernel cache (README, "The demo").
-DEMO_CPU = {"iterations": 300, "downscale": 2.0, "density.interval": 20,
-            "style_height": 128, "vgg_scale": 1.0, "lr.sh_dc": 0.01}
-DEMO_GPU = {"iterations": 600, "downscale": 1.0, "density.interval": 100}
+# The no-argument demo's settings (a user's flag or --set wins). On 2 CPU cores: 160x120 views (18,733 discs),
+# the render fed to VGG at x0.5 (80x60) and the painting at the view's size times the config's stroke scale, SH DC
+# learning rate x4 so that a preview of 300 iterations moves the colours (docs/performance.md gives its time).
+# On a GPU: 640x480 views, 600 iterations.
+DEMO_CPU = {"iterations": 300, "downscale": 1.0, "density.interval": 20,
+            "style_height": 0, "vgg_scale": 0.5, "lr.sh_dc": 0.01}
+DEMO_GPU = {"iterations": 600, "downscale": 0.25, "density.interval": 100}
 MIN_STYLE_PX = 64  # a painting smaller than this has no brushstrokes left at VGG's relu3 (1/4 resolution)
 MAX_STYLE_PX = 8192  # larger paintings are resized (with a warning): the style loss sees height 256 anyway
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
