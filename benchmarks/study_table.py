@@ -3,7 +3,7 @@
     python benchmarks/study_table.py STUDY [--tuning fern:starry_night,fern:shipwreck] > docs/study.md
 
 One table per metric (rows: scene x painting, split into the tuning pairs and the validation pairs; columns:
-every run and both anchors, mean with the 95% interval over views), then the issue-style checks of tlvg against
+every run and both anchors, mean with the 95% interval over views), then the target checks of tlvg against
 abcgs and the anchors on every pair (paired intervals from `evaluate`'s comparisons).
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""No holes or cracks from density control (issue 14 B). The demo scene, 8 views at 80x60, 60 iterations with
+"""No holes or cracks from density control . The demo scene, 8 views at 80x60, 60 iterations with
 density control every 10 (it fills the Gaussian budget at its first step: the stylization's gradients pass
 3DGS's threshold nearly everywhere at this size), random VGG. Measured against the un-stylized scene:
 - holes: pixels with stylized alpha < 0.5 where the un-stylized alpha >= 0.5;
@@ -18,7 +18,7 @@ from tlvg_warp.stylize import run_stylize
 from tlvg_warp.stylize.config import config_from_dict
 
 W, H, VIEWS = 80, 60, 8
-HOLES_MAX = 0.01  # the issue's bound, at 1x and 2x
+HOLES_MAX = 0.01  # the bound a stylization must meet, at 1x and 2x
 CRACKS_MAX = 0.01  # ten times under what 3DGS splits leave here
 COUNT_MAX = 1.2  # Gaussians relative to the input (the default budget)
 
@@ -82,7 +82,7 @@ def _large_splat_threshold(ds, quantile: float) -> float:
 
 
 def test_fitted_scenes_large_splats_survive_stylization(demo):
-    """Issue 14's holes: a fitted scene keeps large splats (no opacity reset ever pruned them), and the
+    """The holes of deleting large splats: a fitted scene keeps large splats (no opacity reset ever pruned them), and the
     stylization's density control deleted them at its first step (size_rules 'always'; fern 126x94: 35% holes).
     Now the size rules split them (size_rules 'split', the stylize default): with a world-size limit that 30% of
     the demo's splats exceed, holes stay under the bound at 1x and 2x; with 'always' the same run loses those

@@ -4,7 +4,7 @@ convolutions on the converted HED state dict, RGB, relu1_2/relu2_2/relu3_3), cle
 with random VGG weights. Palette init, the Lab chroma term and the content term are off and the style loss
 sees RGB, so the two runs differ only in the features the style loss compares. (With the content term on, at
 this size the pretrained content MSE outweighs the style term and neither run moves the Gram distance much:
-measured 0.02 vs 0.14 of 2.49 over 40 steps, the random run ahead; see README, "The demo".)"""
+measured 0.02 vs 0.14 of 2.49 over 40 steps, the random run ahead.)"""
 import pytest
 import torch
 import torch.nn.functional as F

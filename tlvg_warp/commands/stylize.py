@@ -24,9 +24,9 @@ from . import KEEP_CHECKPOINT_HELP, check_resumable, drop_checkpoints
 
 # The no-argument demo's settings (a user's flag or --set wins). On 2 CPU cores: 160x120 views (18,733 discs),
 # the render fed to VGG at x0.5 (80x60) and the painting at the view's size times the config's stroke scale, SH DC
-# learning rate x4 so that a preview of 300 iterations moves the colours (docs/performance.md gives its time).
+# learning rate x4 so that a preview of 240 iterations moves the colours (docs/performance.md gives its time).
 # On a GPU: 640x480 views, 600 iterations.
-DEMO_CPU = {"iterations": 300, "downscale": 1.0, "density.interval": 20,
+DEMO_CPU = {"iterations": 240, "downscale": 1.0, "density.interval": 20,
             "style_height": 0, "vgg_scale": 0.5, "lr.sh_dc": 0.01}
 DEMO_GPU = {"iterations": 600, "downscale": 0.25, "density.interval": 100}
 MIN_STYLE_PX = 64  # a painting smaller than this has no brushstrokes left at VGG's relu3 (1/4 resolution)

@@ -1,4 +1,4 @@
-"""The product: flow-guided stylization of a 3DGS scene ("Thinking Like Van Gogh" on ABC-GS), issue 5.
+"""The product: flow-guided stylization of a 3DGS scene ("Thinking Like Van Gogh" on ABC-GS).
 
 ``StylizeConfig`` / ``load_config`` (config.py), ``run_stylize`` (pipeline.py: the three phases),
 ``write_outputs`` (outputs.py: the run folder). The CLI is ``python -m tlvg_warp stylize``."""

@@ -35,11 +35,11 @@ class StyleLoss:
     w_scale_reg: float = 1.0  # ||log_scales - value at stylize start||_2 (reference code)
     w_lab_start: float = 0.2  # Lab chroma statistics weight at the first stylize step (paper, linear schedule)
     w_lab_end: float = 0.05  # ... and at the last stylize step
-    w_align: float = 2.0  # flow-alignment energy weight (paper eq. 1, ours; tuned on the demo, see README)
+    w_align: float = 2.0  # flow-alignment energy weight (paper eq. 1, ours; configs/tlvg.yaml sets the tuned 8.0)
     w_aniso: float = 0.2  # anisotropy energy weight (across-stroke footprint energy + λmin/λmax, ours)
     field_mapping: str = "matched"  # the flow terms' target: matched (FAST match carries the painting's field) | canvas
-    fast_refresh: int = 4  # recompute a view's FAST projection every N of its steps, reusing it between (ours, issue
-    # 15: fern 3000 iterations 7 s faster on the H200, every metric within its interval, README; 1: every step, as the paper)
+    fast_refresh: int = 4  # recompute a view's FAST projection every N of its steps, reusing it between (ours:
+    # fern 3000 iterations 7 s faster on the GPU, every metric within its interval, docs/performance.md; 1: every step, as the paper)
     fast_cache: str = "projection"  # what fast_refresh reuses: projection (the top-k cells and the solve) | match (cells only)
 
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
@@ -69,7 +69,7 @@ class Geometry:
 def _density() -> DensityConfig:
     # in phase steps, every interval, from the first step to the phase's end; no opacity reset. The size rules
     # split, never prune: a fitted scene keeps large splats (background, flat areas; 21% of a small fern fit is
-    # over 0.1 x extent); pruning them ("always") made issue 14's holes (fern 504x378: 11%), keeping them whole
+    # over 0.1 x extent); pruning them ("always") opened holes (fern 504x378: 11%), keeping them whole
     # ("after_reset": no holes) left them too coarse to take strokes (fern: flow alignment 0.82 -> 0.53, detail
     # 0.59 -> 0.14). Children keep their parent's mean and covariance (ours: 3DGS splits cracked the demo)
     return DensityConfig(phases=["pre", "stylize"], start=0, until=0, split_mode="moments", size_rules="split",
@@ -101,7 +101,7 @@ class StylizeConfig:
     keep_colors: bool = False  # keep the scene's own colours: no palette transfer, style on luminance only
     vgg_weights: str | None = None  # torchvision vgg16 state dict path, "random", or None (env / torch hub cache)
     vgg_scale: float = 0.5  # the render is resized by this before VGG (SPEC §3: x0.5)
-    vgg_channels_last: bool = True  # on CUDA: VGG in NHWC (cuDNN's layout; float32 arithmetic, gradients within 3e-4; issue 15)
+    vgg_channels_last: bool = True  # on CUDA: VGG in NHWC (cuDNN's layout; float32 arithmetic, gradients within 3e-4)
     vgg_cuda_graphs: bool = True  # on CUDA: the loss's VGG pass (forward and backward) replays a captured CUDA graph
     keep_sh: bool = False  # keep view-dependent SH bands in stylized.ply (default: degree 0, ~3.6x smaller)
     background: list[float] | None = None  # render background RGB; None: the dataset's (white for the demo)
