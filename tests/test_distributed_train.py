@@ -198,7 +198,7 @@ def runs(tmp_path_factory):
 
 def test_stylize_two_ranks_equal_one_rank_with_two_views_per_step(runs):
     root, log, _ = runs
-    assert log.count("flow alignment") == 2  # s2 and s2r (the killed run: none), by the main rank alone
+    assert log.count("alignment to its training field") == 2  # s2 and s2r (the killed run: none), by the main rank alone
     assert log.count("note: loss.fast_refresh 4 -> 1 on 2 ranks") == 3  # s2, s2k and s2i (s2r resumes with 1)
     assert_same_run(root / "s1", root / "s2")
     m1, m2 = (json.loads((root / r / "metrics.json").read_text()) for r in ("s1", "s2"))

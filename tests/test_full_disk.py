@@ -63,7 +63,7 @@ def _fill(disk):
 
 
 def _one_line(rc, err, folder):
-    lines = err.strip().splitlines()
+    lines = [ln for ln in err.strip().splitlines() if not ln.startswith("[evaluate")]  # evaluate's progress lines
     assert rc == 2, (rc, err)
     assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
     assert "no space left on device" in lines[0] and str(folder) in lines[0], lines[0]
@@ -81,7 +81,8 @@ def test_full_disk_at_the_first_checkpoint(valid, tmp_path, capsys):
     run is left (it had no checkpoint), so the same command runs once there is space."""
     with _tmpfs(tmp_path / "disk", 2 << 20) as disk:
         out = disk / "run"
-        rc, err = _run(_argv(valid, out), capsys)
+        # FAST's reused projections (768 x 768 per view) make the first checkpoint several MB
+        rc, err = _run(_argv(valid, out, "--set", "loss.style_loss=fast"), capsys)
         _one_line(rc, err, out)
         assert "checkpoint.pt" in err
         assert not out.exists() or not any(out.rglob("*")), sorted(out.rglob("*"))
