@@ -25,6 +25,7 @@ from ..errors import InputError
 from ..fileio import write_json, write_text
 
 MAX_REPORT_VIEWS = 4  # views shown as thumbnails (evenly spaced)
+CPU_MAX_VIEWS = 12  # evaluate's default view count on a CPU (a demo run's 24 views took 38 s there, 12 take under 30)
 CAM_TOL = 1e-4  # cameras.json round trip (float32 positions): runs of the same views agree far closer
 DEFAULT_EVAL_HEIGHT = 256  # style/content size (the style loss's working height, SPEC §3)
 MIN_EVAL_HEIGHT = 64  # smaller views are enlarged to this (VGG's relu4 needs a few cells)
@@ -58,7 +59,9 @@ def add_arguments(p):
     p.add_argument("--out", default=None, help="folder for evaluation.json/.html (default: RUN for one run, "
                    "else RUN's parent/evaluation)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
-    p.add_argument("--max-views", type=int, default=0, help="evaluate only the first N cameras (0: all)")
+    p.add_argument("--max-views", type=int, default=None,
+                   help=f"evaluate only the first N cameras (0: all; default: all on a GPU, the first {CPU_MAX_VIEWS} on "
+                        "a CPU, where every view costs seconds)")
     p.add_argument("--eval-height", type=int, default=None, help="height of the style/content evaluation size "
                    f"(default: the views' height, between {MIN_EVAL_HEIGHT} and {DEFAULT_EVAL_HEIGHT})")
     p.add_argument("--cache", default=None, help=f"reference cache folder (default {default_cache()})")
@@ -428,7 +431,12 @@ def run(args) -> int:
     out = Path(args.out) if args.out else (Path(dirs[0]) if len(dirs) == 1 else Path(dirs[0]).parent / "evaluation")
     log(f"loading VGG-16 on {device}")
     net = load_vgg(pick_weights(args.vgg_weights, dirs), device=device)
-    res, runs, refs = evaluate_runs(dirs, net, device, scene=args.scene, max_views=args.max_views,
+    max_views = args.max_views
+    if max_views is None:
+        max_views = CPU_MAX_VIEWS if device.type == "cpu" else 0
+        if max_views:
+            log(f"on the CPU: the first {max_views} views of each run (--max-views 0 scores all)")
+    res, runs, refs = evaluate_runs(dirs, net, device, scene=args.scene, max_views=max_views,
                                     eval_height=args.eval_height, log=log,
                                     cache_dir=Path(args.cache) if args.cache else default_cache())
     write_json(out / "evaluation.json", res)
