@@ -135,7 +135,7 @@ def _pv(vals):
 def test_a_run_wins_only_where_it_also_beats_its_anchor():
     """Oracle: hand-made per-view values. Run a beats run b on every view; a win also needs beating the anchor
     the metric exists to beat (style: no stylization). An anchor better than every run marks the metric."""
-    from tlvg_warp.commands.evaluate import not_discriminating, winners
+    from tlvg_warp.eval.engine import not_discriminating, winners
 
     rng = np.random.default_rng(0)
     base = rng.normal(1.0, 0.1, 12)
@@ -155,7 +155,7 @@ def test_demo_runs_are_compared_with_the_scene_they_started_from(tmp_path):
     import yaml
 
     from _eval_helpers import cameras_json
-    from tlvg_warp.commands.evaluate import demo_original
+    from tlvg_warp.eval.engine import demo_original
     from tlvg_warp.commands.view import find_original
     from tlvg_warp.io.datasets import read_inria_cameras
     from tlvg_warp.io.demo import demo_dataset, demo_scene

@@ -45,7 +45,7 @@ def find_original(run: Path, cams: list):
         if cand and Path(cand).is_file():
             return load_ply(Path(cand)), str(cand)
     if cams and not src.get("data") and not src.get("scene"):
-        from .evaluate import demo_original
+        from ..eval.engine import demo_original
 
         g = demo_original(run, cams)  # at the density the run started from (its config.yaml downscale)
         if g is not None:

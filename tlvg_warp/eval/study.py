@@ -212,7 +212,7 @@ def pooled(per_lists: list) -> dict:
 def config_rows(names, per_views, times, counts, anchors: dict | None = None) -> tuple[list, dict, dict]:
     """(rows: one per config, then one per anchor with "anchor": True; winners; not-discriminating marks). A
     config wins a metric only where it also beats the anchor the metric exists to beat (evaluate's rule)."""
-    from ..commands.evaluate import not_discriminating, winners
+    from .engine import not_discriminating, winners
 
     anchors = anchors or {}
     rows = []
@@ -301,7 +301,7 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
     rank's results and writes the one table. Returns the result on the main rank, None on the others."""
     import torch
 
-    from ..commands.evaluate import evaluate_runs, report_html
+    from .engine import evaluate_runs, report_html
     from ..distributed import Dist, local_only
     from ..losses.vgg import load_vgg
 
