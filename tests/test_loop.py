@@ -24,6 +24,7 @@ from tlvg_warp import render
 from _demo_helpers import demo_stylize_inputs
 from tlvg_warp.stylize.config import config_from_dict as stylize_config
 from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, prepare
+from tlvg_warp.train.density import DensityStrategy
 from tlvg_warp.train.loop import Fit, LoopSettings, Phase, Run, View, train
 from tlvg_warp.train.reconstruct import config_from_dict as fit_config
 from tlvg_warp.train.reconstruct import fit_scene
@@ -383,3 +384,67 @@ def test_stage_timer_spreads_rare_work_over_every_step(monkeypatch):
     assert s["samples"] == 10 and s["rare_events"] == {"density": 3}
     assert s["ms_per_iteration"]["a"] == pytest.approx(1.0)
     assert s["ms_per_iteration"]["density"] == pytest.approx(0.75)
+
+
+# --- density control is a strategy the loop talks to --------------------------------------------------------------
+class PruneHalfOnce(DensityStrategy):
+    """A strategy of its own (not a fork of DensityControl): at its phase's step 2 it keeps the more opaque half
+    of the Gaussians, and it records what the loop asked of it."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls = []
+
+    def begin_phase(self, num):
+        self.calls.append(("begin", num))
+
+    def accumulating(self, s):
+        return True
+
+    def accumulate(self, out, width, height, grad_scale=1.0):
+        self.calls.append(("accumulate", int(out.radii.shape[0])))
+
+    def acts_at(self, s, n=None):
+        return s == 2
+
+    def step(self, opt, s, n=None, tag=None):
+        self.calls.append(("step", s))
+        if s != 2:
+            return None
+        o = opt.params.opacity_logits.detach()
+        keep = o >= o.median()
+        opt.rebuild(keep, None)
+        for k, t in self.tracked.items():
+            self.tracked[k] = t[keep]
+        ev = {"pruned": int((~keep).sum()), "num": opt.params.num, **(tag or {})}
+        self.events.append(ev)
+        return ev
+
+
+def test_a_new_density_strategy_is_a_class_the_loop_drives(demo):
+    from tlvg_warp.train.optim import GaussianOptimizer, GaussianParams, LearningRates
+
+    photos = [p.float() for p in demo.photos]
+    params = GaussianParams(demo.gaussians.with_sh_degree(0))
+    opt = GaussianOptimizer(params, LearningRates(), 1.0)
+    strategy = PruneHalfOnce()
+    assert isinstance(strategy, DensityStrategy)
+    n0 = params.num
+    strategy.track("anchor", torch.arange(n0, dtype=torch.float32))
+    run = Run(params, opt, strategy, [Fit("fit", 4, photos, density=True)], demo.cameras, LoopSettings(log_every=1),
+              device="cpu", background=demo.background)
+    train(run, progress=False)
+    ev = strategy.events[0]
+    assert 0 < ev["pruned"] <= n0 // 2 and run.params.num == n0 - ev["pruned"]  # the strategy's decision, applied
+    assert strategy.tracked["anchor"].shape[0] == run.params.num  # its own per-Gaussian tensors followed it
+    kinds = [c[0] for c in strategy.calls]
+    assert kinds[0] == "begin" and kinds.count("accumulate") == 4 and kinds.count("step") == 4
+    assert strategy.events and strategy.events[0]["step"] == 2 and strategy.events[0]["phase"] == "fit"
+    assert all(math.isfinite(r["loss"]) for r in run.log)
+    # the base class is the strategy that never changes the Gaussians
+    base_params = GaussianParams(demo.gaussians.with_sh_degree(0))
+    run = Run(base_params, GaussianOptimizer(base_params, LearningRates(), 1.0), DensityStrategy(),
+              [Fit("fit", 3, photos, density=True)], demo.cameras, LoopSettings(log_every=1), device="cpu",
+              background=demo.background)
+    train(run, progress=False)
+    assert run.params.num == n0

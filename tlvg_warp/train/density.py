@@ -106,7 +106,54 @@ DENSITY_RENAMED = {"densify_interval": "density.interval", "densify_grad_thresho
                                                   "max_world_size", "prune_unseen")}}
 
 
-class DensityControl:
+class DensityStrategy:
+    """What the training loop asks of density control, and nothing more (as gsplat's strategies): a new rule set
+    (MCMC relocation, a fixed budget, none) is a subclass that overrides what it needs, not a fork of the loop.
+
+    This base class is the strategy that never changes the Gaussians: it accumulates nothing and keeps the
+    caller's per-Gaussian tensors (``track``) as they are. The loop calls, per phase that runs density control:
+    ``begin_phase(n)`` at the phase's start; per step ``accumulating(s)`` and ``wants_weights(s)`` before the
+    render, ``accumulate(out, W, H, grad_scale)`` after backward, ``acts_at(s, n)`` and ``step(opt, s, n, tag)``
+    after the optimizer step; ``state_dict`` / ``load_state_dict`` for checkpoints; ``events`` for the metrics."""
+
+    budget = None  # the Gaussian budget (None: no cap)
+
+    def __init__(self):
+        self.views_per_step = 1  # set by the loop: views accumulated per step over all ranks
+        self.events: list[dict] = []  # one dict per structural change (counts, step, phase)
+        self.tracked: dict[str, torch.Tensor] = {}
+
+    def track(self, name: str, tensor: torch.Tensor) -> None:
+        self.tracked.setdefault(name, tensor)
+
+    def begin_phase(self, num: int) -> None:
+        pass
+
+    def accumulating(self, s: int) -> bool:
+        return False
+
+    def wants_weights(self, s: int) -> bool:
+        return False
+
+    def accumulate(self, out, width: int, height: int, grad_scale: float = 1.0) -> None:
+        pass
+
+    def acts_at(self, s: int, n: int | None = None) -> bool:
+        return False
+
+    def step(self, opt: GaussianOptimizer, s: int, n: int | None = None, tag: dict | None = None) -> dict | None:
+        return None
+
+    def state_dict(self, global_stats: bool = False) -> dict:
+        return {"tracked": {k: v.detach().clone() for k, v in self.tracked.items()},
+                "events": [dict(e) for e in self.events]}
+
+    def load_state_dict(self, sd: dict, from_checkpoint: bool = False) -> None:
+        self.tracked = {n: t for n, t in sd.get("tracked", {}).items()}
+        self.events = [dict(e) for e in sd.get("events", [])]
+
+
+class DensityControl(DensityStrategy):
     """Per-Gaussian accumulators (all on the device), the schedule, and the densify / prune / reset operations.
 
     extent: the scene extent (clone/split and world-size rules); window: views per no-contribution check (set
@@ -377,4 +424,4 @@ class DensityControl:
                 getattr(self, k).zero_()
 
 
-__all__ = ["DensityConfig", "DensityControl", "DENSITY_RENAMED", "SPLIT_CHILDREN", "SCREEN_SIZE_REFERENCE"]
+__all__ = ["DensityConfig", "DensityStrategy", "DensityControl", "DENSITY_RENAMED", "SPLIT_CHILDREN", "SCREEN_SIZE_REFERENCE"]
