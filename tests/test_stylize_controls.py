@@ -133,3 +133,35 @@ def test_flags_reach_the_resolved_config(tmp_path):
     cfg = yaml.safe_load((out / "config.yaml").read_text())
     assert cfg["stroke_scale"] == 3.0 and cfg["keep_colors"] is True and cfg["loss"]["strength"] == 0.5
     assert cfg["loss"]["luminance_only"] is True and math.isclose(cfg["loss"]["w_style_color"], 0.0)
+
+
+def test_keep_colors_keeps_the_renders_colours_on_a_real_run(demo):
+    """A short real stylization (random VGG: colour is what is measured, not style): with --keep-colors the renders'
+    mean Lab chroma stays at the photos'; without it, the palette transfer moves it toward the painting's.
+    Oracle: OpenCV's Lab conversion of the written renders and of the photos."""
+    import cv2
+    import numpy as np
+
+    from tlvg_warp.losses import load_vgg
+    from tlvg_warp.stylize import run_stylize
+
+    vgg = load_vgg("random")
+
+    def ab_mean(img):
+        lab = cv2.cvtColor(np.clip(np.asarray(img, np.float32), 0, 1), cv2.COLOR_RGB2Lab)
+        return lab[..., 1:].reshape(-1, 2).mean(0)
+
+    photos_ab = np.mean([ab_mean(p.numpy()) for p in demo.photos], 0)
+    painting_ab = ab_mean(demo.style.numpy())
+    shift = {}
+    for keep in (False, True):
+        cfg = _cfg(iterations=24, vgg_weights="random", keep_colors=keep, style_height=0)
+        res = run_stylize(demo, cfg, None, progress=False, quiet=True, vgg=vgg)
+        from tlvg_warp import render
+
+        with torch.no_grad():
+            ab = np.mean([ab_mean(render(res.gaussians, c, (1.0, 1.0, 1.0)).color.numpy()) for c in demo.cameras], 0)
+        shift[keep] = float(np.linalg.norm(ab - photos_ab))
+    gap = float(np.linalg.norm(painting_ab - photos_ab))
+    assert gap > 5  # the painting's palette is far from the photos' (Lab units)
+    assert shift[True] < 0.25 * shift[False] and shift[False] > 0.2 * gap, (shift, gap)
