@@ -15,6 +15,18 @@ from tlvg_warp import InputError
 MODEL_IDS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 1, "SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4, "FOV": 7}
 
 
+def run_cli(argv, capsys):
+    """(exit code, stderr) of ``python -m tlvg_warp ARGV`` run in this process (argparse's exit included)."""
+    from tlvg_warp.cli import main
+
+    capsys.readouterr()
+    try:
+        rc = main(argv)
+    except SystemExit as e:
+        rc = e.code
+    return rc, capsys.readouterr().err
+
+
 def raises_one_line(fn, *words):
     """``fn()`` raises InputError with a one-line message holding every word."""
     with pytest.raises(InputError) as e:

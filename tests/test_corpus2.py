@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from test_malformed_inputs import S, _hashes, _imwrite, valid  # noqa: F401 (the fixture of small valid inputs)
-from tlvg_warp.cli import main
+from _io_helpers import run_cli
 from tlvg_warp.fileio import TEMP_MARK
 
 REPO = Path(__file__).resolve().parents[1]
@@ -43,13 +43,6 @@ def _stylize(scene, data, out, *extra):
     return ["stylize", "--scene", str(scene), "--data", str(data), *_base(out, *extra)]
 
 
-def _run(argv, capsys):
-    capsys.readouterr()
-    try:
-        rc = main(argv)
-    except SystemExit as e:
-        rc = e.code
-    return rc, capsys.readouterr().err
 
 
 def _no_temps(*roots):
@@ -88,7 +81,7 @@ def test_paths_with_spaces_and_non_ascii_names(valid, tmp_path, capsys):
     shutil.copy(valid / "paint" / "painting.png", paint)
     before = _hashes(root)
     out = tmp_path / "résultats" / "run 1 ✓"
-    rc, err = _run(_stylize(root / S, root / "colmap_bin", out, "--style", str(paint)), capsys)
+    rc, err = run_cli(_stylize(root / S, root / "colmap_bin", out, "--style", str(paint)), capsys)
     _ran(rc, err, out)
     assert json.loads((out / "metrics.json").read_text())  # outputs readable under the odd name
     assert _hashes(root) == before
@@ -108,7 +101,7 @@ def test_read_only_out(valid, tmp_path, capsys):
         out.chmod(0o555)
     try:
         before = _hashes(valid)
-        rc, err = _run(_stylize(valid / S, valid / "colmap_bin", out / "run"), capsys)
+        rc, err = run_cli(_stylize(valid / S, valid / "colmap_bin", out / "run"), capsys)
         _refused(rc, err, out, "", None)
         assert "writable" in err or "read-only" in err.lower(), err
         assert not (out / "run").exists() and _hashes(valid) == before
@@ -123,11 +116,11 @@ def test_out_inside_data_runs_and_leaves_the_dataset_alone(case, capsys):
     data = case / "colmap_bin"
     before = _hashes(case)
     out = data / "images" / "run"  # even inside the photos' folder
-    rc, err = _run(_stylize(case / S, data, out), capsys)
+    rc, err = run_cli(_stylize(case / S, data, out), capsys)
     _ran(rc, err, out)
     after = {k: v for k, v in _hashes(case).items() if not k.startswith(str(out))}
     assert after == before  # every input file as it was, no file added beside them
-    rc, err = _run(["reconstruct", str(data), "--out", str(case / "rec"), "--iterations", "2", "--device", "cpu",
+    rc, err = run_cli(["reconstruct", str(data), "--out", str(case / "rec"), "--iterations", "2", "--device", "cpu",
                     "--quiet"], capsys)
     assert rc == 0, err  # the dataset still loads with a run folder inside it
 
@@ -137,7 +130,7 @@ def test_out_is_the_dataset_itself_is_refused(case, capsys, layout):
     """--out DATA --overwrite would delete a run's files by name, and an INRIA dataset's cameras.json is one."""
     data = case / layout
     before = _hashes(case)
-    rc, err = _run(["reconstruct", str(data), "--out", str(data), "--overwrite", "--iterations", "2", "--device",
+    rc, err = run_cli(["reconstruct", str(data), "--out", str(data), "--overwrite", "--iterations", "2", "--device",
                     "cpu", "--quiet"], capsys)
     _refused(rc, err, data, "input", None)
     assert _hashes(case) == before
@@ -151,13 +144,13 @@ def test_symlink_loops_in_the_dataset(case, capsys):
     (case / "colmap_bin" / "sparse" / "up").symlink_to(case / "colmap_bin", target_is_directory=True)
     before = _hashes_nofollow(case)
     out = case.parent / "out"
-    rc, err = _run(_stylize(case / S, case / "colmap_bin", out), capsys)
+    rc, err = run_cli(_stylize(case / S, case / "colmap_bin", out), capsys)
     _ran(rc, err, out)  # the model names view0..3; the loops are never followed
-    rc, err = _run(["reconstruct", str(case / "llff"), "--out", str(case.parent / "rec"), "--iterations", "2",
+    rc, err = run_cli(["reconstruct", str(case / "llff"), "--out", str(case.parent / "rec"), "--iterations", "2",
                     "--device", "cpu", "--quiet"], capsys)
     assert rc == 0, err
     (case / "llff" / "images" / "x.png").symlink_to(case / "llff" / "images" / "x.png")  # a link to itself
-    rc, err = _run(["reconstruct", str(case / "llff"), "--out", str(case.parent / "rec2"), "--iterations", "2",
+    rc, err = run_cli(["reconstruct", str(case / "llff"), "--out", str(case.parent / "rec2"), "--iterations", "2",
                     "--device", "cpu", "--quiet"], capsys)
     assert rc in (0, 2) and len(err.strip().splitlines()) <= 1 and "Traceback" not in err, err
     if rc == 2:
@@ -209,7 +202,7 @@ def test_painting_pixel_formats(valid, tmp_path, capsys, kind):
         got = load_style(f).numpy()
     np.testing.assert_allclose(got, want, atol=1.5 / 255)
     out = tmp_path / "out"
-    rc, err = _run(_stylize(valid / S, valid / "colmap_bin", out, "--style", str(f)), capsys)
+    rc, err = run_cli(_stylize(valid / S, valid / "colmap_bin", out, "--style", str(f)), capsys)
     _ran(rc, err, out)
     assert _file_hash(f) == before
 
@@ -233,7 +226,7 @@ def test_exif_rotated_photo_is_read_as_stored(case, capsys):
     raw = np.asarray(Image.open(view).convert("RGB"))  # PIL does not apply the tag unless asked
     before = _hashes(case)
     out = case.parent / "out"
-    rc, err = _run(_stylize(case / S, case / "colmap_jpg", out), capsys)
+    rc, err = run_cli(_stylize(case / S, case / "colmap_jpg", out), capsys)
     _ran(rc, err, out)
     copy = cv2.imread(str(out / "photos" / "view_001.png"))[..., ::-1]
     assert copy.shape == raw.shape and np.abs(copy.astype(int) - raw).mean() < 2.0
@@ -253,7 +246,7 @@ def test_exif_rotated_painting_runs(valid, tmp_path, capsys):
     assert got.shape[:2] == raw.shape[:2]  # read as stored, like every image the project reads
     before = _file_hash(f)
     out = tmp_path / "out"
-    rc, err = _run(_stylize(valid / S, valid / "colmap_bin", out, "--style", str(f)), capsys)
+    rc, err = run_cli(_stylize(valid / S, valid / "colmap_bin", out, "--style", str(f)), capsys)
     _ran(rc, err, out)
     assert _file_hash(f) == before
 
@@ -334,7 +327,7 @@ def test_ply_header_declaring_1e10_vertices_fails_fast(case, capsys, kind):
     out = case.parent / "out"
     tracemalloc.start()
     try:
-        rc, err = _run(_stylize(f, case / "colmap_bin", out), capsys)
+        rc, err = run_cli(_stylize(f, case / "colmap_bin", out), capsys)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -404,7 +397,7 @@ def test_cameras_with_nan_or_zero_focal_length(case, capsys, name):
     corrupt(case / layout)
     before = _hashes(case)
     out = case.parent / "out"
-    rc, err = _run(["reconstruct", str(case / layout), "--out", str(out), "--iterations", "2", "--device", "cpu",
+    rc, err = run_cli(["reconstruct", str(case / layout), "--out", str(out), "--iterations", "2", "--device", "cpu",
                     "--quiet"], capsys)
     _refused(rc, err, case / culprit, "", out)
     assert any(w in err.lower() for w in ("focal", "fx", "fy", "camera_angle", "nan", "intrinsic")), err

@@ -20,6 +20,7 @@ import torch
 from test_malformed_inputs import S, valid  # noqa: F401 (the fixture of small valid inputs)
 from tlvg_warp import fileio
 from tlvg_warp.cli import main
+from _io_helpers import run_cli
 from tlvg_warp.errors import WriteError
 
 ITERS = 4
@@ -69,10 +70,6 @@ def _one_line(rc, err, folder):
     assert "no space left on device" in lines[0] and str(folder) in lines[0], lines[0]
 
 
-def _run(argv, capsys):
-    capsys.readouterr()
-    rc = main(argv)
-    return rc, capsys.readouterr().err
 
 
 # --- a real small filesystem ------------------------------------------------------------------------------------
@@ -82,7 +79,7 @@ def test_full_disk_at_the_first_checkpoint(valid, tmp_path, capsys):
     with _tmpfs(tmp_path / "disk", 2 << 20) as disk:
         out = disk / "run"
         # FAST's reused projections (768 x 768 per view) make the first checkpoint several MB
-        rc, err = _run(_argv(valid, out, "--set", "loss.style_loss=fast"), capsys)
+        rc, err = run_cli(_argv(valid, out, "--set", "loss.style_loss=fast"), capsys)
         _one_line(rc, err, out)
         assert "checkpoint.pt" in err
         assert not out.exists() or not any(out.rglob("*")), sorted(out.rglob("*"))
@@ -103,7 +100,7 @@ def test_full_disk_while_writing_outputs_keeps_the_checkpoint(valid, tmp_path, c
     monkeypatch.setattr(outputs, "write_outputs", fill_then_write)
     with _tmpfs(tmp_path / "disk", 48 << 20) as disk:
         out = disk / "run"
-        rc, err = _run(_argv(valid, out), capsys)
+        rc, err = run_cli(_argv(valid, out), capsys)
         assert fillers, "the disk was never filled"
         _one_line(rc, err, out)
         assert not _temps(out) and not (out / ".lock").exists()
@@ -111,7 +108,7 @@ def test_full_disk_while_writing_outputs_keeps_the_checkpoint(valid, tmp_path, c
         assert ck["iteration"] == ITERS
         monkeypatch.setattr(outputs, "write_outputs", real)
         fillers[0].unlink()
-        rc, err = _run(["stylize", "--resume", str(out), "--quiet"], capsys)
+        rc, err = run_cli(["stylize", "--resume", str(out), "--quiet"], capsys)
         assert rc == 0, err
         assert (out / "stylized.ply").is_file() and not _temps(out)
 
@@ -123,7 +120,7 @@ def test_full_disk_while_writing_the_reference_cache(valid, tmp_path, capsys):
         cache = disk / "cache"
         cache.mkdir()
         _fill(disk)
-        rc, err = _run(["evaluate", str(run), "--cache", str(cache), "--device", "cpu", "--out",
+        rc, err = run_cli(["evaluate", str(run), "--cache", str(cache), "--device", "cpu", "--out",
                         str(tmp_path / "ev")], capsys)
         _one_line(rc, err, cache)
         assert not any(cache.iterdir())  # no partial or temporary cache entry

@@ -25,6 +25,7 @@ import torch
 
 from test_malformed_inputs import S, valid  # noqa: F401 (the fixture of small valid inputs)
 from tlvg_warp.cli import main
+from _io_helpers import run_cli
 
 ITERS = 4
 
@@ -101,13 +102,6 @@ def _craft(ck: Path, marker: Path, how: str) -> None:
             pickle.dump(real, f, protocol=4)
 
 
-def _run(argv, capsys):
-    capsys.readouterr()
-    try:
-        rc = main(argv)
-    except SystemExit as e:
-        rc = e.code
-    return rc, capsys.readouterr().err
 
 
 def _one_line_refusal(rc, err, culprit):
@@ -128,7 +122,7 @@ def test_checkpoint_of_current_code_is_plain_data(run_dir, rec_dir):
 def test_checkpoint_of_current_code_resumes(valid, run_dir, tmp_path, capsys):
     run = tmp_path / "run"
     shutil.copytree(run_dir, run)
-    rc, err = _run(["stylize", "--resume", str(run), "--iterations", str(ITERS + 2), "--quiet", *KEEP], capsys)
+    rc, err = run_cli(["stylize", "--resume", str(run), "--iterations", str(ITERS + 2), "--quiet", *KEEP], capsys)
     assert rc == 0, err
     ck = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=True)
     assert ck["iteration"] == ITERS + 2
@@ -154,7 +148,7 @@ def test_crafted_checkpoint_never_runs(valid, run_dir, rec_dir, tmp_path, capsys
             "resume": ["stylize", "--resume", str(run), "--iterations", str(ITERS + 2), "--quiet"],
             "reconstruct_resume": ["reconstruct", str(valid / "colmap_bin"), "--resume", str(run), "--iterations", "6",
                                    "--quiet"]}[command]
-    rc, err = _run(argv, capsys)
+    rc, err = run_cli(argv, capsys)
     assert not marker.exists(), "the checkpoint's code ran"
     _one_line_refusal(rc, err, run / "checkpoint.pt")
     assert "refused" in err
@@ -179,7 +173,7 @@ def test_checkpoint_with_numpy_objects_is_refused_with_the_reason(run_dir, tmp_p
     ck = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=True)
     ck["rng_state"] = np.arange(4)
     torch.save(ck, run / "checkpoint.pt")
-    rc, err = _run(["stylize", "--resume", str(run), "--iterations", str(ITERS + 2), "--quiet"], capsys)
+    rc, err = run_cli(["stylize", "--resume", str(run), "--iterations", str(ITERS + 2), "--quiet"], capsys)
     _one_line_refusal(rc, err, run / "checkpoint.pt")
     assert "numpy" in err and "refused" in err
 
@@ -191,7 +185,7 @@ def test_crafted_reference_cache_never_runs(run_dir, tmp_path, capsys):
     shutil.copytree(run_dir, run)
     cache = tmp_path / "cache"
     argv = ["evaluate", str(run), "--cache", str(cache), "--device", "cpu", "--out", str(tmp_path / "ev")]
-    rc, err = _run(argv, capsys)
+    rc, err = run_cli(argv, capsys)
     assert rc == 0, err
     entries = list(cache.glob("*.npz"))
     assert len(entries) == 1
@@ -201,7 +195,7 @@ def test_crafted_reference_cache_never_runs(run_dir, tmp_path, capsys):
     arrs["color0"] = np.array([_Command(marker)], dtype=object)
     with open(entries[0], "wb") as f:
         np.savez(f, **arrs)
-    rc, err = _run(argv, capsys)
+    rc, err = run_cli(argv, capsys)
     assert not marker.exists()
     _one_line_refusal(rc, err, entries[0])
     with np.load(entries[0], allow_pickle=True) as z:  # the control: unrestricted loading would run it
@@ -209,14 +203,14 @@ def test_crafted_reference_cache_never_runs(run_dir, tmp_path, capsys):
     assert marker.exists()
 
 
-def test_crafted_vgg_weights_never_run(valid, tmp_path, capsys):
+def test_crafted_vgg_weights_neverrun_cli(valid, tmp_path, capsys):
     marker = tmp_path / "MARKER"
     w = tmp_path / "vgg16.pth"
     torch.save({"features.0.weight": torch.zeros(64, 3, 3, 3), "x": _Command(marker)}, w)
     out = tmp_path / "out"
     argv = _stylize_argv(valid, out)
     argv[argv.index("random")] = str(w)
-    rc, err = _run(argv, capsys)
+    rc, err = run_cli(argv, capsys)
     assert not marker.exists()
     _one_line_refusal(rc, err, w)
     assert not out.exists()
@@ -310,13 +304,13 @@ def test_judge_names_a_corrupt_input_before_contacting_the_endpoint(tmp_path, ca
         argv = ["judge", "--a", str(tmp_path / "a"), "--b", str(tmp_path / "b"), "--models", "m", "--base-url", url,
                 "--style", str(tmp_path / "painting.png"), "--out", str(tmp_path / "judged"), "--quiet",
                 "--retries", "0", "--timeout", "2"]
-        rc, err = _run(argv, capsys)
+        rc, err = run_cli(argv, capsys)
         _one_line_refusal(rc, err, bad)
         with pytest.raises(BlockingIOError):
             srv.accept()  # nothing connected
         assert not (tmp_path / "judged").exists()
         bad.write_bytes(data)
-        _run(argv, capsys)  # the endpoint answers nothing useful; what matters is that it was contacted
+        run_cli(argv, capsys)  # the endpoint answers nothing useful; what matters is that it was contacted
         conn, _ = srv.accept()
         conn.close()
 
@@ -328,7 +322,7 @@ def test_judge_with_a_corrupt_render_and_an_unreachable_endpoint_names_the_rende
     with socket.socket() as s:  # a port with nothing listening
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    rc, err = _run(["judge", "--a", str(tmp_path / "a"), "--b", str(tmp_path / "b"), "--models", "m",
+    rc, err = run_cli(["judge", "--a", str(tmp_path / "a"), "--b", str(tmp_path / "b"), "--models", "m",
                     "--base-url", f"http://127.0.0.1:{port}/v1", "--style", str(tmp_path / "painting.png"),
                     "--quiet"], capsys)
     _one_line_refusal(rc, err, bad)
