@@ -105,8 +105,9 @@ def tv_loss(img: torch.Tensor) -> torch.Tensor:
 def chroma_tv_loss(img: torch.Tensor) -> torch.Tensor:
     """TV of the chroma residual ``img - Y`` (Y = 0.299R+0.587G+0.114B): strokes may vary luminance at any
     scale while colour stays in clean patches (the "muddy colour" the luminance-only style loss exists to avoid)."""
-    y = img @ img.new_tensor((0.299, 0.587, 0.114))
-    return tv_loss(img - y[..., None])
+    from ..losses import luminance
+
+    return tv_loss(img - luminance(img))
 
 
 def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
@@ -212,7 +213,7 @@ class Stylize(Phase):
         self.cfg, self.tg, self.vgg, w = cfg, tg, vgg, cfg.loss
         self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss, refresh_every=w.fast_refresh,
                                   cache=w.fast_cache)  # the painting's side computed once
-        self.color_fn = None if tg.style_feats_rgb is None or w.w_style_color == 0 else StyleLoss(
+        self.color_fn = None if tg.style_feats_rgb is None else StyleLoss(  # prepare makes them when the term is on
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         self.fields = None  # per view [H,W,3] on the device
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
