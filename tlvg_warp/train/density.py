@@ -124,6 +124,7 @@ class DensityStrategy:
         self.tracked: dict[str, torch.Tensor] = {}
 
     def track(self, name: str, tensor: torch.Tensor) -> None:
+        """Keep ``tensor`` [N, ...] aligned with the Gaussians through every structural change (unless already)."""
         self.tracked.setdefault(name, tensor)
 
     def begin_phase(self, num: int) -> None:
@@ -162,29 +163,22 @@ class DensityControl(DensityStrategy):
 
     def __init__(self, config: DensityConfig | None = None, num: int = 0, device="cpu", dtype=torch.float32, *,
                  extent: float = 1.0, window: int = 0, image_size: int = 0, seed: int | None = None, dist=None):
+        super().__init__()  # views_per_step, events, tracked (every keep / append applies to the caller's tracked
+        # tensors, e.g. the stylization's regularizer anchors, as to the parameters; a new row takes the new
+        # Gaussian's value of the parameter field of the same name, zeros when the name is not a field)
         self.config = config or DensityConfig()
         self.device, self.dtype = torch.device(device), dtype
         self.extent, self.window, self.dist = float(extent), int(window), dist
         self.start_num = num  # the count the run started with: the budget's reference
         self.screen_limit = self.config.max_screen_size * max(1.0, image_size / SCREEN_SIZE_REFERENCE)
-        self.views_per_step = 1  # views accumulated per step over all ranks (how many steps hold a window)
         self.reset_stats(num)
         self.contrib = torch.zeros(num, dtype=dtype, device=self.device)  # Σ αT since birth / last check
         self.contrib_views = torch.zeros(num, dtype=torch.int32, device=self.device)
         self.generator = None if seed is None else torch.Generator(device=self.device).manual_seed(seed)
-        self.events: list[dict] = []  # one dict per densify step (counts, step, phase)
-        # the caller's per-Gaussian tensors (e.g. the stylization's regularizer anchors): every keep / append
-        # applies to them as to the parameters, Adam's moments and the statistics; a new row takes the new
-        # Gaussian's value of the parameter field of the same name (zeros when the name is not a field)
-        self.tracked: dict[str, torch.Tensor] = {}
 
     @property
     def budget(self) -> int | None:
         return self.config.budget(self.start_num)
-
-    def track(self, name: str, tensor: torch.Tensor) -> None:
-        """Keep ``tensor`` [N, ...] aligned with the Gaussians through every densify step (unless it already is)."""
-        self.tracked.setdefault(name, tensor)
 
     # accumulators ------------------------------------------------------------------------------------
     def reset_stats(self, num: int) -> None:
