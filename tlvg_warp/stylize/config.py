@@ -45,7 +45,8 @@ class StyleLoss:
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0),
-             **{w: (">=", 0) for w in ("w_style", "w_style_color", "w_chroma_tv", "w_content", "w_depth", "w_tv", "w_opacity_reg", "w_scale_reg",
+             **{w: (">=", 0) for w in ("w_style", "w_style_color", "w_chroma_tv", "w_content", "w_depth", "w_tv",
+                                       "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}
 
     def lab_weight(self, k: float, n: int) -> float:

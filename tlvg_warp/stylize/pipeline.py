@@ -53,7 +53,8 @@ from ..types import Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_color", "content", "depth", "tv", "chroma_tv", "opacity_reg", "scale_reg", "lab", "align", "aniso")
+STYLIZE_TERMS = ("style", "style_color", "content", "depth", "tv", "chroma_tv", "opacity_reg", "scale_reg", "lab",
+                 "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
 POST_TRAINABLE = ("quats", "sh_dc", "sh_rest")  # the post-process fits colors and rotations only
