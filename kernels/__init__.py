@@ -6,22 +6,10 @@ from types import SimpleNamespace
 
 import warp as wp
 
-
-def blend_min_blocks() -> tuple[int, int]:
-    """Minimum resident 256-thread blocks per SM asked of the blending (forward, backward) kernels through
-    __launch_bounds__ (0: the compiler's choice), which caps their registers at 65536 / (256 · blocks):
-    ``TLVG_WARP_BLEND_BLOCKS=fwd,bwd`` overrides the default (for A/B runs on the GPU), as
-    ``TLVG_WARP_BLEND_SLAB=scalar`` does the shared-memory layout of the blending batches (default "vector") and
-    ``TLVG_WARP_BLEND_LOOP=for`` the forward's walk over a batch (default "while") and ``TLVG_WARP_BLEND_WARP=16x2``
-    the pixels of one warp (default "8x4")."""
-    v = os.environ.get("TLVG_WARP_BLEND_BLOCKS", "")
-    if not v:
-        return BLEND_MIN_BLOCKS
-    f, b = (int(x) for x in v.split(","))
-    return f, b
-
-
-BLEND_MIN_BLOCKS = (0, 3)  # the backward: 2% faster on the H200 (A/B on a trained splat, two runs), same registers
+# Minimum resident 256-thread blocks per SM asked of the blending (forward, backward) kernels through
+# __launch_bounds__ (0: the compiler's choice), which caps their registers at 65536 / (256 · blocks). The
+# backward's 3: 2% faster (A/B on a trained splat, two runs), same registers.
+BLEND_MIN_BLOCKS = (0, 3)
 
 
 @functools.lru_cache(maxsize=None)
@@ -41,10 +29,7 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
     project, ewa_cov2d = make_projection(scalar)
     sh_color, sh_backward, sh_coeff_grad = make_sh(scalar, module_name(scalar))
     flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d)
-    forward, backward = make_blend(scalar, module_name(scalar), blend_min_blocks(),
-                                   os.environ.get("TLVG_WARP_BLEND_SLAB", "vector"),
-                                   os.environ.get("TLVG_WARP_BLEND_LOOP", "while"),
-                                   os.environ.get("TLVG_WARP_BLEND_WARP", "8x4"))
+    forward, backward = make_blend(scalar, module_name(scalar), BLEND_MIN_BLOCKS)
     return SimpleNamespace(
         scalar=scalar,
         vec2=wp.types.vector(2, scalar),

@@ -12,6 +12,8 @@ from .binning import TILE, warp_lane, warp_lanes
 ALPHA_MAX = 0.99  # α clamp: a single splat never makes a pixel fully opaque (keeps 1/(1-α) bounded)
 ALPHA_MIN = 1.0 / 255.0  # contributions below one 8-bit level are skipped
 T_MIN = 1e-4  # stop before a Gaussian that would drop transmittance below this
+WARP_COLS = 8  # a 32-lane warp covers an 8x4 patch of its 16x16 tile (a small splat meets fewer warps than
+# gsplat's 16x2 rows, so the backward does fewer per-warp sums)
 
 
 # Warp-level primitives as native snippets; on the CPU (one lane per block) they reduce to the identity.
@@ -204,22 +206,16 @@ def warp_max(x: int) -> int: ...
 
 
 
-def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vector", loop_kind: str = "while",
-               warp_shape: str = "8x4"):
+def make_blend(scalar, module: str, min_blocks=(0, 0)):
     """(forward, backward) kernels for ``scalar``; ``min_blocks``: CUDA __launch_bounds__ minimum resident blocks
-    per SM of each (0: none), which caps their registers (65536 / (256 · blocks) per thread); ``slab_layout``:
-    how a batch is staged in shared memory ("vector" or "scalar", see below); ``loop_kind``: the forward's walk over
-    a batch, "while" (a saturated pixel leaves it, fewer registers) or "for" (the compiler unrolls it);
-    ``warp_shape``: the pixels of one 32-lane warp within the 16x16 tile, "8x4" (a squarer patch: a small splat
-    meets fewer warps, so the backward does fewer per-warp sums) or "16x2" (two rows, gsplat's layout)."""
+    per SM of each (0: none), which caps their registers (65536 / (256 · blocks) per thread)."""
     vec2 = wp.types.vector(2, scalar)
     vec3 = wp.types.vector(3, scalar)
     vec4 = wp.types.vector(4, scalar)
     vec16 = wp.types.vector(16, scalar)
     ctype = "double" if scalar == wp.float64 else "float"
     bounds = [{"launch_bounds": (TILE * TILE, b)} if b else {} for b in min_blocks]
-    use_while = int(loop_kind == "while")  # compile-time constants of the kernels
-    warp_w = {"16x2": 16, "8x4": 8}[warp_shape]  # pixels per warp row
+    warp_w = WARP_COLS  # a compile-time constant of the kernels
 
     @wp.func
     def pixel_of(tid: int, tiles_x: int) -> wp.vec3i:
@@ -228,7 +224,7 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
         # local = warp * 32 + lane; the tile is a (16 / warp_w) x (32 * warp_w / 256) grid of warp_w x (32 / warp_w)
-        # patches (16x2: plain row-major)
+        # patches
         w = local // 32
         lane = local - w * 32
         wx = w % (TILE // warp_w)
@@ -246,62 +242,30 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
         return scalar(-0.5) * (a[2] * dx * dx + qc * dy * dy) - a[3] * dx * dy
 
     # the staged batch: per Gaussian (mean, conic a, b), (conic c, opacity), (color, depth) and its id, as
-    # vectors (one 128/64/128-bit shared load each; "vector", the default) or one scalar slot per value ("scalar")
-    if slab_layout == "vector":
-        @wp.func_native(slab_vec_source(4, ctype, 2))
-        def slab4(slot: int, lane: int, x: vec4, write: int) -> vec4: ...
+    # vectors (one 128/64/128-bit shared load each)
+    @wp.func_native(slab_vec_source(4, ctype, 2))
+    def slab4(slot: int, lane: int, x: vec4, write: int) -> vec4: ...
 
-        @wp.func_native(slab_vec_source(2, ctype, 1))
-        def slab2(slot: int, lane: int, x: vec2, write: int) -> vec2: ...
+    @wp.func_native(slab_vec_source(2, ctype, 1))
+    def slab2(slot: int, lane: int, x: vec2, write: int) -> vec2: ...
 
-        @wp.func
-        def stage_values(lane: int, a: vec4, b: vec2, c: vec4):
-            slab4(0, lane, a, 1)
-            slab2(0, lane, b, 1)
-            slab4(1, lane, c, 1)
+    @wp.func
+    def stage_values(lane: int, a: vec4, b: vec2, c: vec4):
+        slab4(0, lane, a, 1)
+        slab2(0, lane, b, 1)
+        slab4(1, lane, c, 1)
 
-        @wp.func
-        def staged_geometry(j: int) -> vec4:
-            return slab4(0, j, vec4(), 0)
+    @wp.func
+    def staged_geometry(j: int) -> vec4:
+        return slab4(0, j, vec4(), 0)
 
-        @wp.func
-        def staged_conic_c_opacity(j: int) -> vec2:
-            return slab2(0, j, vec2(), 0)
+    @wp.func
+    def staged_conic_c_opacity(j: int) -> vec2:
+        return slab2(0, j, vec2(), 0)
 
-        @wp.func
-        def staged_color_depth(j: int) -> vec4:
-            return slab4(1, j, vec4(), 0)
-    else:
-        @wp.func_native(SLAB.format(ctype="wp::float64" if scalar == wp.float64 else "wp::float32", slots=10))
-        def slab(slot: int, lane: int, x: scalar, write: int) -> scalar: ...
-
-        @wp.func
-        def stage_values(lane: int, a: vec4, b: vec2, c: vec4):
-            slab(0, lane, a[0], 1)
-            slab(1, lane, a[1], 1)
-            slab(2, lane, a[2], 1)
-            slab(3, lane, a[3], 1)
-            slab(4, lane, b[0], 1)
-            slab(5, lane, b[1], 1)
-            slab(6, lane, c[0], 1)
-            slab(7, lane, c[1], 1)
-            slab(8, lane, c[2], 1)
-            slab(9, lane, c[3], 1)
-
-        @wp.func
-        def staged_geometry(j: int) -> vec4:
-            z = scalar(0.0)
-            return vec4(slab(0, j, z, 0), slab(1, j, z, 0), slab(2, j, z, 0), slab(3, j, z, 0))
-
-        @wp.func
-        def staged_conic_c_opacity(j: int) -> vec2:
-            z = scalar(0.0)
-            return vec2(slab(4, j, z, 0), slab(5, j, z, 0))
-
-        @wp.func
-        def staged_color_depth(j: int) -> vec4:
-            z = scalar(0.0)
-            return vec4(slab(6, j, z, 0), slab(7, j, z, 0), slab(8, j, z, 0), slab(9, j, z, 0))
+    @wp.func
+    def staged_color_depth(j: int) -> vec4:
+        return slab4(1, j, vec4(), 0)
 
     @wp.func
     def stage_gaussian(k: int, lane: int, ids: wp.array(dtype=wp.int32), means2d: wp.array(dtype=vec2),
@@ -390,16 +354,10 @@ def make_blend(scalar, module: str, min_blocks=(0, 0), slab_layout: str = "vecto
             # break skips (a `done = 1; break` was lost, and every block walked its whole list); the loop's own
             # condition lets a saturated pixel leave the batch (a warp leaves once all its lanes have)
             nb = wp.min(B, end - base)
-            if use_while != 0:
-                j = int(0)
-                while j < nb and done == 0:
-                    T, C, S, last, done = blend_step(j, base, px, py, want_depth, want_weights, weights, T, C, S, last, done)
-                    j += 1
-            else:
-                for j in range(nb):
-                    if done == 0:
-                        T, C, S, last, done = blend_step(j, base, px, py, want_depth, want_weights, weights, T, C, S,
-                                                         last, done)
+            j = int(0)
+            while j < nb and done == 0:
+                T, C, S, last, done = blend_step(j, base, px, py, want_depth, want_weights, weights, T, C, S, last, done)
+                j += 1
             sync_block(0)  # the next batch overwrites the slab
         if inside:
             A = scalar(1.0) - T

@@ -179,7 +179,7 @@ def test_identical_images_give_ssim_one_and_zero_gradient():
 
 def test_fused_path_is_taken_and_torch_for_the_rest(monkeypatch):
     """float32/float64 pairs never reach the twin (else every comparison above would be the twin against itself);
-    another dtype, a reference that requires grad, shapes that differ and TLVG_WARP_FUSED_SSIM=0 go to the twin.
+    another dtype, a reference that requires grad, shapes that differ and fused=False go to the twin.
     The gradient accumulates into img.grad (Warp writes a buffer of its own), and no_grad works."""
     calls = []
     monkeypatch.setattr(SSIM_MOD, "ssim_torch", lambda *a: calls.append("ssim") or ssim_torch(*a))
@@ -207,9 +207,19 @@ def test_fused_path_is_taken_and_torch_for_the_rest(monkeypatch):
         ssim(x, y[:5])
     assert calls == ["ssim"]
     calls.clear()
-    monkeypatch.setenv("TLVG_WARP_FUSED_SSIM", "0")
+    a = x.clone().requires_grad_(True)
+    got = fit_loss(a, y, 0.3, fused=False)
+    assert calls[0] == "fit" and torch.equal(got, fit_loss_torch(x, y, 0.3))  # (the twin calls ssim_torch)
+    got.backward()
+    assert a.grad is not None
+    calls.clear()
+    got = ssim(x, y, fused=False)
+    assert calls == ["ssim"] and torch.equal(got, ssim_torch(x, y))
+    monkeypatch.setenv("TLVG_WARP_FUSED_SSIM", "0")  # the environment no longer picks the path
+    calls.clear()
     fit_loss(x, y)
-    assert calls[0] == "fit"
+    ssim(x, y)
+    assert calls == []
 
 
 def test_loop_photometric_loss_is_the_fit_loss():

@@ -8,12 +8,11 @@ differentiable with respect to the image; the reference is a constant.
 kernels; through torch they took ~30 launches forward and more backward) for float32 and float64
 images on the CPU and CUDA. ``ssim_torch`` / ``fit_loss_torch`` are their pure-torch twins: the tests' oracle,
 and the fallback for anything else (other dtypes or devices, a reference that requires grad, an empty image,
-shapes that differ). ``TLVG_WARP_FUSED_SSIM=0`` forces the twins (for A/B runs).
+shapes that differ). ``fused=False`` forces the twins (for A/B runs).
 """
 from __future__ import annotations  # (no kernels in this file)
 
 import math
-import os
 
 import torch
 import torch.nn.functional as F
@@ -70,11 +69,10 @@ def fit_loss_torch(img: torch.Tensor, ref: torch.Tensor, lam: float = 0.2) -> to
 
 
 def _fused(img: torch.Tensor, ref: torch.Tensor) -> bool:
-    """Whether the Warp kernels take this pair (else the torch twin does)."""
+    """Whether the Warp kernels can take this pair (else the torch twin does)."""
     return (img.dtype in (torch.float32, torch.float64) and img.device.type in ("cpu", "cuda")
             and img.dim() in (3, 4) and tuple(ref.shape) == tuple(img.shape) and ref.device == img.device
-            and img.numel() > 0 and not (ref.requires_grad and torch.is_grad_enabled())
-            and os.environ.get("TLVG_WARP_FUSED_SSIM", "1") != "0")
+            and img.numel() > 0 and not (ref.requires_grad and torch.is_grad_enabled()))
 
 
 def _warp_kernels(dtype: torch.dtype):
@@ -136,16 +134,19 @@ def _photometric(img: torch.Tensor, ref: torch.Tensor, a: float, b: float, c: fl
     return FusedPhotometricFn.apply(img, ref, a, b, c, bool(img.requires_grad and torch.is_grad_enabled()))
 
 
-def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM over pixels, channels and batch (a 0-dim tensor)."""
-    return _photometric(img, ref, 0.0, 1.0, 0.0) if _fused(img, ref) else ssim_torch(img, ref)
+def ssim(img: torch.Tensor, ref: torch.Tensor, *, fused: bool = True) -> torch.Tensor:
+    """Mean SSIM over pixels, channels and batch (a 0-dim tensor); ``fused=False``: the torch twin."""
+    return _photometric(img, ref, 0.0, 1.0, 0.0) if fused and _fused(img, ref) else ssim_torch(img, ref)
 
 
-def fit_loss(img: torch.Tensor, ref: torch.Tensor, lam: float = 0.2) -> torch.Tensor:
+def fit_loss(img: torch.Tensor, ref: torch.Tensor, lam: float = 0.2, *, fused: bool = True) -> torch.Tensor:
     """(1 − λ)·L1 + λ·(1 − SSIM); λ = 0.2: 0.8 * L1 + 0.2 * (1 - SSIM), the pre- and post-process photometric
-    loss (SPEC §3) and 3DGS's. One fused op (the L1 is computed in the SSIM kernels)."""
+    loss (SPEC §3) and 3DGS's. One fused op (the L1 is computed in the SSIM kernels); ``fused=False``: the torch
+    twin."""
     lam = float(lam)
-    return _photometric(img, ref, 1.0 - lam, -lam, lam) if _fused(img, ref) else fit_loss_torch(img, ref, lam)
+    if fused and _fused(img, ref):
+        return _photometric(img, ref, 1.0 - lam, -lam, lam)
+    return fit_loss_torch(img, ref, lam)
 
 
 def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
