@@ -43,3 +43,31 @@ def test_without_lines_drops_only_the_named_line(capfd):
     assert without_lines(noisy, "Could not find or load the NVIDIA CUDA driver") == 7
     err = capfd.readouterr().err
     assert "some other problem" in err and "NVIDIA CUDA driver" not in err
+
+
+def test_importing_every_module_leaves_warp_uninitialized():
+    """Kernels are built by cached factories on first use, so importing any module of the package (kernels/
+    included) neither initializes Warp nor builds a kernel."""
+    code = ("import importlib, sys\n"
+            f"names = {_module_names()!r}\n"
+            "for n in names:\n"
+            "    importlib.import_module(n)\n"
+            "import warp._src.context as c\n"
+            "assert c.runtime is None, 'Warp was initialized'\n"
+            "print(len(names))\n")
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300, cwd=REPO)
+    assert p.returncode == 0, p.stderr
+    assert int(p.stdout.split()[-1]) > 60
+
+
+def _module_names() -> list[str]:
+    names = []
+    for p in sorted((REPO / "tlvg_warp").rglob("*.py")):
+        parts = p.relative_to(REPO).with_suffix("").parts
+        if "__pycache__" in parts or parts[-1] == "__main__":  # (__main__ runs the command line)
+            continue
+        names.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    names += ["tlvg_warp.kernels" + ("" if p.stem == "__init__" else "." + p.stem)
+              for p in sorted((REPO / "kernels").glob("*.py"))]
+    return names

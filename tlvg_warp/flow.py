@@ -1,19 +1,16 @@
 """Flow guidance on the Gaussians (SPEC §3): the alignment energy of paper eq. 1 and the anisotropy energy,
 weighted by target coherence × each Gaussian's blend weight in the view, normalized.
 
-``flow_terms`` runs two Warp kernels inside one torch autograd Function: the targets (this file: projected center,
-bilinear field sample with border padding, coherence, weight, and their sum; no gradient) and the energies
-(kernels/flow.py, on a Warp tape), then one matrix-vector product for the weighted means: about ten kernel
-launches per call where the torch-side targets and weighting took ~60 (the stylize loop is
-bound by kernel launches). ``flow_targets`` and ``flow_terms_reference`` are the pure-torch twins (same signatures) the
-tests compare with.
-(No ``from __future__ import annotations`` here: Warp reads the kernel's annotations as objects.)"""
-import functools
-
+``flow_terms`` runs two Warp kernels (kernels/flow.py) inside one torch autograd Function: the targets (projected
+center, bilinear field sample with border padding, coherence, weight; no gradient) and the energies, then one
+matrix-vector product for the weighted means: about ten kernel launches per call where the torch-side targets and
+weighting took ~60 (the stylize loop is bound by kernel launches). ``flow_targets`` and ``flow_terms_reference`` are
+the pure-torch twins (same signatures) the tests compare with."""
 import torch
 import torch.nn.functional as F
 import warp as wp
 
+from .kernels.flow import flow_targets_kernel
 from .ops import camera_args, ct, fast_launch, input_ct, kernels_for, no_grad_args, to_warp, warp_on
 from .types import Camera, Gaussians
 
@@ -84,77 +81,6 @@ def _combine(align_i, aniso_i, coh, weights, active):
     return (w * align_i).sum(), (w * aniso_i).sum()
 
 
-@functools.lru_cache(maxsize=None)
-def _targets_kernel(scalar_name: str):
-    """The no-gradient half of ``flow_targets`` + ``_combine``'s weights as one Warp kernel (own module)."""
-    scalar = {"float32": wp.float32, "float64": wp.float64}[scalar_name]
-    vec2 = wp.types.vector(2, scalar)
-    vec3 = wp.types.vector(3, scalar)
-    mat33 = wp.types.matrix((3, 3), scalar)
-
-    @wp.kernel(module=f"tlvg_flow_targets_{scalar_name}")
-    def flow_targets_kernel(
-        means: wp.array(dtype=vec3),  # [N]
-        log_scales: wp.array(dtype=vec3),  # [N]
-        weights: wp.array(dtype=scalar),  # [N] Σ αT in this view
-        field: wp.array3d(dtype=scalar),  # [Hf, Wf, >=2] doubled-angle field c·(cos 2θ, sin 2θ)
-        R: mat33,
-        t: vec3,
-        fx: scalar,
-        fy: scalar,
-        cx: scalar,
-        cy: scalar,
-        width: int,
-        height: int,
-        near: scalar,
-        coh_min: scalar,
-        target: wp.array(dtype=vec2),  # [N] out: (cos 2θ, sin 2θ) at the projected center (0 where inactive)
-        active: wp.array(dtype=wp.int32),  # [N] out
-        w: wp.array(dtype=scalar),  # [N] out: coherence x weight, 0 where inactive
-    ):
-        i = wp.tid()
-        target[i] = vec2(scalar(0.0), scalar(0.0))
-        active[i] = 0
-        w[i] = scalar(0.0)
-        mu = means[i]
-        if not (wp.isfinite(mu) and wp.isfinite(log_scales[i])):
-            return
-        p = R * mu + t
-        z = p[2]
-        if not (z > near):
-            return
-        u = fx * p[0] / z + cx
-        v = fy * p[1] / z + cy
-        if not (u >= scalar(0.0) and u < scalar(width) and v >= scalar(0.0) and v < scalar(height)):
-            return
-        # grid_sample(bilinear, align_corners=False, padding border) of the field at pixel (u, v) of the view
-        hf = field.shape[0]
-        wf = field.shape[1]
-        ix = wp.clamp(u * scalar(wf) / scalar(width) - scalar(0.5), scalar(0.0), scalar(wf - 1))
-        iy = wp.clamp(v * scalar(hf) / scalar(height) - scalar(0.5), scalar(0.0), scalar(hf - 1))
-        x0 = int(wp.floor(ix))
-        y0 = int(wp.floor(iy))
-        ax = ix - scalar(x0)
-        ay = iy - scalar(y0)
-        x1 = wp.min(x0 + 1, wf - 1)  # its weight is 0 when x0 is the last column
-        y1 = wp.min(y0 + 1, hf - 1)
-        w00 = (scalar(1.0) - ax) * (scalar(1.0) - ay)
-        w01 = ax * (scalar(1.0) - ay)
-        w10 = (scalar(1.0) - ax) * ay
-        w11 = ax * ay
-        vx = w00 * field[y0, x0, 0] + w01 * field[y0, x1, 0] + w10 * field[y1, x0, 0] + w11 * field[y1, x1, 0]
-        vy = w00 * field[y0, x0, 1] + w01 * field[y0, x1, 1] + w10 * field[y1, x0, 1] + w11 * field[y1, x1, 1]
-        coh = wp.sqrt(vx * vx + vy * vy)
-        if not (coh > coh_min):
-            return
-        target[i] = vec2(vx / coh, vy / coh)
-        active[i] = 1
-        w[i] = wp.max(coh * weights[i], scalar(0.0))  # Σ w is torch's sum: one address for every thread's
-        # atomic add made this kernel 0.56 ms of a fern stylize step on the H200
-
-    return flow_targets_kernel
-
-
 class FlowEnergiesFn(torch.autograd.Function):
     """(means, quats, log_scales) -> (alignment, anisotropy) energies [2] of one view: Σ w_i e_i / Σ w_i with the
     targets and weights w_i = coherence x blend weight from the targets kernel (no gradient), e_i from the
@@ -165,7 +91,7 @@ class FlowEnergiesFn(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, log_scales, weights, field, cam):
         K = kernels_for(means.dtype)
-        T = _targets_kernel({torch.float32: "float32", torch.float64: "float64"}[means.dtype])
+        T = flow_targets_kernel({torch.float32: "float32", torch.float64: "float64"}[means.dtype])
         n, dt, dev = means.shape[0], means.dtype, means.device
         e = torch.zeros(4, n, dtype=dt, device=dev)  # align, aniso (written where active), and their gradients
         target = torch.empty(n, 2, dtype=dt, device=dev)

@@ -109,9 +109,9 @@ def lab_chroma_loss(render: torch.Tensor, target: torch.Tensor | None = None, *,
     Inputs [H,W,3] (or any [...,3]) sRGB in [0,1], float32 or float64. ``target_stats``: :func:`lab_chroma_stats`
     of the target, computed once per view, instead of ``target``.
 
-    Two Warp kernels (losses/lab_warp.py: per-pixel Lab (a, b) with its Jacobian, and the backward through the
-    statistics) and five small torch reductions: ~8 kernel launches per step where autograd through
-    :func:`rgb_to_lab` took ~50 (the formulas are the same; tests/test_losses_color.py compares them)."""
+    Two Warp kernels (kernels/lab.py, launched by losses/lab_warp.py: per-pixel Lab (a, b) with its Jacobian, and
+    the backward through the statistics) and five small torch reductions: ~8 kernel launches per step where
+    autograd through :func:`rgb_to_lab` took ~50 (the formulas are the same; tests/test_losses_color.py compares them)."""
     from .lab_warp import LabChromaLossFn
 
     if target_stats is None:
