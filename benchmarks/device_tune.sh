@@ -51,6 +51,15 @@ case "${1:-tune}" in
       --styles "${STYLES:-$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg}" --out "$R/tune" "${V[@]}" "$@" 2>&1 \
       | grep -v "^Module\|^Warp" | tail -n 80
     ;;
+  tune4)  # round 4, the stroke-size refinement: TUNE_SCENE=name:dataset:downscale x (starry_night, shipwreck)
+    shift
+    IFS=: read -r s d ds <<< "${TUNE_SCENE:-beer:beer_colmap:2}"
+    V=(--variant "tlvg:" --variant "ref8:refine_radius=8" --variant "ref4:refine_radius=4"
+       --variant "ref8_c3:refine_radius=8;loss.w_content=0.003" --variant "ref8_nopre:refine_radius=8;density.phases=[stylize]")
+    timeout "${TUNE_LIMIT:-540}" python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
+      --styles "$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg" --out "$R/tune4_$s" "${V[@]}" \
+      --montage "$OUT/tune4_$s.jpg" --view "${VIEW:-0}" "$@" 2>&1 | grep -v "^Module\|^Warp\|^open \|^orbit\|^\[evaluate" | tail -n 60
+    ;;
   study)  # the study: fern, beer, lego x the four paintings; abcgs and tlvg everywhere, the ablations on the
           # tuning pairs (fern x starry_night, shipwreck). STUDY_PART: abcgs | tlvg | eval
     P="$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg,$D/styles/starry_night_over_the_rhone.png,$D/styles/monet_san_giorgio.jpg"

@@ -99,6 +99,9 @@ class StylizeConfig:
     # which VGG sees a view (view height x vgg_scale), i.e. the painting spans the view and its strokes keep their
     # size relative to the picture
     stroke_scale: float = 1.0  # the painting's working size x this: 2 = strokes twice as large in the views
+    refine_radius: float = 0.0  # before the pre-process, split splats wider on screen than this x stroke_scale
+    # pixels (their mean 3-sigma radius over the views) into stroke-sized children, within the Gaussian budget;
+    # 0: off. A flat region held by a few huge splats cannot take a brushstroke (train/refine.py)
     keep_colors: bool = False  # keep the scene's own colours: no palette transfer, style on luminance only
     vgg_weights: str | None = None  # torchvision vgg16 state dict path, "random", or None (env / torch hub cache)
     vgg_scale: float = 0.5  # the render is resized by this before VGG (SPEC §3: x0.5)
@@ -120,7 +123,7 @@ class StylizeConfig:
     density: DensityConfig = field(default_factory=_density)  # adaptive density control, per phase step
 
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
-             "stroke_scale": (">", 0),
+             "stroke_scale": (">", 0), "refine_radius": (">=", 0),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
              "orbit_frames": (">=", 0), "orbit_fps": (">=", 1), "comparison_views": (">=", 0)}

@@ -57,6 +57,7 @@ STYLIZE_TERMS = ("style", "style_color", "content", "depth", "tv", "chroma_tv", 
                  "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
+REFINE_UNCAPPED = 2.0  # the refinement's Gaussian count limit (x the input) when density control has no budget
 POST_TRAINABLE = ("quats", "sh_dc", "sh_rest")  # the post-process fits colors and rotations only
 RUN_FILES = ("checkpoint.pt", "stylized.ply", "metrics.json", "log.jsonl", "config.yaml", "sources.json")
 
@@ -353,13 +354,16 @@ def load_checkpoint(path) -> dict:
     return ck
 
 
-def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, dist, out) -> Run:
-    """Parameters, one Adam, density control and the three phases."""
+def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, dist, out, *,
+              fresh: bool = True) -> Run:
+    """Parameters, one Adam, density control and the three phases. ``fresh``: a new run (not a resume, whose
+    checkpoint brings its own Gaussians): the scene's coarse splats are refined to the stroke size first."""
     from ..losses import color_transfer, recolor_sh
     from ..renderer import render
     from ..train.density import DensityControl
     from ..train.init import scene_extent
     from ..train.optim import GaussianOptimizer, GaussianParams, tangential_hook
+    from ..train.refine import refine_to_radius
 
     cams = list(inp.cameras)
     bg = tuple(float(v) for v in cfg.background)
@@ -369,6 +373,11 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
     if cfg.palette_init and not cfg.keep_colors:  # the same colour map the pre-process targets went through, applied in closed form
         g_work = dataclasses.replace(g_work, sh=recolor_sh(g_work.sh, *tg.palette))
     extent = scene_extent(cams)
+    budget = cfg.density.budget(g_in.num) if cfg.density.use_budget else None
+    refined = {}
+    if fresh and cfg.refine_radius > 0:  # before the pre-process, which fits the children to the recoloured photos
+        g_work, refined = refine_to_radius(g_work, cams, cfg.refine_radius * cfg.stroke_scale,
+                                           budget or int(REFINE_UNCAPPED * g_in.num), background=bg, seed=cfg.seed)
     params = GaussianParams(g_work, g_work.sh_degree)
     opt = GaussianOptimizer(params, cfg.lr, extent, cfg.lr.means_steps or cfg.iterations)
     longest = max(max(c.width, c.height) for c in cams)
@@ -391,9 +400,11 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
                       trainable=[f for f in FIELDS if not (cfg.geometry.lock_xyz and f == "means")]),
               Fit("post", n_post, make_targets=post_targets, trainable=POST_TRAINABLE, density="post" in dens)]
     settings = LoopSettings(cfg.log_every, cfg.checkpoint_every, cfg.checkpoint_seconds, cfg.views_per_step)
-    return Run(params, opt, density, phases, cams, settings, device=device, seed=cfg.seed, background=bg, dist=dist,
-               out=out, fmt=CHECKPOINT_FORMAT, extra=lambda: {"config": dataclasses.asdict(cfg),
-                                                             "names": list(inp.names), "sources": inp.sources})
+    run = Run(params, opt, density, phases, cams, settings, device=device, seed=cfg.seed, background=bg, dist=dist,
+              out=out, fmt=CHECKPOINT_FORMAT, extra=lambda: {"config": dataclasses.asdict(cfg),
+                                                            "names": list(inp.names), "sources": inp.sources})
+    run.refined = refined  # what the stroke-size refinement did (metrics.json)
+    return run
 
 
 def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=None, overwrite=False,
@@ -440,7 +451,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     split["vgg"], t = time.perf_counter() - t, time.perf_counter()
     tg = prepare(inp, cfg, vgg, device, tuple(cfg.background))
     split["targets"], t = time.perf_counter() - t, time.perf_counter()
-    run = build_run(inp, cfg, tg, vgg, device, dist, out)
+    run = build_run(inp, cfg, tg, vgg, device, dist, out, fresh=ck is None)
     split["build"] = time.perf_counter() - t
     if ck is not None:
         run.load_state_dict(ck)
@@ -463,7 +474,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         "device": str(device), "gaussians_input": n_in, "gaussians_before_stylize": before,
         "gaussians_after_stylize": counts.get("after_stylize", before), "gaussians_final": final.num,
         "gaussian_budget": run.density.budget, "extent": run.opt.extent, "flow_terms": "warp kernel",
-        "vgg_random": bool(vgg.is_random), "vgg_source": vgg.source,
+        "vgg_random": bool(vgg.is_random), "vgg_source": vgg.source, "refine": run.refined or None,
     }
     metrics["setup_time_s"] = round(time.perf_counter() - t_start - metrics["train_time_s"], 3)
     metrics["setup_split_s"] = {k: round(v, 3) for k, v in split.items()}
