@@ -14,7 +14,8 @@ import torch
 
 from tlvg_warp.errors import InputError
 from tlvg_warp.io import load_ply
-from tlvg_warp.io.splat_formats import load_compressed_ply, load_spz, save_compressed_ply, save_scene, save_spz
+from tlvg_warp.io.ply import save_scene, scene_kind
+from tlvg_warp.io.splat_formats import load_compressed_ply, load_spz, save_compressed_ply, save_spz
 from tlvg_warp.types import SH_C0, Gaussians
 
 SPLATS = Path(__file__).resolve().parents[2] / "shared" / "data" / "splats"
@@ -141,10 +142,16 @@ def test_spz_round_trip_within_quantization(tmp_path, version, degree):
 
 
 def test_save_scene_picks_the_format_by_name(tmp_path):
+    """save_scene writes by name; scene_kind reads the kind back from the content (the name only for .splat)."""
     g = random_gaussians(40, 0)
-    for name, head in (("a.compressed.ply", b"ply\n"), ("a.spz", b"\x1f\x8b"), ("a.ply", b"ply\n")):
+    for name, head, kind in (("a.compressed.ply", b"ply\n", "compressed_ply"), ("a.spz", b"\x1f\x8b", "spz"),
+                             ("a.ply", b"ply\n", "ply"), ("a.splat", None, "splat")):
         save_scene(g, tmp_path / name)
-        assert (tmp_path / name).read_bytes().startswith(head)
+        assert head is None or (tmp_path / name).read_bytes().startswith(head)
+        assert scene_kind(tmp_path / name) == kind, name
+    assert (tmp_path / "a.splat").stat().st_size == 32 * g.num
+    (tmp_path / "b.spz").write_bytes((tmp_path / "a.ply").read_bytes())  # the content decides, not the name
+    assert scene_kind(tmp_path / "b.spz") == "ply"
     assert "packed_position" in (tmp_path / "a.compressed.ply").read_bytes()[:2000].decode("ascii", "replace")
     assert "packed_position" not in (tmp_path / "a.ply").read_bytes()[:2000].decode("ascii", "replace")
 

@@ -1,4 +1,6 @@
-"""Gaussian scenes on disk: the INRIA 3DGS PLY (SPEC §1) and antimatter15's 32-byte ``.splat``.
+"""Gaussian scenes on disk: the INRIA 3DGS PLY (SPEC §1) and antimatter15's 32-byte ``.splat``, and the entry
+points for every scene format: ``load_ply`` (by the file's header; the compressed formats are io/splat_formats.py's)
+and ``save_scene`` (by the file's name).
 
 Everything is whole-array numpy: the binary body is read with one ``np.fromfile`` and written with one
 ``tofile``, so a 3M-Gaussian scene takes seconds, not minutes."""
@@ -13,51 +15,12 @@ import torch
 from ..errors import InputError
 from ..fileio import atomic_path
 from ..types import SH_C0, Gaussians, sh_degree_of
+from .scene_file import numpy_params, read_header, require_file
+from .splat_formats import (is_compressed_ply_header, is_spz_bytes, load_compressed_ply, load_spz,
+                            save_compressed_ply, save_spz)
 
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
-_FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
-_MAX_HEADER = 1 << 20  # a real header is a few KB; anything longer is not a PLY header
 _REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
              "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
-
-
-def _require_file(path: Path) -> None:
-    if not path.exists():
-        raise InputError("file does not exist", path)
-    if not path.is_file():
-        raise InputError("is not a file", path)
-
-
-def _read_header(f, path):
-    """Parse the header; returns (byte-order char or None for ascii, [(element, count, [(prop, dtype)])])."""
-    if f.read(4) != b"ply\n":
-        raise InputError("not a PLY file (it does not start with 'ply')", path)
-    order, elements, size = "?", [], 4
-    while True:
-        line = f.readline()
-        size += len(line)
-        if not line.endswith(b"\n") or size > _MAX_HEADER:
-            raise InputError("corrupt PLY header (no end_header line)", path)
-        words = line.decode("ascii", "replace").split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "end_header":
-            break
-        if words[0] == "format" and len(words) >= 2 and words[1] in _FORMATS:
-            order = _FORMATS[words[1]]
-        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
-            elements.append((words[1], int(words[2]), []))
-        elif words[0] == "property" and elements and len(words) == 3 and words[1] in _PLY_TYPES:
-            elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
-        elif words[0] == "property" and elements and words[1] == "list":
-            elements[-1][2].append((words[-1], "list"))
-        else:
-            raise InputError(f"corrupt PLY header line {line.strip()[:60]!r}", path)
-    if order == "?":
-        raise InputError("PLY header has no known 'format' line", path)
-    return order, elements
 
 
 def _read_vertices(f, path, order, elements):
@@ -112,16 +75,14 @@ def load_ply(path) -> Gaussians:
     """Read an INRIA-style Gaussian PLY (by property name, any order, normals optional). A PlayCanvas /
     SuperSplat compressed PLY or a Niantic SPZ file is recognized by its header and decoded instead."""
     path = Path(path)
-    _require_file(path)
+    require_file(path)
     with open(path, "rb") as f:
         head = f.read(4)
         if head == b"NGSP" or head[:2] == b"\x1f\x8b":  # Niantic SPZ (v4, or gzip v1-3)
-            from .splat_formats import load_spz
             return load_spz(path)
         f.seek(0)
-        order, elements = _read_header(f, path)
+        order, elements = read_header(f, path)
         if elements and elements[0][0] == "chunk":  # PlayCanvas / SuperSplat compressed PLY
-            from .splat_formats import load_compressed_ply
             return load_compressed_ply(path)
         table, names = _read_vertices(f, path, order, elements)  # [N, P]
     missing = [n for n in _REQUIRED if n not in names]
@@ -158,17 +119,6 @@ def load_ply(path) -> Gaussians:
                      sh=torch.from_numpy(sh))
 
 
-def _numpy_params(g: Gaussians, path):
-    """float32 numpy views of the parameters; refuses non-finite values (the file would be unreadable)."""
-    arrs = {f: getattr(g, f).detach().to("cpu", torch.float32).numpy() for f in Gaussians.FIELDS}
-    bad = {f: int((~np.isfinite(a)).sum()) for f, a in arrs.items()}
-    bad = {f: c for f, c in bad.items() if c}
-    if bad:
-        where = ", ".join(f"{c} in {f}" for f, c in bad.items())
-        raise InputError(f"refusing to write Gaussians with NaN/infinite values ({where})", path)
-    return arrs
-
-
 def ply_property_names(degree: int) -> list[str]:
     """The INRIA property order for SH ``degree``."""
     nrest = 3 * ((degree + 1) ** 2 - 1)
@@ -180,7 +130,7 @@ def ply_property_names(degree: int) -> list[str]:
 def save_ply(g: Gaussians, path) -> None:
     """Write ``g`` in the INRIA layout and order (float32 little-endian, normals zero), atomically."""
     path = Path(path)
-    a = _numpy_params(g, path)
+    a = numpy_params(g, path)
     n, k = a["sh"].shape[:2]
     names = ply_property_names(sh_degree_of(k))
     table = np.zeros((n, len(names)), "<f4")  # [N, P]; nx ny nz stay 0
@@ -208,7 +158,7 @@ def save_splat(g: Gaussians, path) -> None:
     normalized w,x,y,z quaternion as ``q*128+128`` bytes. Sorted by size x opacity, largest first, as
     antimatter15's convert.py does, so progressive loading shows the big splats first."""
     path = Path(path)
-    a = _numpy_params(g, path)
+    a = numpy_params(g, path)
     q = a["quats"].astype(np.float64)  # [N, 4]
     q /= np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-30)
     alpha = 1.0 / (1.0 + np.exp(-a["opacity_logits"].astype(np.float64)))  # [N]
@@ -228,7 +178,7 @@ def save_splat(g: Gaussians, path) -> None:
 def load_splat(path) -> Gaussians:
     """Read a ``.splat`` back into (degree-0) Gaussians, in file order."""
     path = Path(path)
-    _require_file(path)
+    require_file(path)
     size = path.stat().st_size
     if size % SPLAT_DTYPE.itemsize:
         raise InputError(f"truncated .splat: {size} bytes is not a multiple of 32", path)
@@ -246,3 +196,31 @@ def load_splat(path) -> Gaussians:
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
     return Gaussians(means=t(pos), quats=t(q), log_scales=t(np.log(np.maximum(scale, 1e-30))),
                      opacity_logits=t(np.log(alpha / (1 - alpha))), sh=t(dc[:, None, :]))
+
+
+# --- any scene file: the kind by content, the writer by name --------------------------------------------
+def scene_kind(path) -> str:
+    """'spz', 'compressed_ply', 'ply' or 'splat' from the file's first bytes (and name for .splat)."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if is_spz_bytes(head):
+        return "spz"
+    if head == b"ply\n":
+        with open(path, "rb") as f:
+            _, elements = read_header(f, path)
+        return "compressed_ply" if is_compressed_ply_header(elements) else "ply"
+    return "splat" if path.suffix.lower() == ".splat" else "unknown"
+
+
+def save_scene(g: Gaussians, path) -> None:
+    """Write by file name: ``*.compressed.ply``, ``*.spz``, ``*.splat`` or (else) the INRIA ``*.ply``."""
+    name = Path(path).name.lower()
+    if name.endswith(".compressed.ply"):
+        save_compressed_ply(g, path)
+    elif name.endswith(".spz"):
+        save_spz(g, path)
+    elif name.endswith(".splat"):
+        save_splat(g, path)
+    else:
+        save_ply(g, path)

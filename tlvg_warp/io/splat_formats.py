@@ -24,6 +24,7 @@ import torch
 from ..errors import InputError
 from ..fileio import atomic_path
 from ..types import SH_C0, Gaussians
+from .scene_file import numpy_params, read_header, require_file
 
 # --- shared helpers ---------------------------------------------------------------------------------------------
 LOGIT_CLAMP = 0.5 / 255  # an 8-bit opacity of 0 or 255 decodes half a step inside (0, 1) so the logit is finite
@@ -46,9 +47,7 @@ def _u8(x: np.ndarray) -> np.ndarray:
 
 def _params(g: Gaussians, path) -> dict:
     """float64 numpy parameters; refuses NaN/inf (the file would be unreadable)."""
-    from .ply import _numpy_params
-
-    return {k: v.astype(np.float64) for k, v in _numpy_params(g, path).items()}
+    return {k: v.astype(np.float64) for k, v in numpy_params(g, path).items()}
 
 
 def _unit_quats(q: np.ndarray) -> np.ndarray:  # [N, 4] -> [N, 4]
@@ -146,12 +145,10 @@ def _check_compressed_layout(path, order, elements):
 
 def load_compressed_ply(path) -> Gaussians:
     """Decode a PlayCanvas / SuperSplat compressed PLY (file order is kept)."""
-    from .ply import _read_header, _require_file
-
     path = Path(path)
-    _require_file(path)
+    require_file(path)
     with open(path, "rb") as f:
-        order, elements = _read_header(f, path)
+        order, elements = read_header(f, path)
         start = f.tell()
     nchunk, n, ncp, ksh = _check_compressed_layout(path, order, elements)
     need = nchunk * ncp * 4 + n * 16 + n * 3 * ksh
@@ -394,10 +391,8 @@ def _spz_rotations(buf: bytes, n: int, version: int) -> np.ndarray:
 
 def load_spz(path) -> Gaussians:
     """Decode a Niantic SPZ file (v4 zstd container or gzip v1-3), converting RUB to the PLY's RDF axes."""
-    from .ply import _require_file
-
     path = Path(path)
-    _require_file(path)
+    require_file(path)
     raw = path.read_bytes()
     if raw[:4] == b"NGSP":
         h, sec = _spz_read_v4(raw, path)
@@ -476,37 +471,5 @@ def save_spz(g: Gaussians, path, version: int = 3) -> None:
         tmp.write_bytes(data)
 
 
-# === dispatch ==================================================================================================
-def scene_kind(path) -> str:
-    """'spz', 'compressed_ply', 'ply' or 'splat' from the file's first bytes (and name for .splat)."""
-    path = Path(path)
-    with open(path, "rb") as f:
-        head = f.read(4)
-    if is_spz_bytes(head):
-        return "spz"
-    if head == b"ply\n":
-        from .ply import _read_header
-
-        with open(path, "rb") as f:
-            _, elements = _read_header(f, path)
-        return "compressed_ply" if is_compressed_ply_header(elements) else "ply"
-    return "splat" if path.suffix.lower() == ".splat" else "unknown"
-
-
-def save_scene(g: Gaussians, path) -> None:
-    """Write by file name: ``*.compressed.ply``, ``*.spz``, ``*.splat`` or (else) the INRIA ``*.ply``."""
-    from .ply import save_ply, save_splat
-
-    name = Path(path).name.lower()
-    if name.endswith(".compressed.ply"):
-        save_compressed_ply(g, path)
-    elif name.endswith(".spz"):
-        save_spz(g, path)
-    elif name.endswith(".splat"):
-        save_splat(g, path)
-    else:
-        save_ply(g, path)
-
-
-__all__ = ["load_compressed_ply", "save_compressed_ply", "load_spz", "save_spz", "scene_kind", "save_scene",
-           "is_compressed_ply_header", "is_spz_bytes"]
+__all__ = ["load_compressed_ply", "save_compressed_ply", "load_spz", "save_spz", "is_compressed_ply_header",
+           "is_spz_bytes"]
