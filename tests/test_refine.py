@@ -86,3 +86,21 @@ def test_room_comes_from_unseen_splats_only_when_needed():
     # every visible small splat survived
     visible_small = g.means[1:]
     assert all(bool((out.means == m).all(1).any()) for m in visible_small)
+
+
+def test_a_stylization_runs_from_the_refined_scene_within_the_budget():
+    """The pipeline refines before the pre-process; density control keeps the input's budget afterwards."""
+    from tlvg_warp.stylize.config import StylizeConfig
+    from tlvg_warp.stylize.pipeline import StylizeInputs, run_stylize
+
+    g, cams = _scene(), _cams()
+    photos = [render(g, c).color.detach().clamp(0, 1) for c in cams]
+    style = torch.rand(32, 32, 3, generator=torch.Generator().manual_seed(0))
+    cfg = StylizeConfig(iterations=6, phases=[2, 2, 2], vgg_weights="random", device="cpu", refine_radius=3.0,
+                        stroke_scale=2.0, web_formats=False, orbit_frames=0, comparison_views=0)
+    inp = StylizeInputs(g, cams, [f"v{i}" for i in range(3)], photos, style)
+    res = run_stylize(inp, cfg, None, progress=False, quiet=True)
+    m = res.metrics
+    assert m["refine"]["refined"] >= 1 and m["refine"]["radius_px"] == 6.0  # refine_radius x stroke_scale
+    assert m["gaussian_budget"] == math.ceil(1.2 * g.num)
+    assert m["gaussians_before_stylize"] <= m["gaussian_budget"] and res.gaussians.num <= m["gaussian_budget"]

@@ -381,8 +381,8 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
     params = GaussianParams(g_work, g_work.sh_degree)
     opt = GaussianOptimizer(params, cfg.lr, extent, cfg.lr.means_steps or cfg.iterations)
     longest = max(max(c.width, c.height) for c in cams)
-    density = DensityControl(cfg.density, g_in.num, device, extent=extent, window=2 * len(cams) - 1,
-                             image_size=longest, seed=cfg.seed + 1, dist=dist)
+    density = DensityControl(cfg.density, g_work.num, device, extent=extent, window=2 * len(cams) - 1,
+                             image_size=longest, seed=cfg.seed + 1, dist=dist, start_num=g_in.num)
 
     def post_targets(run: Run) -> list:  # every view rendered and recolored once more
         with torch.no_grad():

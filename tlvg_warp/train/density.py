@@ -159,17 +159,20 @@ class DensityControl(DensityStrategy):
 
     extent: the scene extent (clone/split and world-size rules); window: views per no-contribution check (set
     by the caller to 2 × its views − 1; 0: every check); image_size: the longest image side (screen rule);
-    seed: the split RNG (identical on every rank); dist: a ``Dist`` (statistics summed over ranks)."""
+    seed: the split RNG (identical on every rank); dist: a ``Dist`` (statistics summed over ranks); start_num: the
+    count the budget refers to (default ``num``)."""
 
     def __init__(self, config: DensityConfig | None = None, num: int = 0, device="cpu", dtype=torch.float32, *,
-                 extent: float = 1.0, window: int = 0, image_size: int = 0, seed: int | None = None, dist=None):
+                 extent: float = 1.0, window: int = 0, image_size: int = 0, seed: int | None = None, dist=None,
+                 start_num: int | None = None):
         super().__init__()  # views_per_step, events, tracked (every keep / append applies to the caller's tracked
         # tensors, e.g. the stylization's regularizer anchors, as to the parameters; a new row takes the new
         # Gaussian's value of the parameter field of the same name, zeros when the name is not a field)
         self.config = config or DensityConfig()
         self.device, self.dtype = torch.device(device), dtype
         self.extent, self.window, self.dist = float(extent), int(window), dist
-        self.start_num = num  # the count the run started with: the budget's reference
+        self.start_num = num if start_num is None else int(start_num)  # the budget's reference: the count the
+        # run started with (``num`` is the count now, after a refinement)
         self.screen_limit = self.config.max_screen_size * max(1.0, image_size / SCREEN_SIZE_REFERENCE)
         self.reset_stats(num)
         self.contrib = torch.zeros(num, dtype=dtype, device=self.device)  # Σ αT since birth / last check
