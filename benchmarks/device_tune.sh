@@ -51,17 +51,21 @@ case "${1:-tune}" in
       --styles "${STYLES:-$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg}" --out "$R/tune" "${V[@]}" "$@" 2>&1 \
       | grep -v "^Module\|^Warp" | tail -n 80
     ;;
-  tune4)  # round 4 (ROUND=5: round 5, the style term), the stroke-size refinement: TUNE_SCENE=name:dataset:downscale x (starry_night, shipwreck)
+  tune4)  # round 4 (ROUND=5: the style term; ROUND=6: the Gram term), the stroke-size refinement: TUNE_SCENE=name:dataset:downscale x (starry_night, shipwreck)
     shift
-    IFS=: read -r s d ds <<< "${TUNE_SCENE:-beer:beer_colmap:2}"
+    for spec in ${TUNE_SCENE:-beer:beer_colmap:2}; do
+    IFS=: read -r s d ds <<< "$spec"
     V=(--variant "tlvg:" --variant "ref8:refine_radius=8" --variant "ref4:refine_radius=4"
        --variant "ref8_c3:refine_radius=8;loss.w_content=0.003" --variant "ref8_nopre:refine_radius=8;density.phases=[stylize]")
     [ "${ROUND:-4}" = 5 ] && V=(--variant "ref8:refine_radius=8" --variant "gram:refine_radius=8;loss.style_loss=gram"
        --variant "fast:refine_radius=8;loss.style_loss=fast" --variant "rgb:refine_radius=8;loss.luminance_only=false"
        --variant "s2:refine_radius=8;loss.strength=2" --variant "vgg1:refine_radius=8;vgg_scale=1.0")
+    [ "${ROUND:-4}" = 6 ] && V=(--variant "ref8:refine_radius=8" --variant "g05:refine_radius=8;loss.w_style_gram=0.5"
+       --variant "g15:refine_radius=8;loss.w_style_gram=1.5")
     timeout "${TUNE_LIMIT:-540}" python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
       --styles "$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg" --out "$R/tune4_$s" "${V[@]}" \
       --montage "$OUT/tune4_$s.jpg" --view "${VIEW:-0}" "$@" 2>&1 | grep -v "^Module\|^Warp\|^open \|^orbit\|^\[evaluate" | tail -n 60
+    done
     ;;
   study)  # the study: fern, beer, lego x the four paintings; abcgs and tlvg everywhere, the ablations on the
           # tuning pairs (fern x starry_night, shipwreck). STUDY_PART: abcgs | tlvg | eval

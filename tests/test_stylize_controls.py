@@ -165,3 +165,30 @@ def test_keep_colors_keeps_the_renders_colours_on_a_real_run(demo):
     gap = float(np.linalg.norm(painting_ab - photos_ab))
     assert gap > 5  # the painting's palette is far from the photos' (Lab units)
     assert shift[True] < 0.25 * shift[False] and shift[False] > 0.2 * gap, (shift, gap)
+
+
+def test_gram_term_is_logged_and_switched_by_its_weight():
+    """loss.w_style_gram adds the Gram texture term to the stylize loss; at 0 it is not computed at all."""
+    import math
+
+    from tlvg_warp.stylize.config import StylizeConfig
+    from tlvg_warp.stylize.pipeline import StylizeInputs, run_stylize
+    from tlvg_warp.types import Camera, Gaussians
+    from tlvg_warp.renderer import render
+
+    gen = torch.Generator().manual_seed(0)
+    g = Gaussians.from_colors((torch.rand(60, 3, generator=gen) - 0.5), torch.rand(60, 3, generator=gen), 0.08,
+                              opacity=0.8)
+    cams = [Camera.look_at((0.2 * k, -3.0, 0.1), (0, 0, 0), width=40, height=32, fov_deg=50.0) for k in (0, 1)]
+    photos = [render(g, c).color.detach().clamp(0, 1) for c in cams]
+    style = torch.rand(32, 32, 3, generator=gen)
+    seen = {}
+    for w in (0.0, 2.0):
+        cfg = StylizeConfig(iterations=3, phases=[0, 3, 0], vgg_weights="random", device="cpu", web_formats=False,
+                            orbit_frames=0, comparison_views=0)
+        cfg.loss.w_style_gram = w
+        res = run_stylize(StylizeInputs(g, cams, ["a", "b"], photos, style), cfg, None, progress=False, quiet=True)
+        seen[w] = [r.get("style_gram") for r in res.log if r.get("phase") == "stylize"]
+    assert all(v in (None, 0, 0.0) for v in seen[0.0])
+    vals = [v for v in seen[2.0] if v is not None]
+    assert vals and all(math.isfinite(v) and v > 0 for v in vals)

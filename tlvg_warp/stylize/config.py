@@ -26,6 +26,8 @@ class StyleLoss:
     luminance_only: bool = True  # style loss on Y = 0.299R+0.587G+0.114B for render and painting (paper §3.3)
     w_style: float = 2.0  # style loss weight (reference code)
     w_style_color: float = 0.0  # a second style term on RGB features: the painting's colour texture (ours; 0: off)
+    w_style_gram: float = 0.0  # a Gram (texture statistics) term on the style term's features: it asks for the
+    # painting's strokes over the whole view, where nearest-neighbour matching leaves flat regions smooth (ours; 0: off)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     w_depth: float = 0.01  # MSE of inverse depth vs the un-stylized scene (reference code)
@@ -45,7 +47,7 @@ class StyleLoss:
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0),
-             **{w: (">=", 0) for w in ("w_style", "w_style_color", "w_chroma_tv", "w_content", "w_depth", "w_tv",
+             **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}
 

@@ -53,7 +53,7 @@ from ..types import Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_color", "content", "depth", "tv", "chroma_tv", "opacity_reg", "scale_reg", "lab",
+STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "opacity_reg", "scale_reg", "lab",
                  "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
@@ -215,10 +215,12 @@ class Stylize(Phase):
         self.cfg, self.tg, self.vgg, w = cfg, tg, vgg, cfg.loss
         self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss, refresh_every=w.fast_refresh,
                                   cache=w.fast_cache)  # the painting's side computed once
+        self.gram_fn = StyleLoss(tg.style_feats, kind="gram") if w.w_style_gram else None
         self.color_fn = None if tg.style_feats_rgb is None else StyleLoss(  # prepare makes them when the term is on
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         self.fields = None  # per view [H,W,3] on the device
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
+                      "style_gram": w.w_style_gram * w.strength,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
                       "chroma_tv": w.w_chroma_tv,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
@@ -227,7 +229,7 @@ class Stylize(Phase):
         self.on = {t: v != 0 for t, v in self.const.items()}
         self.on["lab"] = w.w_lab_start != 0 or w.w_lab_end != 0
         self.on["style_color"] = self.color_fn is not None and self.const["style_color"] != 0
-        self.vgg_on = self.on["style"] or self.on["content"] or self.on["style_color"]
+        self.vgg_on = self.on["style"] or self.on["content"] or self.on["style_color"] or self.on["style_gram"]
         self.render_weights = self.on["align"] or self.on["aniso"]
 
     def weights(self, k: int) -> dict:
@@ -278,6 +280,8 @@ class Stylize(Phase):
             t.mark("vgg")
             if on["style"]:
                 terms["style"] = self.style_fn(a, key=vi)  # the key: a view's match may be reused (fast_refresh)
+            if on["style_gram"]:  # texture statistics over the whole view: strokes where matching finds none
+                terms["style_gram"] = self.gram_fn(a)
             if on["style_color"]:
                 terms["style_color"] = self.color_fn(a_rgb, key=vi)
             t.mark("style")
