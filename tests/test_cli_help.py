@@ -117,3 +117,19 @@ def test_skip_messages_name_the_extra_the_readme_names():
     text = (REPO / "tests" / "test_io_splat_formats.py").read_text()
     assert "pip install -e '.[interop]'" in text and "pip install gsply" not in text
     assert re.search(r"^interop = \[.*gsply", (REPO / "pyproject.toml").read_text(), re.M)
+
+
+def test_building_the_parser_loads_no_heavy_library():
+    """cli.py imports every command to build its parser, so the commands import what they run inside their
+    functions: --help (and a bad flag) load neither Warp nor OpenCV, matplotlib or YAML."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom tlvg_warp.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in ('warp', 'cv2', 'matplotlib', 'yaml', 'tlvg_warp.losses', 'tlvg_warp.stylize')"
+            " if m in sys.modules))\n")
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300, cwd=REPO)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip().splitlines()[-1] == "[]"

@@ -54,17 +54,6 @@ def test_scene_deterministic():
     assert torch.equal(a.sh, b.sh) and torch.equal(a.means, b.means) and not torch.equal(a.sh, c.sh)
 
 
-def _renderer_available():
-    try:
-        from tlvg_warp.io.demo import _render_fn
-
-        _render_fn()
-        return True
-    except ImportError:
-        return False
-
-
-@pytest.mark.skipif(not _renderer_available(), reason="renderer not written yet")
 def test_demo_photos_match_reference_renderer():
     from tlvg_warp.reference import render_reference
 
@@ -93,7 +82,6 @@ def test_coarse_scene_is_the_same_still_life_in_fewer_larger_discs():
         demo_scene(spacing=0)
 
 
-@pytest.mark.skipif(not _renderer_available(), reason="renderer not written yet")
 def test_coarse_scene_photos_match_the_default_scene():
     fine, coarse = demo_dataset(n_views=6, width=32, height=24), demo_dataset(n_views=6, width=32, height=24,
                                                                                spacing=COARSE)

@@ -25,6 +25,8 @@ import sys
 import typing
 from pathlib import Path
 
+import yaml
+
 from .errors import InputError
 
 
@@ -39,8 +41,6 @@ class ConfigError(InputError):
 def read_yaml_mapping(path, what: str = "config file") -> dict:
     """A YAML file holding a mapping, as a dict; one-line InputErrors naming the file (missing, not YAML,
     not a mapping). Every YAML the project reads (configs, studies, run folders) goes through here."""
-    import yaml
-
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{what} does not exist", p)
@@ -227,8 +227,6 @@ def yaml_chain(path, _seen=None) -> list[tuple[Path, dict]]:
 
 def parse_override(ov: str) -> tuple[str, object]:
     """``key=value`` -> (key, value parsed as YAML)."""
-    import yaml
-
     if "=" not in ov:
         raise InputError(f"--set expects key=value, got {ov!r}")
     k, v = ov.split("=", 1)
@@ -307,8 +305,6 @@ def config_yaml(cfg, header: str) -> str:
 
 
 def _yaml_lines(cfg, indent: str) -> list[str]:
-    import yaml
-
     comments = field_comments(type(cfg))
     lines = []
     for f in dataclasses.fields(cfg):

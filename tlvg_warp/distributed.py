@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import datetime
 import os
+import sys
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -211,7 +212,6 @@ def isolate_local_gpu() -> bool:
     """
     if _env_int("WORLD_SIZE", 1) <= 1 or "LOCAL_RANK" not in os.environ:
         return False
-    import sys
 
     if torch.cuda.is_initialized():
         return False

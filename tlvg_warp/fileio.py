@@ -10,6 +10,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from .errors import WriteError
 
@@ -104,8 +105,6 @@ class _RecordingFile:
 def save_torch(path, obj) -> None:
     """torch.save to ``path`` through :func:`atomic_path`: a full disk is a one-line WriteError (whether the OS
     reports it during a write or when the file is closed), the previous file is kept, no temporary file stays."""
-    import torch
-
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         rec = _RecordingFile(f)
         try:
@@ -138,7 +137,7 @@ def _json_default(o):
 
 def write_image(path, rgb) -> None:
     """Save an [H,W,3] float image in [0,1] (numpy or torch), or one already in uint8, as 8-bit PNG/JPEG."""
-    import cv2
+    import cv2  # lazy: the command line imports this module at startup, and cv2 takes a tenth of a second
 
     a = rgb.detach().cpu().numpy() if hasattr(rgb, "detach") else np.asarray(rgb)
     if a.dtype != np.uint8:

@@ -12,6 +12,7 @@ import warp as wp
 
 from .kernels.flow import flow_targets_kernel
 from .ops import camera_args, ct, fast_launch, input_ct, kernels_for, no_grad_args, to_warp, warp_on
+from .reference import project_reference
 from .types import Camera, Gaussians
 
 COHERENCE_MIN = 1e-3  # below this the painting has no direction to follow at that spot
@@ -146,8 +147,6 @@ def flow_terms_unfused(g: Gaussians, cam: Camera, field: torch.Tensor, weights: 
 
 def flow_terms_reference(g: Gaussians, cam: Camera, field: torch.Tensor, weights: torch.Tensor):
     """Pure-torch twin of ``flow_terms``: eigen-decomposes Σ2D explicitly instead of the doubled-angle form."""
-    from .reference import project_reference
-
     target, coh, active = flow_targets(g, cam, field)
     cov = project_reference(g, cam).cov2d  # [N, 3] zero where culled
     S = torch.stack([cov[:, 0], cov[:, 1], cov[:, 1], cov[:, 2]], -1).reshape(-1, 2, 2)

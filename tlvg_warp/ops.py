@@ -13,12 +13,15 @@ import ctypes
 import functools
 import math
 import os
+import sys
+import tempfile
 import weakref
 from dataclasses import dataclass
 
 import torch
 import warp as wp
 
+from .kernels import raster_kernels
 from .types import Camera
 
 TILE = 16
@@ -62,9 +65,6 @@ def cuda_driver_present() -> bool:
 def without_lines(fn, drop: str):
     """``fn()`` with what it writes to file descriptor 2 (C code included) captured, and passed on to stderr
     without the lines that contain ``drop``."""
-    import sys
-    import tempfile
-
     try:
         sys.stderr.flush()
         saved = os.dup(2)
@@ -90,8 +90,6 @@ def kernels_for(dtype: torch.dtype):
     K = _kernel_sets.get(dtype)  # a dict read: this runs several times a render
     if K is None:
         init_warp()
-        from .kernels import raster_kernels
-
         K = _kernel_sets[dtype] = raster_kernels({torch.float32: "float32", torch.float64: "float64"}[dtype])
     return K
 
@@ -180,7 +178,7 @@ def warp_array_ctype():
     so a Warp upgrade that moves or changes it fails there by name rather than as a crash in a kernel."""
     global _ARRAY_T
     if _ARRAY_T is None:
-        try:
+        try:  # at first use, not at the top: a Warp that lacks it fails here with the message below
             from warp._src.types import array_t
         except ImportError:
             try:
@@ -348,7 +346,7 @@ _RUNTIME = None
 def _runtime():
     global _RUNTIME
     if _RUNTIME is None:
-        try:
+        try:  # at call time: wp.init() sets Warp's runtime (it is None when this module is imported)
             from warp._src.context import runtime
         except ImportError:  # Warp before 1.10
             from warp.context import runtime
@@ -377,7 +375,7 @@ _sort_fns: dict = {}
 def _runtime_sort(kind: str, side: str):
     key = (kind, side)
     if key not in _sort_fns:
-        try:
+        try:  # at call time: wp.init() sets Warp's runtime
             from warp._src.context import runtime
         except ImportError:  # Warp before 1.10
             from warp.context import runtime

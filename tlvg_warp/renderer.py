@@ -66,7 +66,7 @@ def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None 
     all_tiles: bin every visible Gaussian into every tile (the brute-force check of the binning).
     depth: also blend the expected depth (default); False skips it (``RenderOutput.depth`` is None), which
     saves a little blending time when a caller reads only color and alpha."""
-    from .ops import RasterizeFn, ShadeFn, camera_values
+    from .ops import RasterizeFn, ShadeFn, camera_values  # lazy: ops imports Warp, which this module does not need
 
     bg = check_inputs(g, cam, background)
     degree = g.sh_degree if sh_degree is None else int(sh_degree)

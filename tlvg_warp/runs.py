@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import json
 import os
 import pickletools
 import signal
@@ -14,6 +15,7 @@ import warnings
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .errors import InputError, WriteError
@@ -231,8 +233,6 @@ def pickle_globals(path) -> list[str]:
 def plain_data(obj, where: str = "checkpoint"):
     """``obj`` with numpy scalars as Python numbers and numpy arrays as tensors, so that it loads with
     :func:`load_data`; anything else that is not a tensor or plain data is a bug (TypeError naming it)."""
-    import numpy as np
-
     if obj is None or isinstance(obj, (bool, int, float, str, torch.Tensor, torch.Size)):
         return obj
     if isinstance(obj, np.generic):
@@ -337,8 +337,6 @@ SOURCES = "sources.json"  # where a run's inputs came from, written beside its o
 
 def read_sources_json(run) -> dict | None:
     """A run's sources.json ({name: path}), None when it has none; one line when it is not a JSON object."""
-    import json
-
     p = Path(run) / SOURCES
     if not p.is_file():
         return None

@@ -64,7 +64,7 @@ def camera_pose(cam: Camera):
 
 
 def rotmat_to_wxyz(R: np.ndarray) -> np.ndarray:
-    from .train.optim import rotmat_to_quat
+    from .train.optim import rotmat_to_quat  # lazy: the command line imports this module at startup
 
     return rotmat_to_quat(R[None])[0]
 
@@ -104,7 +104,7 @@ class SceneViewer:
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, title: str = "tlvg_warp"):
         try:
-            import viser
+            import viser  # lazy: optional (the [viewer] extra)
         except ImportError:
             raise InputError(INSTALL_HINT) from None
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own address box; ours is one line

@@ -1,4 +1,7 @@
-"""One module per CLI command: add_arguments(parser), run(args) -> int."""
+"""One module per CLI command: add_arguments(parser), run(args) -> int.
+
+cli.py imports every command module to build its parser, so a command imports the library it runs inside its
+functions ("lazy: CLI startup"): ``--help`` and a bad flag stay fast."""
 from __future__ import annotations
 
 from pathlib import Path

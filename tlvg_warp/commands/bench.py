@@ -4,6 +4,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import torch
+
 from ..errors import InputError
 from ..fileio import write_json, write_text
 
@@ -54,12 +56,12 @@ def add_arguments(p):
 
 def run(args) -> int:
     if args.what == "sweep":
+        # lazy: CLI startup
         from ..eval import bench_sweep
 
         args.scene = args.scene[-1] if args.scene else None
         return bench_sweep.run(args)
-    import torch
-
+    # lazy: CLI startup
     from ..eval import bench_raster as br
 
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))

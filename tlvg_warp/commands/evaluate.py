@@ -40,6 +40,7 @@ def add_arguments(p):
 
 
 def run(args) -> int:
+    # lazy: imports Warp
     from ..losses.vgg import load_vgg
 
     log = stage_logger()

@@ -8,6 +8,7 @@ from pathlib import Path
 from urllib.parse import urlparse
 
 from ..errors import InputError, one_line
+from ..fileio import write_json
 
 DEFAULT_BASE_URL = "https://api.openai.com/v1"
 
@@ -56,9 +57,8 @@ def check_endpoint(base_url: str, key, timeout: float) -> None:
 
 
 def run(args) -> int:
+    # lazy: CLI startup
     from ..eval import judge
-    from ..fileio import write_json
-
     for flag, v in (("--retries", args.retries), ("--timeout", args.timeout), ("--backoff", args.backoff)):
         if v < 0 or (flag == "--timeout" and v == 0):
             raise InputError(f"{flag} must be positive, got {v}")

@@ -6,11 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
+from ..eval import rate
+from ..rate_server import DEFAULT_HOST, DEFAULT_PORT, RateServer
+from .view import serve_forever
 
 
 def add_arguments(p):
-    from ..rate_server import DEFAULT_HOST, DEFAULT_PORT
-
     p.epilog = ("Pairs of run folders: the first of each pair is A (e.g. ours), the second B (e.g. the baseline); "
                 "every answer goes to STUDY_DIR/answers.jsonl at once. Send raters the printed address (with "
                 "--host 0.0.0.0 for other machines); each rater may add ?rater=NAME. Then: rate --report "
@@ -36,8 +37,6 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from ..eval import rate
-
     if args.report is not None:
         if args.runs or args.out is not None:
             raise InputError("--report STUDY_DIR takes no run folders and no --out")
@@ -55,9 +54,6 @@ def run(args) -> int:
         raise InputError(f"--max-views must be at least 1, not {args.max_views}")
     study = rate.build_study(args.runs, args.out, media=args.media, max_views=args.max_views, style=args.style,
                              seed=args.seed)
-    from ..rate_server import RateServer
-    from .view import serve_forever
-
     srv = RateServer(study, args.host, args.port)
     answers, _, _ = rate.read_answers(study.folder)
     lines = [f"rate: {srv.address}/  ({len(study.pairs)} pair{'s' if len(study.pairs) != 1 else ''}, "

@@ -6,10 +6,12 @@ DIR/checkpoint.pt while the run is unfinished (or with --keep-checkpoint). Ctrl-
 ``--resume DIR`` continues."""
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ..runs import resolve_device, run_folder
 from . import KEEP_CHECKPOINT_HELP, check_resumable, drop_checkpoints
 
 
@@ -33,10 +35,8 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    import contextlib
-
+    # lazy: CLI startup
     from ..distributed import Dist
-    from ..runs import resolve_device, run_folder
     from ..train.reconstruct import (RUN_FILES, FitDiverged, ReconstructConfig, config_from_dict, fit_scene,
                                      load_checkpoint, load_config)
 
@@ -78,9 +78,11 @@ def run(args) -> int:
 
 def _load(data: str, cfg):
     if data == "demo":
+        # lazy: CLI startup
         from ..io.demo import demo_dataset
 
         return demo_dataset()
+    # lazy: CLI startup
     from ..io import load_dataset
 
     kw = {}

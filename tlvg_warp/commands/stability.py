@@ -20,6 +20,7 @@ def add_arguments(p):
 
 
 def run(args) -> int:
+    # lazy: CLI startup
     from ..eval import stability as S
 
     names = [s.name for s in S.scenarios(6, args.long_iters)]

@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import torch
+
 from ..errors import InputError
 
 
@@ -32,6 +34,7 @@ def add_arguments(p):
 
 
 def run(args) -> int:
+    # lazy: CLI startup
     from ..distributed import isolate_local_gpu
     from ..eval.study import load_study, run_study
 
@@ -50,6 +53,7 @@ def run(args) -> int:
             raise InputError(f"--seeds must be >= 1, got {args.seeds}")
         st.seeds = args.seeds
     if args.only_configs:
+        # lazy: CLI startup
         from ..eval.study import only_configs
 
         only_configs(st, [c.strip() for c in args.only_configs.split(",") if c.strip()])
@@ -57,6 +61,7 @@ def run(args) -> int:
         st.vgg_weights = args.vgg_weights
     jc = None
     if args.judge:
+        # lazy: CLI startup
         from ..eval.judge import preflight
 
         url = args.judge_url or st.judge.get("base_url")
@@ -69,13 +74,12 @@ def run(args) -> int:
         key = args.api_key or os.environ.get("OPENAI_API_KEY")
         preflight(url, key)
         jc = {"base_url": url, "models": models, "api_key": key, "max_views": st.judge.get("max_views")}
+    # lazy: CLI startup
     from ..distributed import Dist
     from ..eval.study import resolve_device
 
     dist = Dist.from_env("cpu")  # gloo: the ranks exchange job claims and results, never tensors
     if dist.world > 1 and resolve_device(st.device).startswith("cuda"):
-        import torch
-
         if not torch.cuda.is_available():
             raise InputError(f"rank {dist.rank}: device {st.device!r} but no GPU for LOCAL_RANK {dist.local_rank} "
                              "(launch at most one process per GPU: --nproc-per-node <= GPUs)")

@@ -9,6 +9,7 @@ comparison.png, orbit.mp4, stroke_field.png, loss_curves.png, metrics.json, sour
 run is unfinished (Ctrl-C, divergence, a kill: --resume DIR continues it) or with --keep-checkpoint."""
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import sys
@@ -20,7 +21,10 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..runs import resolve_device, run_folder
+from ..viewer import SceneViewer, scene_center, scene_radius, up_from_cameras
 from . import KEEP_CHECKPOINT_HELP, check_resumable, drop_checkpoints
+from .view import serve_forever
 
 # The no-argument demo's settings (a user's flag or --set wins). On 2 CPU cores: 160x120 views (18,733 discs),
 # the render fed to VGG at x0.5 (80x60) and the painting at the view's size times the config's stroke scale, SH DC
@@ -81,6 +85,7 @@ def add_arguments(p):
 # --- inputs ----------------------------------------------------------------------------------------------------
 def load_style(path) -> torch.Tensor:
     """The painting as float32 [H,W,3]; one-line InputError for missing / unreadable / tiny files."""
+    # lazy: CLI startup
     from ..io.images import composite, read_image_fit
 
     p = Path(path)
@@ -113,6 +118,7 @@ def _cameras_json_beside(ply: Path):
 def check_scene_matches(scene_path: Path, g, ds) -> None:
     """A trained PLY and a dataset that do not belong together: camera count / image size against the
     cameras.json written beside the PLY (INRIA / reconstruct layout), and the scene in front of the cameras."""
+    # lazy: CLI startup
     from ..train.init import points_in_front
 
     cj = _cameras_json_beside(scene_path)
@@ -138,6 +144,7 @@ def check_scene_matches(scene_path: Path, g, ds) -> None:
 
 
 def _load_dataset(data: str, cfg):
+    # lazy: CLI startup
     from ..io import load_dataset
 
     return load_dataset(data, downscale=cfg.downscale if cfg.downscale != 1 else None)
@@ -145,6 +152,7 @@ def _load_dataset(data: str, cfg):
 
 def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool, dist=None):
     """(StylizeInputs, input bytes) from the demo, --scene + --data, or --data alone (fitted first)."""
+    # lazy: CLI startup
     from ..io import load_ply
     from ..io.demo import builtin_painting, demo_dataset
     from ..stylize import StylizeInputs
@@ -176,6 +184,7 @@ def build_inputs(args, cfg, sources: dict, out: Path, quiet: bool, dist=None):
 
 
 def _scene_only_inputs(sp: Path, cfg, style, sources: dict):
+    # lazy: CLI startup
     from ..io import load_ply
     from ..io.scene_views import render_stand_in_photos, scene_views
     from ..stylize import StylizeInputs
@@ -189,6 +198,7 @@ def _scene_only_inputs(sp: Path, cfg, style, sources: dict):
 
 
 def _fit_first(ds, cfg, out: Path, quiet: bool, dist=None):
+    # lazy: CLI startup
     from ..train.reconstruct import ReconstructConfig, fit_scene
 
     rc = ReconstructConfig(iterations=cfg.fit_iterations, holdout_every=0, device=cfg.device, seed=cfg.seed,
@@ -204,6 +214,7 @@ def _fit_first(ds, cfg, out: Path, quiet: bool, dist=None):
 
 # --- the command -----------------------------------------------------------------------------------------------
 def _user_set(args, key: str) -> bool:
+    # lazy: CLI startup
     from ..config_io import canonical
     from ..stylize import StylizeConfig
 
@@ -211,6 +222,7 @@ def _user_set(args, key: str) -> bool:
 
 
 def run(args) -> int:
+    # lazy: CLI startup
     from ..stylize import load_checkpoint, load_config
     from ..stylize.config import config_from_dict
 
@@ -256,11 +268,9 @@ def run(args) -> int:
         out = Path(args.resume)
     else:
         out = Path("runs") / time.strftime("stylize_%Y%m%d_%H%M%S")
-    import contextlib
-
+    # lazy: CLI startup (and ..losses imports Warp)
     from ..distributed import Dist
     from ..losses import load_vgg
-    from ..runs import resolve_device, run_folder
     from ..stylize.pipeline import RUN_FILES
 
     device = resolve_device(cfg.device)
@@ -278,6 +288,7 @@ def run(args) -> int:
 
 
 def _run(args, cfg, sources, out, device, vgg, wall0, dist, t_vgg=0.0) -> int:
+    # lazy: CLI startup
     from ..stylize import StylizeDiverged, run_stylize
     from ..stylize.outputs import RANDOM_VGG_NOTE, write_outputs
 
@@ -322,8 +333,6 @@ def _run(args, cfg, sources, out, device, vgg, wall0, dist, t_vgg=0.0) -> int:
         viewer.update("stylized", res.gaussians)
         viewer.set_status(f"finished: {out / 'stylized.ply'}")
         print(f"viewer: {viewer.address} shows the result; press Ctrl-C to stop", flush=True)
-        from .view import serve_forever
-
         serve_forever(viewer, quiet=True)
     if not math.isfinite(m["training_field_alignment"]):
         return 1
@@ -332,8 +341,6 @@ def _run(args, cfg, sources, out, device, vgg, wall0, dist, t_vgg=0.0) -> int:
 
 def _live_viewer(inp, cfg, args):
     """A viewer of the optimization: "stylized" (refreshed by run_stylize's on_progress) and the input."""
-    from ..viewer import SceneViewer, scene_center, scene_radius, up_from_cameras
-
     v = SceneViewer(args.host, args.port, title="tlvg_warp: stylize (live)")
     g0 = inp.gaussians.detach().to("cpu")
     v.set_scene("stylized", g0)

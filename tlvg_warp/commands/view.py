@@ -15,11 +15,13 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
+from ..eval.engine import demo_original
+from ..runs import run_sources
+from ..viewer import (DEFAULT_HOST, DEFAULT_PORT, DEFAULT_UP, UP_AXES, SceneViewer, scene_center, scene_radius,
+                      up_from_cameras)
 
 
 def add_arguments(p):
-    from ..viewer import DEFAULT_HOST, DEFAULT_PORT, UP_AXES
-
     p.add_argument("path", metavar="RUN|FILE",
                    help="a stylization run folder, or a scene file (INRIA .ply, .compressed.ply, .spz)")
     p.add_argument("--host", default=DEFAULT_HOST,
@@ -37,16 +39,13 @@ def add_arguments(p):
 # --- what a run folder holds ----------------------------------------------------------------------------------
 def find_original(run: Path, cams: list):
     """(Gaussians or None, where from / why not)."""
+    # lazy: CLI startup
     from ..io.ply import load_ply
-    from ..runs import run_sources
-
     src = run_sources(run)
     for cand in (src.get("scene"), run / "reconstruct" / "point_cloud.ply"):
         if cand and Path(cand).is_file():
             return load_ply(Path(cand)), str(cand)
     if cams and not src.get("data") and not src.get("scene"):
-        from ..eval.engine import demo_original
-
         g = demo_original(run, cams)  # at the density the run started from (its config.yaml downscale)
         if g is not None:
             return g, f"the built-in demo scene ({g.num:,} Gaussians)"
@@ -65,6 +64,7 @@ def cameras_beside(scene: Path):
 
 def load_view(path, original=None, cameras=None) -> dict:
     """What the viewer shows: {"scenes": {name: Gaussians}, "cameras": [Camera], "notes": [str], "title"}."""
+    # lazy: CLI startup
     from ..io.datasets import read_inria_cameras
     from ..io.ply import load_ply
 
@@ -104,8 +104,6 @@ def load_view(path, original=None, cameras=None) -> dict:
 
 def open_viewer(content: dict, host: str, port: int, up=None):
     """A running SceneViewer showing ``content`` (load_view's dict)."""
-    from ..viewer import UP_AXES, DEFAULT_UP, SceneViewer, scene_center, scene_radius, up_from_cameras
-
     v = SceneViewer(host, port, title=f"tlvg_warp: {content['title']}")
     first = next(iter(content["scenes"].values()))
     center = scene_center(first)

@@ -20,8 +20,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.profiler import ProfilerActivity, profile
 
 from ..errors import InputError
+from ..io.datasets import load_dataset
+from ..io.ply import load_ply
 from ..renderer import render
 from ..types import Camera, Gaussians
 
@@ -84,16 +87,12 @@ class Case:
 def scene_case(spec: str, device, max_views: int | None = None, orbit_size=(1008, 756)) -> Case:
     """``PLY[:DATASET[:IMAGES]]``: the fitted scene and every view of its dataset (IMAGES: the photo folder
     whose size the views take, e.g. images_4), or orbit views (8, ``orbit_size``) when no dataset is given."""
-    from ..io.ply import load_ply
-
     parts = spec.split(":")
     if len(parts) > 3 or not parts[0]:
         raise InputError(f"--scene wants PLY[:DATASET[:IMAGES]], got {spec!r}")
     ply = Path(parts[0])
     g = load_ply(ply).to(device)
     if len(parts) > 1 and parts[1]:
-        from ..io.datasets import load_dataset
-
         cams = list(load_dataset(parts[1], images=parts[2] if len(parts) > 2 and parts[2] else None).cameras)
         where = Path(parts[1]).name
     else:
@@ -126,6 +125,7 @@ def time_fn(fn, device, repeats: int, warmup: int = 3) -> float:
 def peak_mb(fn, device) -> float:
     if device.type != "cuda":
         return float("nan")
+    # lazy: imports Warp
     import warp as wp
 
     _sync(device)
@@ -167,6 +167,7 @@ def ours_views(g: Gaussians, depth: bool = False):
 
 
 def gsplat_views(g: Gaussians, depth: bool = False):
+    # lazy: an optional peer (gsplat)
     from gsplat import rasterization
 
     params = _leaf_params(g)
@@ -195,6 +196,7 @@ def gsplat_views(g: Gaussians, depth: bool = False):
 
 
 def gswarp_views(g: Gaussians, depth: bool = False):
+    # lazy: an optional peer (gswarp)
     from gswarp import GaussianRasterizationSettings, GaussianRasterizer
 
     dev = g.device
@@ -273,6 +275,7 @@ def list_lengths(cap: dict) -> dict:
 
 def scene_lists(g: Gaussians, cams) -> dict:
     """list_lengths over views: the mean of the means and the max of the maxima."""
+    # lazy: imports Warp
     from ..ops import capture_binning
 
     per_view = []
@@ -312,8 +315,6 @@ def gpu_stages(fns, device, reps: int = 2) -> dict:
     top kernels. {} where there is no CUDA device or no profiler."""
     if device.type != "cuda" or not fns:
         return {}
-    from torch.profiler import ProfilerActivity, profile
-
     for fn in fns[:1]:
         fn()
     _sync(device)

@@ -20,6 +20,16 @@ import torch
 
 from ..errors import InputError
 from ..fileio import write_json
+from ..io import load_ply
+from ..io.datasets import load_dataset
+from ..io.demo import builtin_painting
+from ..io.images import read_image
+from ..renderer import render
+from . import quick as M  # the per-run gauges (the evaluation proper is eval/metrics.py)
+from . import stability as S
+from .bench_raster import bench_camera, random_scene
+from .pareto import write_sweep
+from .stability import _resize, _style_feats, stylize_scene
 
 QUALITY = ("flow_alignment", "consistency_k1", "style_fast", "style_gram", "content")
 HIGHER_IS_BETTER = {"flow_alignment": True, "consistency_k1": False, "style_fast": False, "style_gram": False,
@@ -29,14 +39,9 @@ HIGHER_IS_BETTER = {"flow_alignment": True, "consistency_k1": False, "style_fast
 # ---------------------------------------------------------------- the scene
 def load_scene(args, quick: bool, device: str):
     """(Base, description). Default: the demo; --scene PLY needs --data (its cameras and photos)."""
-    from ..io.demo import builtin_painting
-    from . import stability as S
-
     iters = getattr(args, "iterations", None) or (6 if quick else 3000)
     style = builtin_painting()
     if args.style:
-        from ..io.images import read_image
-
         p = Path(args.style)
         style = torch.from_numpy(read_image(p)[:, :, :3].copy())
     if not args.scene:
@@ -47,9 +52,6 @@ def load_scene(args, quick: bool, device: str):
         return S.dataclasses.replace(base, style=style), "demo"
     if not args.data:
         raise InputError("--scene needs --data: the dataset (cameras and photos) the scene was fitted to")
-    from ..io import load_ply
-    from ..io.datasets import load_dataset
-
     g = load_ply(args.scene).to(device)  # evaluation renders happen where the sweep runs
     ds = load_dataset(args.data, downscale=4 if quick else None)
     n = min(len(ds), 6 if quick else len(ds))
@@ -79,9 +81,6 @@ def _subsample(g, frac: float):
 
 def run_point(pt: dict, base, vgg, eval_views_cache: dict) -> dict:
     """Stylize with one point's settings, time it, score it on the base cameras."""
-    from . import quick as M  # the per-run gauges (the evaluation proper is eval/metrics.py)
-    from .stability import _resize, _style_feats, stylize_scene
-
     ov = dict(base.overrides)
     b = base
     if "render_scale" in pt:
@@ -129,10 +128,8 @@ def run_sweep(base, points, vgg, log=print) -> list[dict]:
 # ---------------------------------------------------------------- the rasterizer alone
 def raster_rows(cases, device, repeats: int = 3, log=print) -> list[dict]:
     """cases: (n Gaussians, width, height). float32 Warp render vs the float64 reference of the same scene."""
+    # lazy: imports Warp
     from ..reference import render_reference
-    from ..renderer import render
-    from .bench_raster import bench_camera, random_scene
-
     rows = []
     for n, w, h in cases:
         g = random_scene(n, -3.0, 1, device)
@@ -160,9 +157,8 @@ def raster_rows(cases, device, repeats: int = 3, log=print) -> list[dict]:
 
 
 def run(args) -> int:
+    # lazy: imports Warp
     from ..losses.vgg import load_vgg
-    from .pareto import write_sweep
-
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     out = Path(args.out)
     vgg = load_vgg(args.vgg_weights or ("random" if args.quick else None), device=device)

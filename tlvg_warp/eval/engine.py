@@ -21,6 +21,10 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..runs import run_sources
+
+# The command line imports this module when it builds its parser (commands/evaluate.py): what only an evaluation
+# needs is imported inside the functions that use it ("lazy: CLI startup").
 
 MAX_REPORT_VIEWS = 4  # views shown as thumbnails (evenly spaced)
 CPU_MAX_VIEWS = 12  # evaluate's default view count on a CPU (a demo run's 24 views took 38 s there, 12 take under 30)
@@ -59,6 +63,7 @@ def _read_json(path: Path):
 
 
 def _image(path: Path, shape=None) -> np.ndarray:
+    # lazy: CLI startup
     from ..io.images import read_image
 
     a = read_image(path)[:, :, :3]
@@ -76,6 +81,7 @@ def _view_file(folder: Path, name: str, index: int):
 
 
 def _yaml(path: Path) -> dict:
+    # lazy: CLI startup
     from ..config_io import read_yaml_mapping
 
     return read_yaml_mapping(path) if path.is_file() else {}
@@ -83,6 +89,7 @@ def _yaml(path: Path) -> dict:
 
 def load_run(run, max_views: int = 0) -> dict:
     """What evaluate reads from a run folder; InputError naming the file when something is wrong."""
+    # lazy: CLI startup
     from ..io.ply import load_ply
 
     run = Path(run)
@@ -92,6 +99,7 @@ def load_run(run, max_views: int = 0) -> dict:
     ply = run / "stylized.ply"
     if not ply.is_file():
         raise InputError("missing stylized.ply (not a stylization run folder?)", run)
+    # lazy: CLI startup
     from ..io.datasets import read_inria_cameras
 
     names, cams = read_inria_cameras(run / "cameras.json")
@@ -120,12 +128,11 @@ def load_run(run, max_views: int = 0) -> dict:
 
 def resolve_scene(run: dict, scene=None):
     """The un-stylized scene of a run (see the module doc)."""
+    # lazy: CLI startup
     from ..io.ply import load_ply
 
     if scene is not None:
         return load_ply(Path(scene))
-    from ..runs import run_sources
-
     src = run_sources(run["dir"])
     for cand in (src.get("scene"), run["dir"] / "reconstruct" / "point_cloud.ply"):
         if cand and Path(cand).is_file():
@@ -141,6 +148,7 @@ def demo_original(run_dir, cameras, n_total: int | None = None):
     """The built-in demo scene a demo run started from, or None when the cameras are not the demo's orbit. The
     demo samples its surfaces more sparsely at a larger downscale (stylize: spacing = max(1, downscale)), so the
     run's config.yaml downscale picks the same density (e.g. 4,678 Gaussians at downscale 2, not 18,733)."""
+    # lazy: CLI startup
     from ..io.demo import demo_scene
 
     if not cameras:
@@ -190,6 +198,7 @@ def winners(names, per_views, anchors: dict | None = None) -> dict:
     """Per metric: the run whose paired difference to every other run favours it (95%) and that also beats the
     anchor the metric exists to beat (metrics.ANCHOR_TO_BEAT; ``anchors``: {anchor name: per-view dict}),
     else absent."""
+    # lazy: CLI startup
     from ..eval import metrics as M
     from ..eval.refs import compare
 
@@ -216,6 +225,7 @@ def not_discriminating(per_views, anchors: dict) -> dict:
     on this scene the metric does not tell the runs from doing nothing (flow, style, strokes, detail) or from
     pasting the painting (content, multi-view, chroma noise). The other anchor winning is expected (the painting
     has the painting's style; the un-stylized scene is the scene) and is not a verdict."""
+    # lazy: CLI startup
     from ..eval import metrics as M
     from ..eval.refs import compare
 
@@ -234,6 +244,7 @@ def evaluate_runs(run_dirs, net, device, *, scene=None, max_views: int = 0, eval
                   cache_dir=None, log=print) -> tuple[dict, list, "object"]:
     """Score every run, and the two anchors, with one set of references. Returns (result dict, loaded runs,
     refs)."""
+    # lazy: CLI startup
     from ..eval import metrics as M
     from ..eval.refs import anchor_views, build_references, compare, score_views, stylized_views, summarize
 
@@ -291,8 +302,10 @@ def unique_names(runs) -> list[str]:
 
 
 def report_html(res: dict, runs: list, refs) -> str:
+    # lazy: CLI startup
     from ..eval import metrics as M
     from ..eval import report as H
+    # lazy: imports Warp
     from ..losses.stroke_field import field_picture, stroke_field
     from ..losses.vgg import resize_style
 
@@ -339,6 +352,7 @@ def report_html(res: dict, runs: list, refs) -> str:
 
 
 def comparisons_table(comparisons: dict) -> str:
+    # lazy: CLI startup
     from ..eval import report as H
 
     keys = [k for k in H.M.METRICS if any(k in c for c in comparisons.values())]
@@ -360,6 +374,7 @@ def comparisons_table(comparisons: dict) -> str:
 
 
 def print_table(res: dict) -> None:
+    # lazy: CLI startup
     from ..eval import metrics as M
     from ..eval.report import fmt
 

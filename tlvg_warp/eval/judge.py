@@ -12,14 +12,20 @@ import base64
 import json
 import random
 import re
+import socket
 import sys
 import time
 import urllib.error
 import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from urllib.parse import urlparse
+
+import cv2
+import yaml
 
 from ..errors import InputError
+from ..io.images import read_image
 
 CRITERIA = ("flow_alignment", "materiality", "aesthetics")
 CRITERION_NAMES = {"flow_alignment": "Flow Alignment", "materiality": "Materiality", "aesthetics": "Aesthetics"}
@@ -65,8 +71,6 @@ def _run_style(run: Path) -> Path | None:
     """The painting a run folder names: config.yaml `style` (relative to the run or the cwd), or style.*."""
     cfg = run / "config.yaml"
     if cfg.is_file():
-        import yaml
-
         try:
             data = yaml.safe_load(cfg.read_text()) or {}
         except (yaml.YAMLError, UnicodeDecodeError) as e:
@@ -117,16 +121,12 @@ def resolve_inputs(run_a, run_b, style=None, max_views=None):
 def check_images(paths) -> None:
     """Decode every image the judge will send (header, truncation, pixel data), so a corrupt render or painting
     is reported, naming the file, before any endpoint is contacted."""
-    from ..io.images import read_image
-
     for p in paths:
         read_image(Path(p))
 
 
 def png_data_url(path) -> str:
     """Decode (so an unreadable file fails here, as input, not at the model) and re-encode as PNG."""
-    import cv2
-
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise InputError("cannot read image", path)
@@ -384,9 +384,6 @@ PREFLIGHT_TIMEOUT_S = 5.0
 def preflight(base_url: str, api_key=None) -> None:
     """Stop before sending anything (SPEC §4): a remote endpoint without a key, or an endpoint that does not
     accept a connection, is a one-line InputError naming the endpoint (never the key)."""
-    import socket
-    from urllib.parse import urlparse
-
     u = urlparse(base_url)
     if u.scheme not in ("http", "https") or not u.hostname:
         raise InputError("not an http(s) endpoint", base_url)

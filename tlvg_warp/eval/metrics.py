@@ -124,6 +124,7 @@ def field_at_pixels(field: np.ndarray, h: int, w: int) -> np.ndarray:
 
 def render_field(img: np.ndarray) -> np.ndarray:
     """The render's own doubled-angle field [H,W,2] (length = coherence), SPEC §3 structure tensor."""
+    # lazy: imports Warp
     from ..losses.stroke_field import stroke_field
 
     return stroke_field(img)[2]

@@ -76,6 +76,7 @@ def write_sweep(rows, out_dir, x="time_s", metrics=None, higher_is_better=None, 
     higher_is_better: {metric: bool}, default True for each. label: column naming each point (default
     "label" or "name" when present, else the row index). Returns {"csv", "png", "front": {metric: mask}}.
     """
+    # lazy: matplotlib is heavy and only the figure needs it
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure  # no pyplot: no global state, safe from threads and without a display
 

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..renderer import render
 from ..types import Camera
 
 ALPHA_MIN = 0.5  # a pixel is "covered" (has a surface to reproject) when its alpha is at least this
@@ -118,6 +119,7 @@ def multiview_consistency(views, ks=(SHORT_K, LONG_K), rel_tol: float = DEPTH_RE
 # ---------------------------------------------------------------- VGG-space distances
 def style_target_feats(net, painting) -> torch.Tensor:
     """The painting's relu3 features [C, Ns] (resized to height 256, SPEC §3)."""
+    # lazy: imports Warp
     from ..losses.vgg import flatten_feats, resize_style
 
     p = painting.detach().cpu().numpy() if isinstance(painting, torch.Tensor) else np.asarray(painting)
@@ -130,6 +132,7 @@ def vgg_distances(net, stylized, original=None, style_feats=None, scale: float =
     """FAST and Gram style distance of a stylized view [H,W,3] to the painting features, and content
     distance (relu3 MSE) to the un-stylized render. Render scale 0.5 as in training (SPEC §3); a view too
     small for VGG (under 4 px after scaling) gives None rather than a crash."""
+    # lazy: imports Warp
     from ..losses.style import content_loss, fast_loss, gram_loss
     from ..losses.vgg import flatten_feats
 
@@ -152,6 +155,7 @@ def vgg_distances(net, stylized, original=None, style_feats=None, scale: float =
 
 def painting_field(painting) -> np.ndarray:
     """The painting's doubled-angle stroke field at its VGG working size (height 256), [h,w,2]."""
+    # lazy: imports Warp
     from ..losses.stroke_field import stroke_field
     from ..losses.vgg import resize_style
 
@@ -162,6 +166,7 @@ def painting_field(painting) -> np.ndarray:
 def flow_alignment(stylized, painting_doubled=None, target_doubled=None) -> float:
     """Flow-alignment score (SPEC §4) of one view: against the stored target field [H,W,2] when given,
     else the painting's field mapped "canvas" onto the view."""
+    # lazy: imports Warp
     from ..losses.stroke_field import flow_alignment_score, map_field_canvas
 
     h, w = stylized.shape[:2]
@@ -182,8 +187,6 @@ def mean_or_none(values):
 # ---------------------------------------------------------------- everything for one scene
 def render_views(g, cameras, background=None) -> list[dict]:
     """Render ``g`` from each camera: [{"color","depth","alpha","camera"}] (detached, CPU)."""
-    from ..renderer import render
-
     out = []
     with torch.no_grad():
         for cam in cameras:

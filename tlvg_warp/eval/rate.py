@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..fileio import write_json, write_text
+from ..fileio import atomic_path, write_json, write_text
 
 FORMAT = 1
 STUDY_FILE = "study.json"
@@ -88,7 +88,7 @@ def _painting(run: Path) -> Path | None:
             return run / f"style{ext}"
     cfg = run / "config.yaml"
     if cfg.is_file():
-        import yaml
+        import yaml  # lazy: CLI startup (the rate server, which the command line imports, imports this module)
 
         try:
             style = (yaml.safe_load(cfg.read_text()) or {}).get("style")
@@ -127,7 +127,7 @@ def _short(names) -> str:
 
 
 def _image_size(path: Path):
-    import cv2
+    import cv2  # lazy: CLI startup, as yaml above
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
@@ -562,12 +562,11 @@ COLORS = {"all": "#4c72b0", "professional": "#dd8452", "other": "#55a868"}
 def chart(s: dict, path) -> None:
     """Grouped bars in the paper's style: per criterion, the win rate of A for all raters, art professionals and
     others, with 95% Wilson intervals and the 50% line."""
+    # lazy: matplotlib is heavy and only the chart needs it
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..fileio import atomic_path
 
     study = s["study"]
     fig, ax = plt.subplots(figsize=(7.0, 3.8))

@@ -17,6 +17,8 @@ import torch
 
 from ..errors import InputError
 from ..fileio import write_bytes
+from ..renderer import render
+from ..types import Camera
 from . import metrics as M
 
 REFS_VERSION = 2  # bump when what the references contain changes: old cache entries are then ignored
@@ -43,16 +45,12 @@ class Refs:
 
 
 def scaled(cam, f: float):
-    from ..types import Camera
-
     return Camera(cam.world_to_camera, cam.fx * f, cam.fy * f, cam.cx * f, cam.cy * f, round(cam.width * f),
                   round(cam.height * f), cam.near, cam.far, name=cam.name)
 
 
 def render_views(g, cameras, background, device="cpu") -> list[dict]:
     """color [H,W,3], depth, alpha [H,W] numpy of ``g`` from each camera."""
-    from ..renderer import render
-
     g = g.to(device=device, dtype=torch.float32)
     out = []
     with torch.no_grad():
@@ -78,6 +76,7 @@ def content_key(scene, cameras, background, painting, photos, net, eval_height) 
 def common_field(net, base_color: np.ndarray, painting: np.ndarray, style_cells_field, style_feats) -> np.ndarray:
     """The painting's stroke field carried onto a view [H,W,2]: every relu3 cell of the UN-stylized render
     (RGB, x FIELD_SCALE) takes the doubled-angle vector of its nearest painting cell (cosine), upsampled."""
+    # lazy: imports Warp
     from ..losses.stroke_field import map_field_matched
     from ..losses.vgg import flatten_feats
 
@@ -92,6 +91,7 @@ def common_field(net, base_color: np.ndarray, painting: np.ndarray, style_cells_
 
 
 def _painting_side(net, painting: np.ndarray, eval_height: int, pretrained: bool) -> dict:
+    # lazy: imports Warp
     from ..losses.stroke_field import field_at_cells, stroke_field
     from ..losses.vgg import flatten_feats, resize_style
 
@@ -113,6 +113,7 @@ def build_references(scene, cameras, background, painting, photos, net, *, eval_
     """References of (scene, painting, views). ``net`` a VGG16Features; without pretrained weights the
     common field is not built (flow alignment is then not measured). ``log``: a line per stage."""
     log = log or (lambda msg: None)
+    # lazy: imports Warp
     from ..losses.color import color_transfer
 
     painting = np.ascontiguousarray(M._np(painting)[..., :3], np.float32)

@@ -7,9 +7,11 @@ import html
 import io
 import math
 
+import cv2
 import numpy as np
 
 from . import metrics as M
+from .pareto import pareto_front
 
 THUMB_W = 320  # px: strokes stay visible (small renders are enlarged with nearest neighbour)
 MAX_VIDEO_BYTES = 40 << 20  # larger orbit videos are linked instead of embedded
@@ -32,8 +34,6 @@ def png_uri(fig) -> str:
 
 
 def image_uri(img, width: int = THUMB_W) -> str:
-    import cv2
-
     a = np.clip(np.nan_to_num(np.asarray(img, np.float32)), 0, 1)
     h, w = a.shape[:2]
     interp = cv2.INTER_NEAREST if w < width else cv2.INTER_AREA
@@ -121,6 +121,7 @@ def _margins(fig) -> None:
 
 def _panels(keys, panel_height: float):
     """A figure with one panel per metric key, PANEL_COLS to a row: (fig, [(i, key, axes)])."""
+    # lazy: matplotlib is heavy and only the figure needs it
     from matplotlib.figure import Figure
 
     rows = math.ceil(len(keys) / PANEL_COLS)
@@ -169,8 +170,6 @@ def per_view_chart(names, per_views) -> str:
 
 def speed_chart(names, times, summaries) -> str:
     """Time on x, each measured metric on y (its interval as error bar), the Pareto front in red."""
-    from .pareto import pareto_front
-
     t = np.array([np.nan if x is None else x for x in times], np.float64)
     keys = _measured(summaries)
     if not keys or not np.isfinite(t).any():

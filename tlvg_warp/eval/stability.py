@@ -8,14 +8,21 @@ The pipeline is reached through :func:`stylize_scene` only (one switch point; be
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import time
 import traceback
 from dataclasses import dataclass, field
 
+import cv2
 import torch
 
+from ..io.demo import builtin_painting, demo_dataset
+from ..renderer import render
+from ..stylize import StylizeInputs, run_stylize
+from ..stylize.config import config_from_dict
 from ..types import Gaussians
+from . import quick as M
 
 HOLE_ALPHA = 0.5  # a pixel is covered at alpha >= 0.5 (same threshold as the consistency metric)
 
@@ -24,9 +31,6 @@ HOLE_ALPHA = 0.5  # a pixel is covered at alpha >= 0.5 (same threshold as the co
 def stylize_scene(gaussians, cameras, names, photos, style, background, overrides: dict, vgg=None):
     """Run the stylization pipeline in memory. Returns (stylized Gaussians, per-view target doubled fields
     [H,W,2] or None, the pipeline's metrics dict)."""
-    from ..stylize import StylizeInputs, run_stylize
-    from ..stylize.config import config_from_dict
-
     cfg = config_from_dict(overrides)  # dotted keys for sections (e.g. "lr.means")
     inp = StylizeInputs(gaussians, list(cameras), list(names), list(photos), style, tuple(background))
     res = run_stylize(inp, cfg, None, progress=False, vgg=vgg, quiet=True)
@@ -156,8 +160,6 @@ def _nan(b: Base) -> Base:
 
 
 def _resize(b: Base, w: int, h: int) -> Base:
-    import cv2
-
     cams = [dataclasses.replace(c, fx=c.fx * w / c.width, fy=c.fy * h / c.height, cx=c.cx * w / c.width,
                                 cy=c.cy * h / c.height, width=w, height=h) for c in b.cameras]
     interp = lambda p: cv2.INTER_AREA if w < p.shape[1] else cv2.INTER_LINEAR  # noqa: E731
@@ -188,8 +190,6 @@ def scenarios(quick_iters: int, long_iters: int = 10000) -> list[Scenario]:
 
 
 def demo_base(quick: bool, device: str, n_views=None, size=None, stride=None, iterations=None) -> Base:
-    from ..io.demo import builtin_painting, demo_dataset
-
     n_views = n_views or (4 if quick else 12)
     w, h = size or ((32, 24) if quick else (160, 120))
     ds = demo_dataset(n_views=n_views, width=w, height=h)
@@ -204,8 +204,6 @@ def demo_base(quick: bool, device: str, n_views=None, size=None, stride=None, it
 
 # ---------------------------------------------------------------- measuring one scenario
 def coverage(g: Gaussians, cameras, background) -> list[torch.Tensor]:
-    from ..renderer import render
-
     with torch.no_grad():
         return [render(g, c, background).alpha.detach().cpu() >= HOLE_ALPHA for c in cameras]
 
@@ -230,10 +228,6 @@ _FEATS: dict = {}
 
 def _style_feats(vgg, style):
     """The painting's VGG features, once per painting (they cost as much as a short run on CPU)."""
-    import hashlib
-
-    from . import quick as M
-
     key = (id(vgg), tuple(style.shape), hashlib.sha1(style.detach().cpu().numpy().tobytes()).hexdigest())
     if key not in _FEATS:
         _FEATS[key] = M.style_target_feats(vgg, style)
@@ -241,8 +235,6 @@ def _style_feats(vgg, style):
 
 
 def run_scenario(sc: Scenario, base: Base, vgg, device: str, vgg_metrics: bool = True) -> dict:
-    from . import quick as M
-
     row = {"scenario": sc.name, "what": sc.what, "finished": False, "error": None, "nan": None,
            "hole_fraction": None, "gaussians_in": None, "gaussians_out": None, "time_s": None}
     t0 = time.perf_counter()
@@ -277,6 +269,7 @@ def run_suite(quick: bool, device: str | None = None, only=None, vgg_weights="ra
               long_iters: int = 10000, base: Base | None = None, extra=(), vgg_metrics: bool = True) -> dict:
     """Run every scenario (the quick subset with ``quick``); ``base`` replaces the demo scene, ``extra`` adds
     scenarios. Never raises for a failing scenario: its row says finished False and the error."""
+    # lazy: imports Warp
     from ..losses.vgg import load_vgg
 
     dev = device or ("cuda" if torch.cuda.is_available() else "cpu")

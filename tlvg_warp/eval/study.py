@@ -26,13 +26,26 @@ from __future__ import annotations
 
 import csv
 import io
+import os
+import shutil
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import torch
+
+from ..config_io import read_yaml_mapping
+from ..distributed import Dist, local_only
 from ..errors import InputError
 from ..fileio import write_json, write_text
+from ..io import load_dataset
+from ..train.reconstruct import ReconstructConfig, fit_scene
+from . import judge
 from . import metrics as M
+from . import report as H
+from .engine import evaluate_runs, not_discriminating, report_html, winners
+from .refs import compare
 
 TOP_KEYS = {"out", "device", "iterations", "seeds", "vgg_weights", "eval_height", "max_views", "set", "configs",
             "ours", "baseline", "ablations", "scenes", "paintings", "judge"}
@@ -60,8 +73,6 @@ class Study:
 
 
 def load_study(path) -> Study:
-    from ..config_io import read_yaml_mapping
-
     path = Path(path)
     d = read_yaml_mapping(path, "study file")
     bad = sorted(set(d) - TOP_KEYS)
@@ -119,8 +130,6 @@ def only_configs(st: Study, names) -> Study:
 
 
 def resolve_device(dev: str) -> str:
-    import torch
-
     return ("cuda" if torch.cuda.is_available() else "cpu") if dev == "auto" else dev
 
 
@@ -134,9 +143,6 @@ def fit_scene_once(st: Study, name: str, log, device: str | None = None) -> Path
     if ply.is_file():
         log(f"scene {name}: fitted already ({ply})")
         return ply
-    from ..io import load_dataset
-    from ..train.reconstruct import ReconstructConfig, fit_scene
-
     ds = load_dataset(s["data"], downscale=s.get("downscale"))
     rc = ReconstructConfig(iterations=int(s.get("fit_iterations", 7000)), holdout_every=0,
                            device=device or resolve_device(st.device), save_renders=False)
@@ -181,6 +187,7 @@ def stylize_argv(st: Study, scene: str, ply, painting: str, config: str, seed: i
 def stylize_once(st: Study, scene: str, ply, painting: str, config: str, log, device: str | None = None,
                  seed: int = 0) -> str:
     """'skipped' (finished before), 'ran', or 'failed (rc)'."""
+    # lazy: the command line sits above this module (cli runs commands/study.py, which imports it)
     from ..cli import main
 
     d = run_dir(st, scene, painting, config, seed)
@@ -212,8 +219,6 @@ def pooled(per_lists: list) -> dict:
 def config_rows(names, per_views, times, counts, anchors: dict | None = None) -> tuple[list, dict, dict]:
     """(rows: one per config, then one per anchor with "anchor": True; winners; not-discriminating marks). A
     config wins a metric only where it also beats the anchor the metric exists to beat (evaluate's rule)."""
-    from .engine import not_discriminating, winners
-
     anchors = anchors or {}
     rows = []
     for n, pv, t, c in zip(names, per_views, times, counts):
@@ -225,8 +230,6 @@ def config_rows(names, per_views, times, counts, anchors: dict | None = None) ->
 
 
 def ablation_rows(st: Study, pooled_all: dict) -> list:
-    from .refs import compare
-
     out = []
     if st.ours not in pooled_all:
         return out
@@ -270,8 +273,6 @@ def job_queue(st: Study, dist, launch: str, kind: str, jobs: list):
     belongs to the rank that first creates its claim file (O_CREAT | O_EXCL, atomic on a local disk and on
     NFS v3+) in STUDY_OUT/.claims/<launch>/, so a rank that finishes early takes the next unclaimed job.
     Claims are per launch: a later launch (resume) claims every job anew and skips the finished ones."""
-    import os
-
     folder = st.out / ".claims" / launch
     folder.mkdir(parents=True, exist_ok=True)
     for key in jobs:
@@ -287,9 +288,6 @@ def job_queue(st: Study, dist, launch: str, kind: str, jobs: list):
 
 def new_launch_id(dist) -> str:
     """One id for the whole launch (the main rank's, broadcast): names this launch's claim folder."""
-    import os
-    import uuid
-
     mine = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}-{uuid.uuid4().hex[:8]}" if dist.is_main else None
     return dist.broadcast_object(mine)
 
@@ -299,10 +297,7 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
     first (a shared queue, then a barrier), then the stylizations (the same queue: one job per rank at a
     time), then the evaluations (one (scene, painting) per rank at a time); the main rank gathers every
     rank's results and writes the one table. Returns the result on the main rank, None on the others."""
-    import torch
-
-    from .engine import evaluate_runs, report_html
-    from ..distributed import Dist, local_only
+    # lazy: imports Warp
     from ..losses.vgg import load_vgg
 
     dist = dist or Dist()
@@ -399,8 +394,6 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
     write_json(st.out / "study.json", result)
     write_text(st.out / "study.csv", csv_text(tables, result["ablation"]))
     write_text(st.out / "study.html", study_html(result))
-    import shutil
-
     shutil.rmtree(st.out / ".claims" / launch, ignore_errors=True)
     dist.barrier()
     return result
@@ -413,8 +406,6 @@ def _mean(xs):
 
 def run_panel(st: Study, jc: dict, log) -> dict:
     """The VLM panel on ours vs baseline for every (scene, painting): {scene/painting: judge result}."""
-    from . import judge
-
     out = {}
     for s in st.scenes:
         for p in st.paintings:
@@ -432,8 +423,6 @@ def run_panel(st: Study, jc: dict, log) -> dict:
 def config_table_html(rows, winners, not_disc=None) -> str:
     """Table 1 of one scene: a row per config, then the anchors as grey reference rows; the winner's cell green;
     a metric whose anchor beats every config says so under the table."""
-    from . import report as H
-
     nd = not_disc or {}
     keys = [k for k in M.METRICS if any(k in r for r in rows)]
     head = "<tr><th class=l>config</th>" + "".join(
@@ -455,8 +444,6 @@ def config_table_html(rows, winners, not_disc=None) -> str:
 
 
 def ablation_html(rows, ours) -> str:
-    from . import report as H
-
     if not rows:
         return "<p class=small>no ablations</p>"
     keys = [k for k in M.METRICS if any(k in r for r in rows)]
@@ -481,9 +468,6 @@ def ablation_html(rows, ours) -> str:
 
 
 def judge_html(panel: dict) -> str:
-    from . import judge
-    from . import report as H
-
     parts = []
     for key, res in panel.items():
         parts.append(f"<h3>{H.esc(key)}</h3><pre>{H.esc(judge.format_table(res))}</pre>")
@@ -491,8 +475,6 @@ def judge_html(panel: dict) -> str:
 
 
 def study_html(res: dict) -> str:
-    from . import report as H
-
     iters = ("each config's own schedule" if res.get("iterations") is None
              else f"{res['iterations']} iterations per run")
     body = [f"<p>{H.esc(res['study'])}: {iters}, {res.get('seeds', 1)} seed(s) per config (intervals over seeds "

@@ -10,6 +10,7 @@ import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..errors import InputError
@@ -293,8 +294,6 @@ def undistortion(K, dist, width, height, tables=True):
     ``alpha=0`` in getOptimalNewCameraMatrix keeps only valid pixels (no black border), at the same size.
     Returns (new K [3,3] in COLMAP pixel convention, map_x [H,W] float32, map_y [H,W] float32); the
     maps are None when ``tables`` is False (they cost 8 bytes a pixel, so datasets build them per photo)."""
-    import cv2
-
     K_cv = _HALF @ K
     new_cv, _ = cv2.getOptimalNewCameraMatrix(K_cv, dist, (width, height), 0, (width, height))
     new_K = np.linalg.solve(_HALF, new_cv)
@@ -306,6 +305,4 @@ def undistortion(K, dist, width, height, tables=True):
 
 def undistort_image(img, map_x, map_y):
     """Resample ``img`` [H,W,C] through the tables from :func:`undistortion` (bilinear)."""
-    import cv2
-
     return cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -16,11 +16,14 @@ from __future__ import annotations
 import json
 import os
 import re
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
+from plyfile import PlyData
 
 from ..errors import InputError
 from ..types import Camera
@@ -67,8 +70,6 @@ class Dataset:
     def images(self) -> list:
         """Every view's ``image(i)``, decoded in a few threads (OpenCV releases the GIL: a stylization's setup
         read fern's 20 PNGs one by one); a bad file raises as ``image`` would, the first in view order."""
-        from concurrent.futures import ThreadPoolExecutor
-
         if not self.threaded:  # e.g. the demo's photos are renders: Warp launches are not thread-safe
             return [self.image(i) for i in range(len(self.cameras))]
         with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
@@ -160,8 +161,6 @@ def _finish(root, views, kind, downscale, split, holdout_every, background, poin
         remaps.append(remap)
 
     def load(i):
-        import cv2
-
         img = composite(read_image(views[i].path), background)  # [h, w, 3]
         h, w = img.shape[:2]
         if (w, h) != image_size(views[i].path):
@@ -387,8 +386,6 @@ def _inria_views(root, images):
         views.append(_View(name, path, w2c, K, (W, H), source=cj))
     points = None
     if (root / "input.ply").is_file():  # the trainer's copy of the SfM points
-        from plyfile import PlyData
-
         try:
             v = PlyData.read(str(root / "input.ply"))["vertex"]
             points = _points(np.stack([v["x"], v["y"], v["z"]], 1),

@@ -15,7 +15,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..renderer import render
 from ..types import SH_C0, Camera, Gaussians
+from .datasets import Dataset
+from .images import read_image
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
 DISC = 0.6  # in-plane scale / sample spacing: neighbouring discs overlap, no holes at 0.9 opacity
@@ -145,28 +148,17 @@ def orbit_cameras(n_views=24, width=160, height=120, radius=2.6, elevation=1.6, 
     return cams
 
 
-def _render_fn():
-    try:  # the public entry point (SPEC); the module was first written as renderer.py
-        from ..render import render
-    except ImportError:
-        from ..renderer import render
-    return render
-
-
 def demo_dataset(seed: int = 0, n_views: int = 24, width: int = 160, height: int = 120, split=None,
                  holdout_every: int = 8, background=DEMO_BACKGROUND, spacing: float = 1.0):
     """A Dataset (same interface as load_dataset's) whose photos are renders of :func:`demo_scene`.
 
     Extra attributes: ``gaussians`` (the scene itself) and ``background``. ``points`` are every 8th
     Gaussian's center and color, standing in for SfM points."""
-    from .datasets import Dataset
-
     g, cams = demo_scene(seed, n_views, width, height, spacing=spacing)
     names = [c.name for c in cams]
     keep = list(range(n_views))
     if split is not None:
         keep = [i for i in keep if (i % holdout_every == 0) == (split == "test")]
-    render = _render_fn()
     # render the photos where the work will run (a GPU-only Warp install cannot compile CPU kernels)
     g_dev = g.to("cuda") if torch.cuda.is_available() else g
 
@@ -184,6 +176,4 @@ def demo_dataset(seed: int = 0, n_views: int = 24, width: int = 160, height: int
 
 def builtin_painting() -> torch.Tensor:
     """Van Gogh's The Starry Night (1889, public domain), height 256: float32 [H, W, 3] RGB in [0, 1]."""
-    from .images import read_image
-
     return torch.from_numpy(read_image(ASSETS / "starry_night.jpg")[:, :, :3].copy())

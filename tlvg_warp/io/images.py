@@ -5,6 +5,7 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..errors import InputError, one_line
@@ -125,8 +126,6 @@ def read_image_fit(path: Path, max_side: int | None = None) -> tuple[np.ndarray,
     gray or color. PNG/JPEG files are checked (:func:`image_size`) before the decoder sees them. ``max_side``: a larger image is shrunk (area average) to
     fit it before it becomes float, so memory stays near the decoded file's own size (a large JPEG is decoded
     at 1/2, 1/4 or 1/8 scale by libjpeg itself)."""
-    import cv2
-
     path = Path(path)
     if not path.is_file():
         raise InputError("missing image file", path)

@@ -11,7 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..renderer import render
 from ..types import Camera, Gaussians
+from .datasets import read_inria_cameras
 
 ORBIT_VIEWS = 24  # one view every 15 degrees
 ORBIT_SIZE = (256, 192)  # width, height before config downscale
@@ -63,8 +65,6 @@ def orbit_cameras(g: Gaussians, n: int = ORBIT_VIEWS, width: int = ORBIT_SIZE[0]
 
 def cameras_from_json(path, width: int) -> SceneViews:
     """INRIA cameras.json (the 3DGS trainer's), each camera resized to ``width`` pixels wide."""
-    from .datasets import read_inria_cameras
-
     names, cams = read_inria_cameras(path)
     cams = [c.scaled(max(1e-9, c.width / width)) if c.width > width else c for c in cams]
     return SceneViews(cams, names, str(path))
@@ -82,8 +82,6 @@ def scene_views(g: Gaussians, cameras_json=None, downscale: float = 1.0) -> Scen
 
 def render_stand_in_photos(g: Gaussians, cameras: list, background) -> list:
     """The un-stylized scene rendered into each camera: [H, W, 3] float32 in [0, 1] per view."""
-    from ..renderer import render
-
     with torch.no_grad():
         return [render(g, c, background).color.clamp(0, 1).detach().cpu().float() for c in cameras]
 

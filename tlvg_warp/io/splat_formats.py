@@ -320,7 +320,7 @@ def _spz_read_v4(raw: bytes, path):
         raise InputError(f"truncated SPZ: streams need {end} bytes, the file has {len(raw)}", path)
     if end < len(raw):
         raise InputError(f"SPZ counts disagree: {len(raw) - end} bytes follow the last stream", path)
-    try:
+    try:  # lazy: only SPZ version 4 needs it, and a missing one is a one-line error
         import zstandard
     except ImportError as e:
         raise InputError("SPZ version 4 needs the 'zstandard' package (pip install zstandard)", path) from e
@@ -460,7 +460,7 @@ def save_spz(g: Gaussians, path, version: int = 3) -> None:
         payload = struct.pack("<IIIBBBB", SPZ_MAGIC, 3, n, deg, frac, 0, 0) + b"".join(sec)
         data = gzip.compress(payload, compresslevel=6, mtime=0)
     else:
-        import zstandard
+        import zstandard  # lazy: only version 4 needs it (as in _spz_read_v4)
 
         cz = zstandard.ZstdCompressor(level=SPZ_ZSTD_LEVEL)
         streams = [(cz.compress(s), len(s)) for s in sec if s]

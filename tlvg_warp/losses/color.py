@@ -6,6 +6,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..types import SH_C0
+from .lab_warp import LabChromaLossFn, chroma_stats_of, lab_ab_jacobian
+
 EIG_FLOOR = 1e-8  # ARF clamps covariance eigenvalues to [1e-8, 1e8]: a flat channel must not blow up
 
 
@@ -96,8 +99,6 @@ def lab_chroma_stats(img: torch.Tensor) -> torch.Tensor:
     """[4] = (μ_a, μ_b, σ_a, σ_b): mean and population standard deviation of Lab a, b over the pixels of an sRGB
     image [...,3] (no gradient). A view's constant target is summarized once: ``lab_chroma_loss(render,
     target_stats=lab_chroma_stats(target))``."""
-    from .lab_warp import chroma_stats_of, lab_ab_jacobian
-
     with torch.no_grad():
         return chroma_stats_of(lab_ab_jacobian(img))
 
@@ -112,8 +113,6 @@ def lab_chroma_loss(render: torch.Tensor, target: torch.Tensor | None = None, *,
     Two Warp kernels (kernels/lab.py, launched by losses/lab_warp.py: per-pixel Lab (a, b) with its Jacobian, and
     the backward through the statistics) and five small torch reductions: ~8 kernel launches per step where
     autograd through :func:`rgb_to_lab` took ~50 (the formulas are the same; tests/test_losses_color.py compares them)."""
-    from .lab_warp import LabChromaLossFn
-
     if target_stats is None:
         if target is None:
             raise ValueError("lab_chroma_loss needs target or target_stats")
@@ -136,8 +135,6 @@ def recolor_sh(sh: torch.Tensor, m: torch.Tensor, t: torch.Tensor) -> torch.Tens
     over background ``M·bg + t`` gives exactly ``M·render + t`` wherever no colour is clamped at 0. So
     the pre-process fit can start from the palette it fits to (every coefficient mixes channels by M; the DC
     term also takes the shift). ``sh`` [N,K,3] -> [N,K,3]."""
-    from ..types import SH_C0
-
     m = m.to(device=sh.device, dtype=torch.float64)
     t = t.to(device=sh.device, dtype=torch.float64)
     out = sh.double() @ m.T  # [N,K,3]

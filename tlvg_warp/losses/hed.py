@@ -77,7 +77,7 @@ def _keras_conv(f, group: str) -> tuple[np.ndarray, np.ndarray]:
 def convert_hed(path: Path) -> dict[str, torch.Tensor]:
     """Read the HED .h5 file into a torchvision-layout state dict: ``features.N.{weight,bias}`` for the
     13 convs (first layer folded to torchvision input) and ``hed.{0..5}.{weight,bias}`` for dsn1..5 and fuse."""
-    import h5py
+    import h5py  # lazy: only the one-time conversion of the downloaded weights reads it
 
     sd = {}
     try:
