@@ -67,6 +67,16 @@ case "${1:-tune}" in
       --montage "$OUT/tune4_$s.jpg" --view "${VIEW:-0}" "$@" 2>&1 | grep -v "^Module\|^Warp\|^open \|^orbit\|^\[evaluate" | tail -n 60
     done
     ;;
+  validate)  # tlvg and abcgs with the anchors on VALIDATE="scene:dataset:downscale:painting,painting ..."
+    for spec in ${VALIDATE:-lego:lego_blender:0:starry_night.jpg}; do
+      IFS=: read -r s d ds st <<< "$spec"
+      styles=$(echo "$st" | tr ',' '\n' | sed "s|^|$D/styles/|" | paste -sd, -)
+      timeout "${TUNE_LIMIT:-560}" python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
+        --styles "$styles" --out "$R/validate_$s" --variant "tlvg:" --variant "abcgs:config=configs/abcgs.yaml" \
+        --montage "$OUT/validate_$s.jpg" --view "${VIEW:-0}" 2>&1 | grep -v "^Module\|^Warp\|^open \|^orbit\|^\[evaluate" | grep -v "^/tmp\|^run /tmp"
+      (cd "$R" && tar -czf "$OUT/validate_$s.tgz" $(ls -d validate_$s/*/evaluation/evaluation.json validate_$s/*/*/metrics.json 2>/dev/null))
+    done
+    ;;
   study)  # the study: fern, beer, lego x the four paintings; abcgs and tlvg everywhere, the ablations on the
           # tuning pairs (fern x starry_night, shipwreck). STUDY_PART: abcgs | tlvg | eval
     P="$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg,$D/styles/starry_night_over_the_rhone.png,$D/styles/monet_san_giorgio.jpg"
