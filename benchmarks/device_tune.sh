@@ -14,6 +14,8 @@ fi
 [ -d .carry/data ] && cp -r .carry/data/* "$D/"
 [ -d .carry/data2 ] && cp -r .carry/data2/* "$D/"
 [ -d .carry/fits ] && cp .carry/fits/*.spz "$F/" 2>/dev/null
+[ -d .carry/fits2 ] && cp .carry/fits2/*.spz "$F/" 2>/dev/null
+[ -d .carry/styles ] && cp -r .carry/styles/* "$D/"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 date -u
 fit() {  # fit DATASET NAME: reconstruct (7000 iterations), then an SH-0 SPZ copy that comes back under $OUT
