@@ -17,6 +17,7 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
     """All differentiable-pipeline kernels for ``"float32"`` or ``"float64"``."""
     from . import binning
     from .blend import make_blend
+    from .camera import camera_struct
     from .flow import make_flow_terms
     from .projection import make_projection, module_name
     from .sh import make_sh
@@ -26,9 +27,10 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
         # CUDA fast math (approximate exp/div/sqrt, ~2 ulp, as gsplat builds with): float32 only, the float64
         # module stays the exact oracle; TLVG_WARP_FAST_MATH=0 turns it off. No effect on the CPU.
         wp.set_module_options({"fast_math": True}, module_name(scalar))
-    project, ewa_cov2d = make_projection(scalar)
-    sh_color, sh_backward, sh_coeff_grad = make_sh(scalar, module_name(scalar))
-    flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d)
+    camera = camera_struct(scalar_name)
+    project, ewa_cov2d = make_projection(scalar, camera)
+    sh_color, sh_backward, sh_coeff_grad = make_sh(scalar, module_name(scalar), camera)
+    flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d, camera)
     forward, backward = make_blend(scalar, module_name(scalar), BLEND_MIN_BLOCKS)
     return SimpleNamespace(
         scalar=scalar,
@@ -36,6 +38,7 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
         vec3=wp.types.vector(3, scalar),
         vec4=wp.types.vector(4, scalar),
         mat33=wp.types.matrix((3, 3), scalar),
+        camera=camera,  # the camera struct type the projection, SH and flow kernels take
         project=project,
         sh_color=sh_color,
         sh_backward=sh_backward,

@@ -14,16 +14,17 @@ import functools
 
 import warp as wp
 
+from .camera import camera_struct
 from .projection import EWA_BLUR
 
 ISO_EPS = 1e-12  # keeps an exactly isotropic footprint (no major axis) at a finite, zero-ish gradient
 
 
-def make_flow_terms(scalar, module: str, ewa_cov2d):
+def make_flow_terms(scalar, module: str, ewa_cov2d, camera_t):
+    """The energies kernel for ``scalar`` in ``module``; ``camera_t``: ``camera.camera_struct`` of that type."""
     vec2 = wp.types.vector(2, scalar)
     vec3 = wp.types.vector(3, scalar)
     vec4 = wp.types.vector(4, scalar)
-    mat33 = wp.types.matrix((3, 3), scalar)
 
     @wp.kernel(module=module)
     def flow_terms_kernel(
@@ -32,12 +33,7 @@ def make_flow_terms(scalar, module: str, ewa_cov2d):
         log_scales: wp.array(dtype=vec3),  # [N]
         target: wp.array(dtype=vec2),  # [N] (cos 2θ, sin 2θ) of the stroke direction at the Gaussian's center
         active: wp.array(dtype=wp.int32),  # [N] 1 where the term applies (visible, finite, coherent field)
-        R: mat33,
-        t: vec3,
-        fx: scalar,
-        fy: scalar,
-        width: int,
-        height: int,
+        cam: camera_t,
         align: wp.array(dtype=scalar),  # [N] out
         aniso: wp.array(dtype=scalar),  # [N] out
     ):
@@ -46,7 +42,7 @@ def make_flow_terms(scalar, module: str, ewa_cov2d):
             return
         ls = log_scales[i]
         s = vec3(wp.exp(ls[0]), wp.exp(ls[1]), wp.exp(ls[2]))
-        S2 = ewa_cov2d(R * means[i] + t, quats[i], s, R, fx, fy, width, height)
+        S2 = ewa_cov2d(cam.R * means[i] + cam.t, quats[i], s, cam.R, cam.fx, cam.fy, cam.width, cam.height)
         a = S2[0, 0] + scalar(EWA_BLUR)
         b = S2[0, 1]
         c = S2[1, 1] + scalar(EWA_BLUR)
@@ -74,7 +70,7 @@ def flow_targets_kernel(scalar_name: str):
     scalar = {"float32": wp.float32, "float64": wp.float64}[scalar_name]
     vec2 = wp.types.vector(2, scalar)
     vec3 = wp.types.vector(3, scalar)
-    mat33 = wp.types.matrix((3, 3), scalar)
+    camera_t = camera_struct(scalar_name)
 
     @wp.kernel(module=f"tlvg_flow_targets_{scalar_name}")
     def targets_kernel(
@@ -82,15 +78,7 @@ def flow_targets_kernel(scalar_name: str):
         log_scales: wp.array(dtype=vec3),  # [N]
         weights: wp.array(dtype=scalar),  # [N] Σ αT in this view
         field: wp.array3d(dtype=scalar),  # [Hf, Wf, >=2] doubled-angle field c·(cos 2θ, sin 2θ)
-        R: mat33,
-        t: vec3,
-        fx: scalar,
-        fy: scalar,
-        cx: scalar,
-        cy: scalar,
-        width: int,
-        height: int,
-        near: scalar,
+        cam: camera_t,
         coh_min: scalar,
         target: wp.array(dtype=vec2),  # [N] out: (cos 2θ, sin 2θ) at the projected center (0 where inactive)
         active: wp.array(dtype=wp.int32),  # [N] out
@@ -103,19 +91,19 @@ def flow_targets_kernel(scalar_name: str):
         mu = means[i]
         if not (wp.isfinite(mu) and wp.isfinite(log_scales[i])):
             return
-        p = R * mu + t
+        p = cam.R * mu + cam.t
         z = p[2]
-        if not (z > near):
+        if not (z > cam.near):
             return
-        u = fx * p[0] / z + cx
-        v = fy * p[1] / z + cy
-        if not (u >= scalar(0.0) and u < scalar(width) and v >= scalar(0.0) and v < scalar(height)):
+        u = cam.fx * p[0] / z + cam.cx
+        v = cam.fy * p[1] / z + cam.cy
+        if not (u >= scalar(0.0) and u < scalar(cam.width) and v >= scalar(0.0) and v < scalar(cam.height)):
             return
         # grid_sample(bilinear, align_corners=False, padding border) of the field at pixel (u, v) of the view
         hf = field.shape[0]
         wf = field.shape[1]
-        ix = wp.clamp(u * scalar(wf) / scalar(width) - scalar(0.5), scalar(0.0), scalar(wf - 1))
-        iy = wp.clamp(v * scalar(hf) / scalar(height) - scalar(0.5), scalar(0.0), scalar(hf - 1))
+        ix = wp.clamp(u * scalar(wf) / scalar(cam.width) - scalar(0.5), scalar(0.0), scalar(wf - 1))
+        iy = wp.clamp(v * scalar(hf) / scalar(cam.height) - scalar(0.5), scalar(0.0), scalar(hf - 1))
         x0 = int(wp.floor(ix))
         y0 = int(wp.floor(iy))
         ax = ix - scalar(x0)

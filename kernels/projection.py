@@ -22,7 +22,8 @@ def module_name(scalar) -> str:
     return f"tlvg_raster_{scalar.__name__}"
 
 
-def make_projection(scalar):
+def make_projection(scalar, camera_t):
+    """The projection kernel and ``ewa_cov2d`` for ``scalar``; ``camera_t``: ``camera.camera_struct`` of that type."""
     vec2 = wp.types.vector(2, scalar)
     vec3 = wp.types.vector(3, scalar)
     vec4 = wp.types.vector(4, scalar)
@@ -76,16 +77,7 @@ def make_projection(scalar):
         quats: wp.array(dtype=vec4),  # [N]
         log_scales: wp.array(dtype=vec3),  # [N]
         opacity_logits: wp.array(dtype=scalar),  # [N]
-        R: mat33,
-        t: vec3,
-        fx: scalar,
-        fy: scalar,
-        cx: scalar,
-        cy: scalar,
-        width: int,
-        height: int,
-        near: scalar,
-        far: scalar,
+        cam: camera_t,
         means2d: wp.array(dtype=vec2),  # [N] out
         conic: wp.array(dtype=vec3),  # [N] out (a, b, c) of Σ2D⁻¹, Σ2D = [[a, b], [b, c]]
         depth: wp.array(dtype=scalar),  # [N] out camera-space z
@@ -107,14 +99,14 @@ def make_projection(scalar):
         # one non-finite parameter culls only its own Gaussian (never NaN in the image or other gradients)
         if not (wp.isfinite(mu) and wp.isfinite(q) and wp.isfinite(ls) and wp.isfinite(ol)):
             return
-        p = R * mu + t
+        p = cam.R * mu + cam.t
         z = p[2]
-        if z <= near or z >= far:
+        if z <= cam.near or z >= cam.far:
             return
         s = vec3(wp.exp(ls[0]), wp.exp(ls[1]), wp.exp(ls[2]))
         if not wp.isfinite(s):
             return
-        S2 = ewa_cov2d(p, q, s, R, fx, fy, width, height)
+        S2 = ewa_cov2d(p, q, s, cam.R, cam.fx, cam.fy, cam.width, cam.height)
         a = S2[0, 0] + scalar(EWA_BLUR)
         b = S2[0, 1]
         c = S2[1, 1] + scalar(EWA_BLUR)
@@ -125,10 +117,11 @@ def make_projection(scalar):
         lam_max = mid + wp.sqrt(wp.max(mid * mid - det, scalar(0.0)))
         r = wp.ceil(scalar(SIGMA_CUTOFF) * wp.sqrt(lam_max))
         inv_z = scalar(1.0) / z
-        u = fx * p[0] * inv_z + cx
-        v = fy * p[1] * inv_z + cy
+        u = cam.fx * p[0] * inv_z + cam.cx
+        v = cam.fy * p[1] * inv_z + cam.cy
         # cull when the 3σ bounding box misses the image (pixel centers lie in [0.5, W-0.5])
-        if u + r <= scalar(0.0) or u - r >= scalar(width) or v + r <= scalar(0.0) or v - r >= scalar(height):
+        if (u + r <= scalar(0.0) or u - r >= scalar(cam.width) or v + r <= scalar(0.0)
+                or v - r >= scalar(cam.height)):
             return
         if r > scalar(1.0e7):  # a footprint this large is a degenerate Gaussian, not a splat
             return

@@ -6,7 +6,8 @@ import warp as wp
 from .projection import SH_C0, SH_C1, SH_C2, SH_C3
 
 
-def make_sh(scalar, mod: str):
+def make_sh(scalar, mod: str, camera_t):
+    """The SH kernels for ``scalar`` in module ``mod``; ``camera_t``: ``camera.camera_struct`` of that type."""
     vec3 = wp.types.vector(3, scalar)
     C20, C21, C22, C23, C24 = SH_C2  # kernels capture plain floats, not tuples
     C30, C31, C32, C33, C34, C35, C36 = SH_C3
@@ -74,7 +75,7 @@ def make_sh(scalar, mod: str):
     def sh_color_kernel(
         means: wp.array(dtype=vec3),  # [N]
         sh: wp.array3d(dtype=scalar),  # [N, K, 3]
-        cam_center: vec3,
+        cam: camera_t,
         n_coeffs: int,  # (degree + 1)² <= K
         color: wp.array(dtype=scalar),  # [3N] out max(SH(d) + 0.5, 0), flat (every Gaussian: culled ones are
         # never blended)
@@ -86,7 +87,7 @@ def make_sh(scalar, mod: str):
         tid = wp.tid()
         i = tid / 3
         c = tid - 3 * i
-        b = sh_basis_all(view_dir(means[i], cam_center))
+        b = sh_basis_all(view_dir(means[i], cam.center))
         v = scalar(0.5)
         for k in range(16):
             if k < n_coeffs:
@@ -131,7 +132,7 @@ def make_sh(scalar, mod: str):
     def sh_backward_kernel(
         means: wp.array(dtype=vec3),  # [N]
         sh: wp.array2d(dtype=vec3),  # [N, K]
-        cam_center: vec3,
+        cam: camera_t,
         sh_degree: int,
         g_color: wp.array(dtype=vec3),  # [N] dL/dcolor (exactly 0 for the Gaussians no pixel saw, culled ones too)
         g_rgb: wp.array(dtype=vec3),  # [N] out dL/d(SH sum) (0 when culled); may alias g_color
@@ -148,7 +149,7 @@ def make_sh(scalar, mod: str):
             g_means[i] = gc0
             return
         mu = means[i]
-        d = view_dir(mu, cam_center)
+        d = view_dir(mu, cam.center)
         rgb = eval_sh(sh, i, sh_degree, d) + vec3(scalar(0.5), scalar(0.5), scalar(0.5))
         # color = max(rgb, 0): the gradient passes where rgb > 0 (torch's clamp passes it at 0 too: measure zero)
         gc = vec3(wp.where(rgb[0] >= zero, gc0[0], zero), wp.where(rgb[1] >= zero, gc0[1], zero),
@@ -197,7 +198,7 @@ def make_sh(scalar, mod: str):
                            + w12 * (scalar(6.0) * zz - scalar(3.0) * xx - scalar(3.0) * yy)
                            + w13 * scalar(8.0) * x * z + w14 * (xx - yy))
             # through d = v/|v|: dd/dv = (I - d dᵀ)/|v|
-            n = wp.length(mu - cam_center)
+            n = wp.length(mu - cam.center)
             if n > zero:
                 gd = vec3(gx, gy, gz)
                 g_mean = (gd - dot3(gd, d) * d) / n
@@ -206,7 +207,7 @@ def make_sh(scalar, mod: str):
     @wp.kernel(enable_backward=False, module=mod)
     def sh_coeff_grad_kernel(
         means: wp.array(dtype=vec3),  # [N]
-        cam_center: vec3,
+        cam: camera_t,
         n_coeffs: int,  # (degree + 1)²
         g_rgb: wp.array(dtype=vec3),  # [N] from sh_backward_kernel
         g_sh: wp.array2d(dtype=vec3),  # [N, Kmax] out dL/d sh[i, k] = b_k(d_i) g_rgb[i] for k < n_coeffs
@@ -222,6 +223,6 @@ def make_sh(scalar, mod: str):
         if gr[0] == zero and gr[1] == zero and gr[2] == zero:  # as sh_backward: no 0 · NaN from a culled mean
             g_sh[i, k] = gr
             return
-        g_sh[i, k] = sh_basis(k, view_dir(means[i], cam_center)) * gr
+        g_sh[i, k] = sh_basis(k, view_dir(means[i], cam.center)) * gr
 
     return sh_color_kernel, sh_backward_kernel, sh_coeff_grad_kernel

@@ -264,7 +264,7 @@ def test_shade_op_matches_its_torch_twin():
     in float64, at the stored degree and a lower one (the higher coefficients get exactly zero). Gaussians whose
     colour gradient is zero (no pixel saw them; the kernels skip them) get zero gradients, even with a non-finite
     mean, which the twin turns into NaN."""
-    from tlvg_warp.ops import ShadeFn, camera_values
+    from tlvg_warp.ops import ShadeFn, camera_arg, kernels_for
     from tlvg_warp.reference import shade_reference
 
     g = random_scene(40, 3, seed=11)
@@ -273,7 +273,7 @@ def test_shade_op_matches_its_torch_twin():
     gen = torch.Generator().manual_seed(3)
     for degree in (3, 1):
         m1, s1, m2, s2 = (t.detach().clone().requires_grad_(True) for t in (g.means, g.sh, g.means, g.sh))
-        ours = ShadeFn.apply(m1, s1, camera_values(cam), degree)
+        ours = ShadeFn.apply(m1, s1, camera_arg(kernels_for(m1.dtype), cam), degree)
         ref = shade_reference(m2, s2, cam, degree)
         up = torch.randn(ref.shape, generator=gen, dtype=ref.dtype)
         up[::5] = 0.0  # rows 0, 5, 10, ...: unseen Gaussians, row 7 among the seen ones but NaN: zero it too
@@ -573,24 +573,27 @@ def test_fast_launch_reuses_its_launch_and_keeps_no_tensor_alive():
 
 
 def test_kept_camera_values_survive_later_launches():
-    """camera_args keeps its Warp values per camera, and fast_launch writes later calls' values into its recorded
+    """camera_arg keeps its camera struct per camera, and fast_launch writes later calls' values into its recorded
     launch's slots: the first call must copy value arguments, or the slot is the kept object and the next camera
     overwrites the first camera's values (renders of the first camera would then use the second's pose)."""
     from tlvg_warp import ops
-    from tlvg_warp.ops import camera_args, camera_values, kernels_for
+    from tlvg_warp.ops import camera_arg, camera_values, kernels_for
 
     ops._sites.clear()  # the first launches below record their sites (whatever ran earlier in this process)
     ops._values.clear()
     g = random_scene(20, seed=4)
     cam_a, cam_b = camera(), camera(width=40, height=30, eye=(1.5, -2.0, 0.5), fov=50.0)
     K = kernels_for(torch.float64)
-    fresh = camera_args(cam_a, K)  # built before any launch (kept from here on)
-    want = [bytes(v) for v in fresh[:2]]
+    fresh = camera_arg(K, cam_a)  # built before any launch (kept from here on)
+    want = bytes(fresh.__ctype__())
     for cam in (cam_a, cam_b, cam_a, cam_b):
         render(g, cam)
-    R, t, _ = camera_values(cam_a)
-    assert [bytes(v) for v in camera_args(cam_a, K)[:2]] == want
-    assert bytes(K.mat33(*[K.scalar(v) for row in R for v in row])) == want[0]
+    R, t, center = camera_values(cam_a)
+    assert camera_arg(K, cam_a) is fresh and bytes(fresh.__ctype__()) == want
+    assert bytes(fresh.R) == bytes(K.mat33(*[K.scalar(v) for row in R for v in row]))
+    assert list(fresh.t) == t and list(fresh.center) == center
+    assert (fresh.fx, fresh.fy, fresh.cx, fresh.cy, fresh.width, fresh.height, fresh.near, fresh.far) == (
+        cam_a.fx, cam_a.fy, cam_a.cx, cam_a.cy, cam_a.width, cam_a.height, cam_a.near, cam_a.far)
 
 
 def test_runtime_radix_sort_matches_warp_utils():

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 import warp as wp
 
 from .kernels.flow import flow_targets_kernel
-from .ops import camera_args, ct, fast_launch, input_ct, kernels_for, no_grad_args, to_warp, warp_on
+from .ops import camera_arg, ct, fast_launch, input_ct, kernels_for, no_grad_camera, to_warp, warp_on
 from .reference import project_reference
 from .types import Camera, Gaussians
 
@@ -53,12 +53,10 @@ class FlowTermsFn(torch.autograd.Function):
             ins = [to_warp(means, K.vec3, grads[0]), to_warp(quats, K.vec4, grads[1]),
                    to_warp(log_scales, K.vec3, grads[2]), to_warp(target, K.vec2),
                    wp.from_torch(active.to(torch.int32).contiguous())]
-            cargs = camera_args(cam, K)
             outs = [to_warp(align, K.scalar, torch.zeros_like(align)), to_warp(aniso, K.scalar, torch.zeros_like(aniso))]
             tape = wp.Tape()
             with tape:
-                wp.launch(K.flow_terms, dim=n, inputs=ins + [cargs[0], cargs[1], cargs[2], cargs[3], cam.width, cam.height],
-                          outputs=outs, device=wdev)
+                wp.launch(K.flow_terms, dim=n, inputs=ins + [camera_arg(K, cam)], outputs=outs, device=wdev)
         ctx.state = (tape, outs, grads, means.device)
         ctx.save_for_backward(means, quats, log_scales)  # autograd's in-place check on the inputs
         return align, aniso
@@ -101,11 +99,11 @@ class FlowEnergiesFn(torch.autograd.Function):
         fld = field if (field.dtype == dt and field.is_contiguous()) else field.to(dt).contiguous()
         wts = weights.detach()
         wts = wts if (wts.dtype == dt and wts.is_contiguous()) else wts.to(dt).contiguous()
-        cargs = camera_args(cam, K)
+        cam_arg = camera_arg(K, cam)
         args = [input_ct(means, K.vec3), input_ct(quats, K.vec4), input_ct(log_scales, K.vec3), ct(target, K.vec2),
-                ct(active), *cargs[:4], cam.width, cam.height]
+                ct(active), cam_arg]
         with warp_on(dev) as wdev:
-            fast_launch(T, n, [args[0], args[2], ct(wts), ct(fld), *cargs[:8], cargs[8], K.scalar(COHERENCE_MIN),
+            fast_launch(T, n, [args[0], args[2], ct(wts), ct(fld), cam_arg, K.scalar(COHERENCE_MIN),
                                args[3], args[4], ct(w)], wdev)
             fast_launch(K.flow_terms, n, args + [ct(e[0]), ct(e[1])], wdev)
         inv = w.sum().clamp_min(1e-12).reciprocal()
@@ -126,7 +124,7 @@ class FlowEnergiesFn(torch.autograd.Function):
         with warp_on(means.device) as wdev:
             fast_launch(K.flow_terms, n, args + [ct(e[0]), ct(e[1])], wdev,
                         adj_args=[ct(grads[0], K.vec3), ct(grads[1], K.vec4), ct(grads[2], K.vec3), None, None]
-                        + no_grad_args(args[5:]) + [ct(e[2]), ct(e[3])])  # no gradients for the camera
+                        + [no_grad_camera(K), ct(e[2]), ct(e[3])])  # no gradient for the camera
         return (*grads, None, None, None)
 
 

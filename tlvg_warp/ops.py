@@ -244,11 +244,14 @@ class _Site:
 
     __slots__ = ("launch", "dim", "kinds", "addrs", "sizes", "hook", "smem", "enqueue")
 
-    def __init__(self, launch, dim: int, adjoint: bool):
+    def __init__(self, launch, dim: int, adjoint: bool, values: list):
         self.launch, self.dim = launch, dim
         self.enqueue = None  # CUDA: Warp's runtime launch with this site's fixed arguments bound (_enqueue_of)
         params = launch.params  # [0] is the launch bounds; the slots are never replaced (written in place)
         self.kinds = [_slot_kind(p) for p in params]
+        for i, a in enumerate(values, 1):  # a struct value (the camera) is passed as its ctypes bytes
+            if wp.types.is_struct(a):
+                self.kinds[i] = _STRUCT
         self.addrs = [ctypes.addressof(p) for p in params]
         self.sizes = [ctypes.sizeof(p) for p in params]
         hooks = launch.hooks
@@ -262,7 +265,7 @@ def _slot_kind(p) -> int:
     return _SCALAR  # a ctypes scalar: its .value set
 
 
-_BYTES, _SCALAR = 1, 2
+_BYTES, _SCALAR, _STRUCT = 1, 2, 3
 _sites: dict = {}  # (kernel, device alias, block_dim, adjoint) -> _Site
 
 
@@ -287,7 +290,7 @@ def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, ad
         bare_adj = [_bare(a) if a is not None else _null_array() for a in adj_args] if adjoint else []
         launch = wp.launch(kernel, dim=dim, inputs=bare, adj_inputs=bare_adj, adjoint=adjoint, device=device,
                            block_dim=block_dim, record_tape=False, record_cmd=True)
-        site = _sites[key] = _Site(launch, dim, adjoint)
+        site = _sites[key] = _Site(launch, dim, adjoint, bare + bare_adj)
         launch.launch()
         return
     launch = site.launch
@@ -327,10 +330,13 @@ def _set_args(site: _Site, values, cuda: bool) -> list:
     params, kinds, keep = site.launch.params, site.kinds, []
     ptrs, addrs, sizes = site.launch.params_addr, site.addrs, site.sizes
     for i, a in enumerate(values, 1):
-        if kinds[i] == _SCALAR:
+        kind = kinds[i]
+        if kind == _SCALAR:
             params[i].value = a
         else:
-            if isinstance(a, wp.array):
+            if kind == _STRUCT:
+                a = a.__ctype__()  # the instance's own bytes (kept alive by the caller's reference to it)
+            elif isinstance(a, wp.array):
                 a = a.__ctype__()
                 keep.append(a)
             if cuda:
@@ -365,6 +371,10 @@ def _bare(a):
         return type(a).from_buffer_copy(a)  # the same descriptor without its tensor reference
     if isinstance(a, (ctypes.Array, ctypes.Structure)):  # a vector or matrix value: the recorded launch may keep the
         return type(a).from_buffer_copy(a)  # object itself as its parameter slot, which later calls overwrite
+    if wp.types.is_struct(a):  # a struct value (the camera): the same, its bytes are the launch's slot
+        copy = type(a)()
+        copy.assign(a)
+        return copy
     return a
 
 
@@ -523,23 +533,35 @@ def camera_values(cam: Camera):
     return R, t, center
 
 
-def camera_args(cam: Camera, K, values=None):
-    """(R, t, fx, fy, cx, cy, width, height, near, far) as kernel values (array reads would become atomics in
-    the adjoint); ``values``: ``camera_values(cam)`` when the caller already has them. Kept per camera (by value):
-    building Warp's matrix and vector values costs more host time than the launch that takes them."""
-    R, t, _ = values or camera_values(cam)
+def camera_arg(K, cam: Camera, values=None):
+    """The camera as the kernels' struct value (``K.camera``: rotation, translation, center, intrinsics, image size,
+    near and far planes), built once per render from ``camera_values(cam)`` (``values`` when the caller already has
+    them). Kept per camera (by value): building it costs more host time than the launches that take it."""
+    R, t, center = values or camera_values(cam)
+    key = ("camera", K.scalar, *R[0], *R[1], *R[2], *t, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height,
+           cam.near, cam.far)
+    return _kept(key, lambda: _camera_struct(K, cam, R, t, center))
+
+
+def _camera_struct(K, cam: Camera, R, t, center):
     s = K.scalar
-    key = (s, *R[0], *R[1], *R[2], *t, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near, cam.far)
-    return list(_kept(key, lambda: [K.mat33(*[s(v) for row in R for v in row]), K.vec3(*map(s, t)), s(cam.fx),
-                                    s(cam.fy), s(cam.cx), s(cam.cy), cam.width, cam.height, s(cam.near), s(cam.far)]))
+    c = K.camera()
+    c.R = K.mat33(*[s(v) for row in R for v in row])
+    c.t = K.vec3(*map(s, t))
+    c.center = K.vec3(*map(s, center))
+    c.fx, c.fy, c.cx, c.cy = s(cam.fx), s(cam.fy), s(cam.cx), s(cam.cy)
+    c.width, c.height = int(cam.width), int(cam.height)
+    c.near, c.far = s(cam.near), s(cam.far)
+    return c
 
 
-def no_grad_args(values) -> list:
-    """Zero adjoints for kernel values that get no gradient (the camera's): what a by-hand adjoint launch passes."""
-    return [0 if isinstance(a, int) else type(a)() for a in values]
+def no_grad_camera(K):
+    """A zero camera struct: the camera's adjoint argument in a by-hand adjoint launch (the camera gets no
+    gradient)."""
+    return _kept(("camera adjoint", K.scalar), K.camera)
 
 
-_values: dict = {}  # key -> a kernel value built from it (camera arguments, camera centers, backgrounds)
+_values: dict = {}  # key -> a kernel value built from it (camera structs, backgrounds)
 
 
 def _kept(key, make):
@@ -553,16 +575,11 @@ def _kept(key, make):
 
 
 def kernel_vec3(K, xyz):
-    """``K.vec3(*xyz)`` in K's scalar type, kept per value (the camera center, the background)."""
+    """``K.vec3(*xyz)`` in K's scalar type, kept per value (the background)."""
     return _kept((K.scalar, *xyz), lambda: K.vec3(*map(K.scalar, xyz)))
 
 
-def camera_center(K, values):
-    """The camera position of ``camera_values`` as a kernel value."""
-    return kernel_vec3(K, values[2])
-
-
-def project(K, args, colors: torch.Tensor, cam: Camera, cam_values, n: int, dtype, device) -> Projection:
+def project(K, args, colors: torch.Tensor, cam_arg, n: int, dtype, device) -> Projection:
     """Launch the projection into one uninitialized buffer (the kernel writes every output); the colors
     (``ShadeFn``'s output, ``args[4]``) pass through. The adjoint is launched by ``project_adjoint``."""
     buf = torch.empty(7 * n, dtype=dtype, device=device)
@@ -570,19 +587,18 @@ def project(K, args, colors: torch.Tensor, cam: Camera, cam_values, n: int, dtyp
     e = buf.element_size()
     outs = [ct_at(buf, 0, (n,), e, 2), ct_at(buf, 2 * n * e, (n,), e, 3), ct_at(buf, 5 * n * e, (n,), e),
             ct_at(buf, 6 * n * e, (n,), e), args[4], ct(radii)]
-    fast_launch(K.project, n, args[:4] + camera_args(cam, K, cam_values) + outs[:4] + outs[5:], wdevice(device))
+    fast_launch(K.project, n, args[:4] + [cam_arg] + outs[:4] + outs[5:], wdevice(device))
     return Projection(buf, radii, colors, outs, n)
 
 
-def project_adjoint(K, args, pouts, grads, out_grads, cam: Camera, cam_values, n: int, device):
+def project_adjoint(K, args, pouts, grads, out_grads, cam_arg, n: int, device):
     """The projection's Warp-generated adjoint: dL/d(screen mean, conic, depth, opacity) (``out_grads``,
     descriptors) -> ``grads`` of the four
     geometric inputs (accumulated). What wp.Tape would launch, with the gradient buffers passed as adjoint
     arguments: the forward descriptors carry no gradient pointers, so no output gradient is zeroed on the way (the
     screen-mean one stays dL/d(screen mean))."""
-    cam_args = camera_args(cam, K, cam_values)
-    fast_launch(K.project, n, args[:4] + cam_args + pouts[:4] + pouts[5:], wdevice(device),
-                adj_args=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))] + no_grad_args(cam_args)
+    fast_launch(K.project, n, args[:4] + [cam_arg] + pouts[:4] + pouts[5:], wdevice(device),
+                adj_args=[ct(g, a) for g, a in zip(grads, (K.vec3, K.vec4, K.vec3, None))] + [no_grad_camera(K)]
                 + list(out_grads) + [None])
 
 
@@ -742,16 +758,15 @@ class ShadeFn(torch.autograd.Function):
     dL/dmeans and the coefficient gradients (Warp's generated adjoint would add atomically per coefficient read)."""
 
     @staticmethod
-    def forward(ctx, means, sh, cam_values, degree: int):
+    def forward(ctx, means, sh, cam_arg, degree: int):
         K = kernels_for(means.dtype)
         device, n = means.device, means.shape[0]
         colors = torch.empty(n, 3, dtype=means.dtype, device=device)
-        center = camera_center(K, cam_values)
         with warp_on(device) as wdev:
-            fast_launch(K.sh_color, 3 * n, [input_ct(means, K.vec3), input_ct(sh, None), center, (degree + 1) ** 2,
+            fast_launch(K.sh_color, 3 * n, [input_ct(means, K.vec3), input_ct(sh, None), cam_arg, (degree + 1) ** 2,
                                             ct(colors.view(-1))], wdev)
         ctx.save_for_backward(means, sh)
-        ctx.center, ctx.degree = center, degree
+        ctx.cam_arg, ctx.degree = cam_arg, degree
         return colors
 
     @staticmethod
@@ -766,9 +781,9 @@ class ShadeFn(torch.autograd.Function):
         with warp_on(device) as wdev:
             m = input_ct(means, K.vec3)
             rgb = ct(g_rgb, K.vec3)
-            fast_launch(K.sh_backward, n, [m, input_ct(sh, K.vec3), ctx.center, ctx.degree,
+            fast_launch(K.sh_backward, n, [m, input_ct(sh, K.vec3), ctx.cam_arg, ctx.degree,
                                            ct(g_colors.contiguous(), K.vec3), rgb, ct(g_means, K.vec3)], wdev)
-            fast_launch(K.sh_coeff_grad, n * n_coeffs, [m, ctx.center, n_coeffs, rgb, ct(g_sh, K.vec3)], wdev)
+            fast_launch(K.sh_coeff_grad, n * n_coeffs, [m, ctx.cam_arg, n_coeffs, rgb, ct(g_sh, K.vec3)], wdev)
         return g_means, g_sh, None, None
 
 
@@ -785,17 +800,17 @@ class RasterizeFn(torch.autograd.Function):
     (retain_graph, gradcheck) rebuilds what the first freed (projection, binning) from the saved inputs."""
 
     @staticmethod
-    def forward(ctx, means, quats, log_scales, opacity_logits, colors, means2d_probe, cam, cam_values, settings):
+    def forward(ctx, means, quats, log_scales, opacity_logits, colors, means2d_probe, cam, cam_arg, settings):
         K = kernels_for(means.dtype)
         device, n = means.device, means.shape[0]
         with warp_on(device):
             args = [input_ct(t, ty) for t, ty in zip((means, quats, log_scales, opacity_logits),
                                                       (K.vec3, K.vec4, K.vec3, None))] + [ct(colors, K.vec3)]
-            pr = project(K, args, colors, cam, cam_values, n, means.dtype, device)
+            pr = project(K, args, colors, cam_arg, n, means.dtype, device)
             color, alpha, depth, weights, first = blend(
                 K, pr, count_intersections(K, pr, cam.width, cam.height, settings["all_tiles"]), cam, settings)
         ctx.state = {"proj": pr, "blend": first, "n": n, "dtype": means.dtype, "device": device, "args": args,
-                     "cam": cam, "cam_values": cam_values, "settings": settings}
+                     "cam": cam, "cam_arg": cam_arg, "settings": settings}
         # the inputs are read by the adjoints: saving them lets autograd refuse a backward after an in-place
         # change (torch's version counter) instead of returning stale gradients
         ctx.save_for_backward(means, quats, log_scales, opacity_logits, colors)
@@ -808,14 +823,14 @@ class RasterizeFn(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_color, g_alpha, g_depth, _g_radii, _g_weights):
         state = ctx.state
-        args, cam, cam_values, settings = (state[k] for k in ("args", "cam", "cam_values", "settings"))
+        args, cam, cam_arg, settings = (state[k] for k in ("args", "cam", "cam_arg", "settings"))
         n, dtype, device = state["n"], state["dtype"], state["device"]
         K = kernels_for(dtype)
         H, W = cam.height, cam.width
         with warp_on(device) as wdev:
             pr, st = state.pop("proj", None), state.pop("blend", None)
             if pr is None:  # a second backward through the same graph: the first freed the projection and binning
-                pr = project(K, args, ctx.saved_tensors[4], cam, cam_values, n, dtype, device)
+                pr = project(K, args, ctx.saved_tensors[4], cam_arg, n, dtype, device)
                 st = blend(K, pr, count_intersections(K, pr, W, H, settings["all_tiles"]), cam, settings)[4]
             # gradient buffers exist only from here on (fresh per call, so a second backward through the same
             # graph, e.g. gradcheck or retain_graph, never sees the first call's sums). What outlives this op (the
@@ -838,5 +853,5 @@ class RasterizeFn(torch.autograd.Function):
             grads = [kept_flat[5 * n:].view(n, 3)] + packed_zeros([t.shape for t in inputs[1:4]], dtype, device)
             project_adjoint(K, args, pouts, grads, (ct_at(kept_flat, 0, (n,), e, 2), ct_at(geo_flat, 0, (n,), e, 3),
                                                      ct_at(geo_flat, 4 * n * e, (n,), e),
-                                                     ct_at(geo_flat, 3 * n * e, (n,), e)), cam, cam_values, n, device)
+                                                     ct_at(geo_flat, 3 * n * e, (n,), e)), cam_arg, n, device)
         return (*grads, g_rgb, g_means2d, None, None, None)

@@ -66,7 +66,7 @@ def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None 
     all_tiles: bin every visible Gaussian into every tile (the brute-force check of the binning).
     depth: also blend the expected depth (default); False skips it (``RenderOutput.depth`` is None), which
     saves a little blending time when a caller reads only color and alpha."""
-    from .ops import RasterizeFn, ShadeFn, camera_values  # lazy: ops imports Warp, which this module does not need
+    from .ops import RasterizeFn, ShadeFn, camera_arg, kernels_for  # lazy: ops imports Warp, which this module does not need
 
     bg = check_inputs(g, cam, background)
     degree = g.sh_degree if sh_degree is None else int(sh_degree)
@@ -76,8 +76,8 @@ def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None 
     probe = _zero_pair(g.dtype, g.device).expand(g.num, 2).detach().requires_grad_(True)
     settings = {"background": bg, "weights": bool(return_weights), "all_tiles": bool(all_tiles),
                 "depth": bool(depth)}
-    cam_values = camera_values(cam)  # (R, t, center) as Python floats, read once for both ops
-    colors = ShadeFn.apply(g.means, g.sh, cam_values, degree)  # [N, 3]
+    cam_arg = camera_arg(kernels_for(g.dtype), cam)  # the kernels' camera struct, built once for both ops
+    colors = ShadeFn.apply(g.means, g.sh, cam_arg, degree)  # [N, 3]
     color, alpha, depth, radii, weights = RasterizeFn.apply(
-        g.means, g.quats, g.log_scales, g.opacity_logits, colors, probe, cam, cam_values, settings)
+        g.means, g.quats, g.log_scales, g.opacity_logits, colors, probe, cam, cam_arg, settings)
     return RenderOutput(color, alpha, depth, radii, probe, weights)
