@@ -76,12 +76,14 @@ def _view(run, vi):
 # --- each phase's terms ----------------------------------------------------------------------------------------
 def test_stylize_terms_against_closed_forms(demo):
     net = StubFeatures()
-    run, cfg, tg = _stylize_run(demo, net, **{"loss.w_style_color": 0.5, "loss.w_chroma_tv": 0.3})
+    run, cfg, tg = _stylize_run(demo, net, **{"loss.w_style_color": 0.5, "loss.w_chroma_tv": 0.3,
+                                              "loss.w_style_gram": 0.7, "loss.w_coverage": 0.9})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
         run.params.opacity_logits += 0.25
         run.params.log_scales -= 0.125
+        run.params.opacity_logits[::2] -= 3.0  # half of the splats fade: the coverage hinge is not zero
     net.calls.clear()
     view = _view(run, 2)
     terms = sty.terms(run, view)
@@ -106,8 +108,15 @@ def test_stylize_terms_against_closed_forms(demo):
     n = run.params.num
     chroma = img - y[..., None]
     chroma_tv = ((chroma[1:] - chroma[:-1]) ** 2).mean() + ((chroma[:, 1:] - chroma[:, :-1]) ** 2).mean()
-    want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv,
-            "opacity_reg": math.sqrt(n * 0.25 ** 2), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
+    a_y = pool(y[..., None].expand(-1, -1, 3))
+    s_y = tg.style_feats.double()
+    gram = (((a_y @ a_y.T) / a_y.shape[1] - (s_y @ s_y.T) / s_y.shape[1]) ** 2).mean()
+    hinge = (ro0.alpha.double().clamp(0, 1) - view.out.alpha.detach().double()).clamp_min(0).mean()
+    assert float(hinge) > 1e-3
+    opac = torch.full((run.params.num,), 0.25 ** 2, dtype=torch.float64)
+    opac[::2] = (0.25 - 3.0) ** 2
+    want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "style_gram": gram,
+            "coverage": hinge, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k
     assert all(torch.isfinite(t) and t.requires_grad for t in terms.values())

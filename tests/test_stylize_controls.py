@@ -192,3 +192,15 @@ def test_gram_term_is_logged_and_switched_by_its_weight():
     assert all(v in (None, 0, 0.0) for v in seen[0.0])
     vals = [v for v in seen[2.0] if v is not None]
     assert vals and all(math.isfinite(v) and v > 0 for v in vals)
+
+
+def test_coverage_loss_is_a_hinge_on_lost_alpha():
+    """Only alpha below the un-stylized scene's costs; covering more is free (closed form on a known pattern)."""
+    from tlvg_warp.stylize.pipeline import coverage_loss
+
+    cov = torch.tensor([[1.0, 1.0], [0.0, 0.5]])[..., None]
+    alpha = torch.tensor([[0.25, 1.0], [1.0, 0.5]], requires_grad=True)
+    loss = coverage_loss(alpha, cov)
+    assert float(loss) == pytest.approx(0.75 / 4)
+    loss.backward()
+    assert alpha.grad.tolist() == [[-0.25, 0.0], [0.0, 0.0]]

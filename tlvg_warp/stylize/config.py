@@ -33,6 +33,7 @@ class StyleLoss:
     w_depth: float = 0.01  # MSE of inverse depth vs the un-stylized scene (reference code)
     w_tv: float = 0.02  # total variation of the render, horizontal + vertical (reference code, corrected)
     w_chroma_tv: float = 0.0  # TV of the render's chroma (RGB minus luminance): clean colour patches (ours; 0: off)
+    w_coverage: float = 0.0  # hinge on the render's alpha below the un-stylized scene's: no holes open (ours; 0: off)
     w_opacity_reg: float = 1.0  # ||opacity_logits - value at stylize start||_2 (reference code)
     w_scale_reg: float = 1.0  # ||log_scales - value at stylize start||_2 (reference code)
     w_lab_start: float = 0.2  # Lab chroma statistics weight at the first stylize step (paper, linear schedule)
@@ -47,7 +48,8 @@ class StyleLoss:
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0),
-             **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_content", "w_depth", "w_tv",
+             **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_coverage",
+                                       "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}
 

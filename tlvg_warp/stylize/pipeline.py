@@ -53,8 +53,8 @@ from ..types import Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "opacity_reg", "scale_reg", "lab",
-                 "align", "aniso")
+STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "coverage", "opacity_reg",
+                 "scale_reg", "lab", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
 REFINE_UNCAPPED = 2.0  # the refinement's Gaussian count limit (x the input) when density control has no budget
@@ -110,6 +110,12 @@ def chroma_tv_loss(img: torch.Tensor) -> torch.Tensor:
     from ..losses import luminance
 
     return tv_loss(img - luminance(img))
+
+
+def coverage_loss(alpha: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
+    """Mean over pixels of how far the render's alpha [H,W] falls below the un-stylized scene's [H,W,1]: a hinge, so
+    only holes cost, never a splat that covers more."""
+    return torch.relu(coverage[..., 0] - alpha).mean()
 
 
 def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
@@ -222,7 +228,7 @@ class Stylize(Phase):
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
                       "style_gram": w.w_style_gram * w.strength,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
-                      "chroma_tv": w.w_chroma_tv,
+                      "chroma_tv": w.w_chroma_tv, "coverage": w.w_coverage,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
                       "aniso": w.w_aniso}
         # a term weighted 0 over the whole phase is not computed at all
@@ -293,6 +299,8 @@ class Stylize(Phase):
             terms["tv"] = tv_loss(img)
         if on["chroma_tv"]:
             terms["chroma_tv"] = chroma_tv_loss(img)
+        if on["coverage"]:
+            terms["coverage"] = coverage_loss(view.out.alpha, tg.coverage[vi])
         if on["opacity_reg"]:
             terms["opacity_reg"] = anchor_norm(p.opacity_logits, anchors["opacity_logits"])
         if on["scale_reg"]:
@@ -487,5 +495,5 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
 
 
 __all__ = ["StylizeInputs", "StylizeResult", "StylizeDiverged", "Stylize", "Targets", "prepare", "build_run",
-           "run_stylize", "load_checkpoint", "tv_loss", "inverse_depth", "anchor_norm", "flow_field_tensor",
+           "run_stylize", "load_checkpoint", "tv_loss", "coverage_loss", "inverse_depth", "anchor_norm", "flow_field_tensor",
            "LOG_TERMS", "STYLIZE_TERMS", "PHASES"]
