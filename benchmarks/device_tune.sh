@@ -53,7 +53,7 @@ case "${1:-tune}" in
       --styles "${STYLES:-$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg}" --out "$R/tune" "${V[@]}" "$@" 2>&1 \
       | grep -v "^Module\|^Warp" | tail -n 80
     ;;
-  tune4)  # round 4 (ROUND=5: the style term; ROUND=6: the Gram term), the stroke-size refinement: TUNE_SCENE=name:dataset:downscale x (starry_night, shipwreck)
+  tune4)  # round 4 (ROUND=5: the style term; ROUND=6: the Gram term; ROUND=7: the coverage hinge), the stroke-size refinement: TUNE_SCENE=name:dataset:downscale x (starry_night, shipwreck)
     shift
     for spec in ${TUNE_SCENE:-beer:beer_colmap:2}; do
     IFS=: read -r s d ds <<< "$spec"
@@ -64,8 +64,9 @@ case "${1:-tune}" in
        --variant "s2:refine_radius=8;loss.strength=2" --variant "vgg1:refine_radius=8;vgg_scale=1.0")
     [ "${ROUND:-4}" = 6 ] && V=(--variant "ref8:refine_radius=8" --variant "g05:refine_radius=8;loss.w_style_gram=0.5"
        --variant "g15:refine_radius=8;loss.w_style_gram=1.5")
+    [ "${ROUND:-4}" = 7 ] && V=(--variant "tlvg:" --variant "cov1:loss.w_coverage=1" --variant "cov10:loss.w_coverage=10")
     timeout "${TUNE_LIMIT:-540}" python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
-      --styles "$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg" --out "$R/tune4_$s" "${V[@]}" \
+      --styles "${TUNE_STYLES:-$D/styles/starry_night.jpg,$D/styles/shipwreck.jpg}" --out "$R/tune4_$s" "${V[@]}" \
       --montage "$OUT/tune4_$s.jpg" --view "${VIEW:-0}" "$@" 2>&1 | grep -v "^Module\|^Warp\|^open \|^orbit\|^\[evaluate" | tail -n 60
     done
     ;;
