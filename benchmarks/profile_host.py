@@ -12,7 +12,8 @@ import time
 
 import torch
 
-import tlvg_warp.ops as ops
+import tlvg_warp.autograd as autograd
+import tlvg_warp.raster as raster
 import tlvg_warp.renderer as renderer
 from tlvg_warp.eval import bench_raster as br
 
@@ -48,11 +49,14 @@ def wrap(mod, name, label=None):
     setattr(mod, name, wrapped)
 
 
-wrap(ops, "fast_launch", lambda a: f"launch {a[0].key[:36]}")
-wrap(ops, "sort_pairs_at", lambda a: f"sort {a[4]}")
-for name in ("project", "count_intersections", "bin_tiles", "blend", "project_adjoint"):
-    wrap(ops, name)
-for fn in (ops.ShadeFn, ops.RasterizeFn):  # the two autograd ops, forward and backward
+# each name is wrapped where its callers look it up (the stages call launches, the autograd ops call stages)
+for mod in (raster, autograd):
+    wrap(mod, "fast_launch", lambda a: f"launch {a[0].key[:36]}")
+wrap(raster, "sort_pairs_at", lambda a: f"sort {a[4]}")
+wrap(raster, "bin_tiles")
+for name in ("project", "count_intersections", "blend", "project_adjoint"):
+    wrap(autograd, name)
+for fn in (autograd.ShadeFn, autograd.RasterizeFn):  # the two autograd ops, forward and backward
     for phase in ("forward", "backward"):
         wrap(fn, phase, (lambda t: lambda a: t)(f"{fn.__name__}.{phase}"))
 wrap(renderer, "check_inputs")

@@ -1,5 +1,6 @@
-"""Warp kernels only (installed as ``tlvg_warp.kernels``); the ops that bridge them to torch live in
-tlvg_warp.ops. Kernels of one scalar type share one Warp module, built once per process."""
+"""Warp kernels only (installed as ``tlvg_warp.kernels``); the torch side that launches them lives in
+tlvg_warp.launch, tlvg_warp.raster and tlvg_warp.autograd. Kernels of one scalar type share one Warp module, built
+once per process."""
 import functools
 import os
 from types import SimpleNamespace

@@ -10,7 +10,7 @@ import torch
 from tlvg_warp.eval import bench_raster as br
 from tlvg_warp.io.ply import save_ply
 from tlvg_warp.kernels.blend import ALPHA_MAX, ALPHA_MIN, T_MIN
-from tlvg_warp.ops import capture_binning
+from tlvg_warp.raster import capture_binning
 
 from _io_helpers import write_png
 from test_raster import fitted_like_scene, reference_tile_pairs

@@ -123,15 +123,15 @@ def test_binned_equals_brute_force():
 def test_int64_scan_of_the_key_ends_equals_the_int32_one(monkeypatch):
     """Scenes whose total could pass int32 (N x tiles >= 2**31) scan the key ends in int64 before checking the
     total: forced here (the bound lowered to 0), the image, the gradients and the binning equal the int32 scan's."""
-    import tlvg_warp.ops as ops
+    import tlvg_warp.raster as raster
 
     g = random_scene(300, 1, seed=12)
     cam = camera(45, 29)
     runs = []
     for limit in (2**31, 0):
-        monkeypatch.setattr(ops, "SCAN_INT32_LIMIT", limit)
+        monkeypatch.setattr(raster, "SCAN_INT32_LIMIT", limit)
         gl = leafs(g)
-        with ops.capture_binning() as cap:
+        with raster.capture_binning() as cap:
             out = render(gl, cam)
         ups = upstream(out)
         runs.append((out, loss_grads(gl, out, ups), cap["total"], cap["ids"].clone()))
@@ -244,27 +244,29 @@ def test_screen_space_gradient_is_mean2d_gradient():
 
 
 def test_input_descriptors_follow_the_requested_layout():
-    """ops.input_ct keeps one descriptor per tensor and layout: the shading forward reads the SH coefficients as
+    """launch.input_ct keeps one descriptor per tensor and layout: the shading forward reads the SH coefficients as
     [N, K, 3] scalars, its backward as [N, K] vec3s. One entry per tensor would hand the later reader the first
     one's layout (a [N, K] vec3 descriptor read as [N, K, 3] has channel stride 0: every channel reads red)."""
-    from tlvg_warp import ops
+    from tlvg_warp import launch
 
-    K = ops.kernels_for(torch.float32)
+    K = launch.kernels_for(torch.float32)
     for first, second in ((K.vec3, None), (None, K.vec3)):
         sh = torch.randn(5, 4, 3)
-        got = {id(first): ops.input_ct(sh, first), id(second): ops.input_ct(sh, second)}
+        got = {id(first): launch.input_ct(sh, first), id(second): launch.input_ct(sh, second)}
         vec, flat = got[id(K.vec3)], got[id(None)]
         assert (vec.ndim, tuple(vec.shape)[:2], tuple(vec.strides)[:2]) == (2, (5, 4), (48, 12))
         assert (flat.ndim, tuple(flat.shape)[:3], tuple(flat.strides)[:3]) == (3, (5, 4, 3), (48, 12, 4))
-        assert ops.input_ct(sh, first) is got[id(first)]  # both stay cached
+        assert launch.input_ct(sh, first) is got[id(first)]  # both stay cached
 
 
 def test_shade_op_matches_its_torch_twin():
-    """The SH stage is its own autograd op (ops.ShadeFn): colours and both gradients against reference.shade_reference
+    """The SH stage is its own autograd op (autograd.ShadeFn): colours and both gradients against reference.shade_reference
     in float64, at the stored degree and a lower one (the higher coefficients get exactly zero). Gaussians whose
     colour gradient is zero (no pixel saw them; the kernels skip them) get zero gradients, even with a non-finite
     mean, which the twin turns into NaN."""
-    from tlvg_warp.ops import ShadeFn, camera_arg, kernels_for
+    from tlvg_warp.autograd import ShadeFn
+    from tlvg_warp.launch import kernels_for
+    from tlvg_warp.raster import camera_arg
     from tlvg_warp.reference import shade_reference
 
     g = random_scene(40, 3, seed=11)
@@ -344,28 +346,6 @@ def test_bad_input_is_a_clear_error():
     for bad in ((0.0, float("nan"), 0.0), torch.tensor([0.0, float("inf"), 0.0])):  # floats and a tensor
         with pytest.raises(InputError, match="background"):
             render(g, camera(), background=bad)
-
-
-def test_private_warp_array_descriptor_is_still_what_from_torch_builds():
-    """ops.ct builds Warp's private array_t itself (speed): fail here, by name, if Warp moves or changes it."""
-    import warp as wp
-
-    from tlvg_warp.ops import ct, warp_array_ctype
-
-    base = torch.arange(48, dtype=torch.float32)
-    # ct caches one template per layout: the same layouts come twice over other storage, and must still carry each
-    # tensor's own data pointer; a strided view and int32 / float64 tensors check the strides and element sizes
-    cases = [(base[:12].reshape(4, 3), wp.vec3), (base[12:24].reshape(4, 3), wp.vec3), (base[:12], None),
-             (base[24:36], None), (base.reshape(6, 8)[:, ::2], None), (base.reshape(8, 6).T, None),
-             (torch.arange(10, dtype=torch.int32), None), (torch.zeros(5, 2, dtype=torch.float64), wp.vec2d)]
-    for t, dtype in cases:
-        ref = wp.from_torch(t, dtype=dtype, return_ctype=True)
-        assert type(ref) is warp_array_ctype()
-        ours = ct(t, dtype)
-        for f in ("data", "grad", "ndim"):
-            assert getattr(ours, f) == getattr(ref, f), (f, t.shape, t.stride())
-        assert tuple(ours.shape)[:ours.ndim] == tuple(ref.shape)[:ref.ndim]
-        assert tuple(ours.strides)[:ours.ndim] == tuple(ref.strides)[:ref.ndim]
 
 
 def test_backward_after_an_in_place_change_is_refused():
@@ -459,7 +439,7 @@ def binned_pairs(cap):
 
 
 def check_fitted_binning(device, dtype, **scene):
-    from tlvg_warp.ops import capture_binning
+    from tlvg_warp.raster import capture_binning
 
     g = fitted_like_scene(dtype=torch.float64, **scene).to(device=device, dtype=dtype)
     cam = camera(200, 152, fov=55.0)  # 13 x 10 tiles, the last row and column narrower
@@ -547,7 +527,7 @@ def test_a_loss_on_one_output_has_the_reference_gradients(output):
 
 
 def test_fast_launch_reuses_its_launch_and_keeps_no_tensor_alive():
-    """ops.fast_launch records one wp.Launch per kernel and resets its parameters per call (no per-call packing):
+    """launch.fast_launch records one wp.Launch per kernel and resets its parameters per call (no per-call packing):
     each call must see its own arguments, and the recorded launch must not keep the last call's tensors alive."""
     import gc
     import weakref
@@ -555,7 +535,7 @@ def test_fast_launch_reuses_its_launch_and_keeps_no_tensor_alive():
     import warp as wp
 
     from tlvg_warp.kernels.binning import tile_ranges_kernel
-    from tlvg_warp.ops import ct, fast_launch
+    from tlvg_warp.launch import ct, fast_launch
 
     wp.init()
     for keys in ([0, 0, 2, 2, 2], [1, 1, 1]):  # sorted tile ids of two "renders"
@@ -576,11 +556,12 @@ def test_kept_camera_values_survive_later_launches():
     """camera_arg keeps its camera struct per camera, and fast_launch writes later calls' values into its recorded
     launch's slots: the first call must copy value arguments, or the slot is the kept object and the next camera
     overwrites the first camera's values (renders of the first camera would then use the second's pose)."""
-    from tlvg_warp import ops
-    from tlvg_warp.ops import camera_arg, camera_values, kernels_for
+    from tlvg_warp import launch, raster
+    from tlvg_warp.launch import kernels_for
+    from tlvg_warp.raster import camera_arg, camera_values
 
-    ops._sites.clear()  # the first launches below record their sites (whatever ran earlier in this process)
-    ops._values.clear()
+    launch._sites.clear()  # the first launches below record their sites (whatever ran earlier in this process)
+    raster._values.clear()
     g = random_scene(20, seed=4)
     cam_a, cam_b = camera(), camera(width=40, height=30, eye=(1.5, -2.0, 0.5), fov=50.0)
     K = kernels_for(torch.float64)
@@ -597,10 +578,10 @@ def test_kept_camera_values_survive_later_launches():
 
 
 def test_runtime_radix_sort_matches_warp_utils():
-    """ops.sort_pairs calls Warp's runtime sort directly (private API, checked here by name against wp.utils)."""
+    """launch.sort_pairs calls Warp's runtime sort directly (private API, checked here against wp.utils)."""
     import warp as wp
 
-    from tlvg_warp.ops import _runtime_sort, sort_pairs
+    from tlvg_warp.launch import _runtime_sort, sort_pairs
 
     assert _runtime_sort("float", "host") is not None and _runtime_sort("int", "host") is not None
     gen = torch.Generator().manual_seed(0)

@@ -91,13 +91,13 @@ def test_cuda_without_depth_same_image_and_gradients(dtype):
 
 
 def test_cuda_render_on_a_side_stream_and_warp_state_restored():
-    """ops.warp_on runs the launches on torch's current stream and skips the CUDA context push when the context is
+    """launch.warp_on runs the launches on torch's current stream and skips the CUDA context push when the context is
     already current: a render on a side stream (forward and backward there) equals one on the default stream, the
     default stream's next render is right again (the stream switched back), and Warp's default device and the
     thread's CUDA context are what they were before each render."""
     import warp as wp
 
-    from tlvg_warp.ops import _runtime
+    from tlvg_warp.launch import _runtime
 
     g = random_scene(500, 2, seed=5).to("cuda")
     cam = camera(64, 48)

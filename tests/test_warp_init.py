@@ -21,9 +21,9 @@ def _stderr_of(code: str) -> str:
 def test_no_driver_warning_from_init_warp():
     """Without a loadable driver, a bare wp.init() prints Warp's warning (the oracle: the thing to hide is there)
     while init_warp() prints nothing about it; with a driver neither prints it."""
-    from tlvg_warp.ops import NO_DRIVER, cuda_driver_present
+    from tlvg_warp.launch import NO_DRIVER, cuda_driver_present
 
-    ours = _stderr_of("from tlvg_warp.ops import init_warp; init_warp()")
+    ours = _stderr_of("from tlvg_warp.launch import init_warp; init_warp()")
     assert NO_DRIVER not in ours
     if cuda_driver_present():
         pytest.skip("this machine has a CUDA driver: Warp prints no driver warning to hide")
@@ -33,7 +33,7 @@ def test_no_driver_warning_from_init_warp():
 
 def test_without_lines_drops_only_the_named_line(capfd):
     """C-level writes to descriptor 2 are captured; lines with the text are dropped, the others passed on."""
-    from tlvg_warp.ops import without_lines
+    from tlvg_warp.launch import without_lines
 
     def noisy():
         os.write(2, b"Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU off.\n")

@@ -11,7 +11,8 @@ import torch.nn.functional as F
 import warp as wp
 
 from .kernels.flow import flow_targets_kernel
-from .ops import camera_arg, ct, fast_launch, input_ct, kernels_for, no_grad_camera, to_warp, warp_on
+from .launch import ct, fast_launch, input_ct, kernels_for, to_warp, warp_on
+from .raster import camera_arg, no_grad_camera
 from .reference import project_reference
 from .types import Camera, Gaussians
 
@@ -84,7 +85,7 @@ class FlowEnergiesFn(torch.autograd.Function):
     """(means, quats, log_scales) -> (alignment, anisotropy) energies [2] of one view: Σ w_i e_i / Σ w_i with the
     targets and weights w_i = coherence x blend weight from the targets kernel (no gradient), e_i from the
     energies kernel. Backward: ∂E/∂e_i = g·w_i/Σw, then the energies kernel's Warp-generated adjoint, launched by
-    hand with torch-allocated gradient buffers (as ``ops.project_adjoint``): no wp.Tape and no wp.array per call
+    hand with torch-allocated gradient buffers (as ``raster.project_adjoint``): no wp.Tape and no wp.array per call
     (a fern stylize step spent ~1 ms of host time building them)."""
 
     @staticmethod

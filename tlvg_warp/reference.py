@@ -12,7 +12,7 @@ import torch
 from .kernels.blend import ALPHA_MAX, ALPHA_MIN, T_MIN
 from .kernels.binning import TILE
 from .kernels.projection import EWA_BLUR, FOV_CLAMP, SH_C0, SH_C1, SH_C2, SH_C3, SIGMA_CUTOFF
-from .ops import Projected
+from .raster import Projected
 from .renderer import RenderOutput, check_inputs
 from .types import Camera, Gaussians
 
@@ -46,7 +46,7 @@ def sh_basis(d: torch.Tensor, degree: int) -> torch.Tensor:  # [N, 3] unit dirs 
 
 
 def shade_reference(means: torch.Tensor, sh: torch.Tensor, cam: Camera, degree: int) -> torch.Tensor:
-    """ops.ShadeFn's twin: max(SH up to ``degree`` (unit direction from the camera center) + 0.5, 0).  # [N, 3]"""
+    """autograd.ShadeFn's twin: max(SH up to ``degree`` (unit direction from the camera center) + 0.5, 0).  # [N, 3]"""
     dirs = means - cam.center.to(means.dtype).to(means.device)
     dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-30)
     k = (degree + 1) ** 2

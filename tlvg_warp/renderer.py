@@ -66,7 +66,10 @@ def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None 
     all_tiles: bin every visible Gaussian into every tile (the brute-force check of the binning).
     depth: also blend the expected depth (default); False skips it (``RenderOutput.depth`` is None), which
     saves a little blending time when a caller reads only color and alpha."""
-    from .ops import RasterizeFn, ShadeFn, camera_arg, kernels_for  # lazy: ops imports Warp, which this module does not need
+    # lazy: these import Warp, which this module does not need
+    from .autograd import RasterizeFn, ShadeFn
+    from .launch import kernels_for
+    from .raster import camera_arg
 
     bg = check_inputs(g, cam, background)
     degree = g.sh_degree if sh_degree is None else int(sh_degree)

@@ -260,7 +260,7 @@ def warm_step(peer: str, n: int, device, warmup: int = 5):
 # -- what the renders walk: our binning's list lengths ------------------------------------------------------------
 
 def list_lengths(cap: dict) -> dict:
-    """From one captured binning (ops.capture_binning): intersections, Gaussians binned per tile (mean over
+    """From one captured binning (raster.capture_binning): intersections, Gaussians binned per tile (mean over
     all tiles, max) and walked per pixel (one past the last contributor in its tile's list; mean, max)."""
     ranges, last = cap["ranges"], cap["last"]
     per_tile = (ranges[:, 1] - ranges[:, 0]).double()
@@ -276,7 +276,7 @@ def list_lengths(cap: dict) -> dict:
 def scene_lists(g: Gaussians, cams) -> dict:
     """list_lengths over views: the mean of the means and the max of the maxima."""
     # lazy: imports Warp
-    from ..ops import capture_binning
+    from ..raster import capture_binning
 
     per_view = []
     for cam in cams:

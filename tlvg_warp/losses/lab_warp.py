@@ -9,7 +9,7 @@ kernels/lab.py's."""
 import torch
 
 from ..kernels.lab import lab_kernels
-from ..ops import ct, fast_launch, init_warp, warp_on
+from ..launch import ct, fast_launch, init_warp, warp_on
 
 
 def _kernels(dtype: torch.dtype):

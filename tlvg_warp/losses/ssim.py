@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from ..kernels.ssim import C1, C2, SIGMA, WINDOW, ssim_kernels
-from ..ops import ct, fast_launch, init_warp, warp_on
+from ..launch import ct, fast_launch, init_warp, warp_on
 
 _kernels: dict = {}
 

@@ -330,7 +330,7 @@ def tangential_hook(lam: float = 1.0):
 
     def hook(params: GaussianParams, before: dict) -> None:
         from ..kernels.tangential import tangential_kernels
-        from ..ops import ct, fast_launch, init_warp, warp_on
+        from ..launch import ct, fast_launch, init_warp, warp_on
 
         mu, mu0 = params.means.detach(), before["means"]
         q, ls = params.quats.detach(), params.log_scales.detach()
