@@ -180,7 +180,7 @@ def _painting_u8(valid):
 def test_painting_pixel_formats(valid, tmp_path, capsys, kind):
     """Each runs, and the painting the run used (style.png) is the file's picture: 16-bit the same as its 8-bit
     source, gray as gray, RGBA composited onto white (computed here from the file's own pixels)."""
-    from tlvg_warp.commands.stylize import load_style
+    from tlvg_warp.stylize.inputs import load_style
 
     bgr = _painting_u8(valid)
     f = tmp_path / f"painting_{kind}.png"
@@ -236,7 +236,7 @@ def test_exif_rotated_photo_is_read_as_stored(case, capsys):
 def test_exif_rotated_painting_runs(valid, tmp_path, capsys):
     from PIL import Image
 
-    from tlvg_warp.commands.stylize import load_style
+    from tlvg_warp.stylize.inputs import load_style
 
     rgb = _painting_u8(valid)[..., ::-1].copy()
     f = tmp_path / "painting_rot.jpg"

@@ -150,7 +150,7 @@ def test_a_run_wins_only_where_it_also_beats_its_anchor():
 
 
 def test_demo_runs_are_compared_with_the_scene_they_started_from(tmp_path):
-    """A demo run at downscale 2 starts from the demo sampled at spacing 2 (stylize's build_inputs): `evaluate` and
+    """A demo run at downscale 2 starts from the demo sampled at spacing 2 (stylize's assemble_inputs): `evaluate` and
     `view` rebuild that scene from the run's config.yaml, not the default density."""
     import yaml
 

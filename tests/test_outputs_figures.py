@@ -75,7 +75,7 @@ def test_loss_curve_breaks_at_phase_boundaries():
 
 
 def test_orbit_is_four_seconds_at_the_run_resolution():
-    from tlvg_warp.commands.stylize import DEMO_CPU, DEMO_GPU
+    from tlvg_warp.stylize.job import DEMO_CPU, DEMO_GPU
     from tlvg_warp.io.demo import demo_dataset
     from tlvg_warp.stylize.config import StylizeConfig
 
