@@ -38,17 +38,15 @@ import sys
 import time
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from .. import runs
 from ..errors import InputError
-from ..fileio import write_text
-from ..runs import resolve_device
-from ..train.loop import Diverged, Fit, LoopSettings, Phase, Run, View, train
+from ..train.loop import Diverged, Fit, Phase, Run, View, train
 from ..train.optim import FIELDS
+from ..train.session import Session, density_control, new_run, optimizer
 from ..types import Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
@@ -372,9 +370,8 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
     checkpoint brings its own Gaussians): the scene's coarse splats are refined to the stroke size first."""
     from ..losses import color_transfer, recolor_sh
     from ..renderer import render
-    from ..train.density import DensityControl
     from ..train.init import scene_extent
-    from ..train.optim import GaussianOptimizer, GaussianParams, tangential_hook
+    from ..train.optim import GaussianParams, tangential_hook
     from ..train.refine import refine_to_radius
 
     cams = list(inp.cameras)
@@ -391,10 +388,9 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
         g_work, refined = refine_to_radius(g_work, cams, cfg.refine_radius * cfg.stroke_scale,
                                            budget or int(REFINE_UNCAPPED * g_in.num), background=bg, seed=cfg.seed)
     params = GaussianParams(g_work, g_work.sh_degree)
-    opt = GaussianOptimizer(params, cfg.lr, extent, cfg.lr.means_steps or cfg.iterations)
-    longest = max(max(c.width, c.height) for c in cams)
-    density = DensityControl(cfg.density, g_work.num, device, extent=extent, window=2 * len(cams) - 1,
-                             image_size=longest, seed=cfg.seed + 1, dist=dist, start_num=g_in.num)
+    opt = optimizer(params, cfg, extent)
+    density = density_control(cfg, g_work.num, device, cams, extent=extent, n_views=len(cams), dist=dist,
+                              start_num=g_in.num)
 
     def post_targets(run: Run) -> list:  # every view rendered and recolored once more
         with torch.no_grad():
@@ -411,10 +407,9 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
               Stylize(n_sty, cfg, tg, vgg, density="stylize" in dens, hooks=hook,  # the hook in Stylize only
                       trainable=[f for f in FIELDS if not (cfg.geometry.lock_xyz and f == "means")]),
               Fit("post", n_post, make_targets=post_targets, trainable=POST_TRAINABLE, density="post" in dens)]
-    settings = LoopSettings(cfg.log_every, cfg.checkpoint_every, cfg.checkpoint_seconds, cfg.views_per_step)
-    run = Run(params, opt, density, phases, cams, settings, device=device, seed=cfg.seed, background=bg, dist=dist,
-              out=out, fmt=CHECKPOINT_FORMAT, extra=lambda: {"config": dataclasses.asdict(cfg),
-                                                            "names": list(inp.names), "sources": inp.sources})
+    run = new_run(cfg, params, opt, density, phases, cams, device=device, background=bg, dist=dist, out=out,
+                  fmt=CHECKPOINT_FORMAT, extra=lambda: {"config": dataclasses.asdict(cfg),
+                                                        "names": list(inp.names), "sources": inp.sources})
     run.refined = refined  # what the stroke-size refinement did (metrics.json)
     return run
 
@@ -442,17 +437,14 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
             print(f"note: loss.fast_refresh {cfg.loss.fast_refresh} -> 1 on {dist.world} ranks (each rank would keep "
                   "its own FAST cache)", file=sys.stderr, flush=True)
         cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, fast_refresh=1))
-    device = torch.device(dist.device) if dist.world > 1 else resolve_device(cfg.device)
-    torch.manual_seed(cfg.seed)
-    out = Path(out_dir) if out_dir is not None else None
-    ck = load_checkpoint(resume) if resume is not None else None
-    if ck is not None and ck["names"] != list(inp.names):
-        raise InputError("the checkpoint was made on a different dataset (its view names differ)", resume)
     if cfg.background is None:  # record the resolved background (evaluation re-renders with it)
         cfg = dataclasses.replace(cfg, background=[float(v) for v in inp.background])
-    if out is not None and dist.is_main:
-        runs.start_run_dir(out, overwrite, ck is not None, RUN_FILES)
-        write_text(out / "config.yaml", config_yaml(cfg))
+    session = Session(cfg, dist)
+    device = session.device
+    torch.manual_seed(cfg.seed)
+    session.open(out_dir, inp.names, resume=resume, overwrite=overwrite, read_checkpoint=load_checkpoint,
+                 run_files=RUN_FILES, config_yaml=config_yaml)
+    out, ck = session.out, session.checkpoint
     announce = vgg is None  # a caller that passes the network has already said where it came from
     split, t = {}, time.perf_counter()  # the setup's wall time by part (metrics: setup_split_s)
     vgg = (vgg if vgg is not None else load_vgg(cfg.vgg_weights, device)).to(device)
@@ -465,9 +457,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     split["targets"], t = time.perf_counter() - t, time.perf_counter()
     run = build_run(inp, cfg, tg, vgg, device, dist, out, fresh=ck is None)
     split["build"] = time.perf_counter() - t
-    if ck is not None:
-        run.load_state_dict(ck)
-    start_step = run.step
+    start_step = session.resume(run)
     if not quiet and announce and vgg.is_random and dist.is_main:
         print("WARNING: VGG-16 is RANDOMLY initialized (not pretrained): the style/content losses are not "
               "meaningful; a smoke run only")

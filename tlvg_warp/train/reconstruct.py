@@ -24,12 +24,12 @@ import torch
 from .. import config_io, runs
 from ..config_io import ConfigError, check_run_settings
 from ..errors import InputError
-from ..fileio import write_image, write_json, write_text
-from ..runs import resolve_device
+from ..fileio import write_image, write_json
 from ..types import Gaussians
-from .density import DENSITY_RENAMED, DensityConfig, DensityControl
-from .loop import Diverged, Fit, LoopSettings, Run, train
-from .optim import LR_RENAMED, GaussianOptimizer, GaussianParams, LearningRates
+from .density import DENSITY_RENAMED, DensityConfig
+from .loop import Diverged, Fit, train
+from .optim import LR_RENAMED, GaussianParams, LearningRates
+from .session import Session, density_control, new_run, optimizer
 
 CHECKPOINT_FORMAT = "tlvg_warp.reconstruct.v1"
 RUN_FILES = ("config.yaml", "checkpoint.pt", "point_cloud.ply", "metrics.json", "cameras.json", "log.jsonl")
@@ -183,25 +183,20 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     resume: a run folder (or checkpoint path) to continue from.
     callback: ``fn(step, run)`` after every iteration (tests). dist: a ``Dist`` (torchrun; default: one process).
     Returns (Gaussians, metrics)."""
-    from ..distributed import Dist
     from .init import initialize, scene_extent
 
     t_start = time.perf_counter()
     cfg = (config or ReconstructConfig()).validate()
-    dist = dist or Dist()
-    device = torch.device(dist.device) if dist.world > 1 else resolve_device(cfg.device)
+    session = Session(cfg, dist)
+    dist, device = session.dist, session.device
     cams, names = list(dataset.cameras), list(dataset.names)
     if len(cams) == 0:
         raise InputError("dataset has no images")
     if len(cams) < 2:
         raise InputError(f"dataset has a single view ({names[0] if names else '?'}); fitting needs at least 2")
-    out = Path(out_dir) if out_dir is not None else None
-    ck = load_checkpoint(resume) if resume is not None else None
-    if ck is not None and ck["names"] != names:
-        raise InputError("the checkpoint was made on a different dataset (its view names differ)", resume)
-    if out is not None and dist.is_main:
-        runs.start_run_dir(out, overwrite, ck is not None, RUN_FILES, render_dirs=("test", "train"))
-        write_text(out / "config.yaml", config_yaml(cfg))
+    session.open(out_dir, names, resume=resume, overwrite=overwrite, read_checkpoint=load_checkpoint,
+                 run_files=RUN_FILES, config_yaml=config_yaml, render_dirs=("test", "train"))
+    out, ck = session.out, session.checkpoint
 
     train_idx, test_idx = split_views(len(cams), cfg.holdout_every)
     targets = _image_list(dataset, device)
@@ -218,26 +213,21 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     else:
         g0, ext, init_note = initialize(dataset, cfg.sh_degree, cfg.init_opacity, cfg.init_random_points,
                                         cfg.max_init_points, device, cfg.seed)
-    longest = max(max(c.width, c.height) for c in cams)
-    density = DensityControl(cfg.density, g0.num, device, extent=ext, window=2 * len(train_idx) - 1,
-                             image_size=longest, seed=cfg.seed + 1, dist=dist)
+    density = density_control(cfg, g0.num, device, cams, extent=ext, n_views=len(train_idx), dist=dist)
     if ck is None:
         g0 = density.fit_budget(g0)  # the budget holds from the start: the most opaque
     params = GaussianParams(g0, max(cfg.sh_degree, g0.sh_degree))
-    opt = GaussianOptimizer(params, cfg.lr, ext, cfg.lr.means_steps or cfg.iterations)
+    opt = optimizer(params, cfg, ext)
     max_deg = params.max_sh_degree
     fit = Fit("fit", cfg.iterations, targets, lambda_ssim=cfg.loss.lambda_ssim, random_background=cfg.random_background,
               sh=(max_deg if gaussians is not None else 0, cfg.sh_increase_every, max_deg), psnr=True,
               density="fit" in cfg.density.phases, label="reconstruct")
-    settings = LoopSettings(cfg.log_every, cfg.checkpoint_every, cfg.checkpoint_seconds, cfg.views_per_step,
-                            cfg.timing_every, cfg.final_checkpoint)
-    run = Run(params, opt, density, [fit], cams, settings, device=device, seed=cfg.seed, view_ids=train_idx,
-              background=bg_fixed, dist=dist, out=out, fmt=CHECKPOINT_FORMAT,
-              extra=lambda: {"extent": ext, "config": dataclasses.asdict(cfg), "names": names})
+    run = new_run(cfg, params, opt, density, [fit], cams, device=device, view_ids=train_idx, background=bg_fixed,
+                  dist=dist, out=out, fmt=CHECKPOINT_FORMAT,
+                  extra=lambda: {"extent": ext, "config": dataclasses.asdict(cfg), "names": names})
+    start_step = session.resume(run)
     if ck is not None:
-        run.load_state_dict(ck)
         init_note = f"resumed at iteration {run.step} from {resume}"
-    start_step = run.step
 
     def eval_views(g, which):
         from ..losses import psnr, ssim
