@@ -137,6 +137,23 @@ def test_blender(tmp_path):
         assert np.allclose(got, expect, atol=1e-6) and np.allclose(got[0, 0], bg)
 
 
+
+def test_dataset_background_white_for_blender_black_for_photos_else_the_datasets_own(tmp_path):
+    """One rule for reconstruct and stylize: a Blender scene renders over white, real photos over black, a dataset
+    with its own background (the demo) over that."""
+    from tlvg_warp.io.datasets import dataset_background
+    from tlvg_warp.io.demo import DEMO_BACKGROUND, demo_dataset
+
+    _blender(tmp_path / "blender")
+    (tmp_path / "llff").mkdir()
+    _llff(tmp_path / "llff")
+    assert dataset_background(load_dataset(tmp_path / "blender")) == (1.0, 1.0, 1.0)
+    assert dataset_background(load_dataset(tmp_path / "llff")) == (0.0, 0.0, 0.0)
+    demo = demo_dataset(n_views=2, width=16, height=12)
+    assert dataset_background(demo) == tuple(DEMO_BACKGROUND)
+    demo.background = (0.0, 0.25, 0.5)
+    assert dataset_background(demo) == (0.0, 0.25, 0.5)
+
 # --- INRIA cameras.json ------------------------------------------------------------------------------------
 def test_inria_cameras_json(tmp_path):
     cams = []

@@ -77,6 +77,16 @@ class Dataset:
             return [f.result() for f in futures]
 
 
+def dataset_background(ds) -> tuple:
+    """The RGB background a dataset's scene is rendered over (fitted and stylized alike): the dataset's own
+    ``background`` where it has one (the built-in demo's white), white for a Blender (NeRF synthetic) scene, whose
+    objects stand on an empty white backdrop, black for photos of real places."""
+    bg = getattr(ds, "background", None)
+    if bg is None:
+        bg = (1.0, 1.0, 1.0) if getattr(ds, "kind", "") == "blender" else (0.0, 0.0, 0.0)
+    return tuple(float(v) for v in bg)
+
+
 @dataclass
 class _View:
     """One photo as its source states it, before fitting to the file on disk."""

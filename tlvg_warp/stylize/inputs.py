@@ -21,6 +21,7 @@ import torch
 
 from ..errors import InputError
 from ..io import load_dataset, load_ply
+from ..io.datasets import dataset_background
 from ..io.demo import builtin_painting, demo_dataset
 from ..io.images import composite, read_image_fit
 from ..io.scene_views import render_stand_in_photos, scene_views
@@ -98,10 +99,9 @@ def assemble_inputs(cfg, sources: dict, out: Path, quiet: bool = False, dist=Non
         w, h = max(8, round(160 / cfg.downscale)), max(8, round(120 / cfg.downscale))
         # discs sized to the render's pixels: at 1/downscale the same still life from 1/downscale² the discs
         ds = demo_dataset(width=w, height=h, spacing=max(1.0, cfg.downscale))
-        g, bg, in_bytes = ds.gaussians, tuple(ds.background), None
+        g, in_bytes = ds.gaussians, None
     else:
         ds = load_dataset(data, downscale=cfg.downscale if cfg.downscale != 1 else None)
-        bg = (1.0, 1.0, 1.0) if getattr(ds, "kind", "") == "blender" else (0.0, 0.0, 0.0)
         if scene is not None:
             sp = Path(scene)
             g = load_ply(sp)
@@ -113,7 +113,8 @@ def assemble_inputs(cfg, sources: dict, out: Path, quiet: bool = False, dist=Non
             g, in_bytes = fit_first(ds, cfg, out, quiet, dist)
             sources["scene"] = str(out / "reconstruct" / "point_cloud.ply")
     photos = ds.images()
-    return StylizeInputs(g, list(ds.cameras), list(ds.names), photos, style, bg, dict(sources)), in_bytes
+    return (StylizeInputs(g, list(ds.cameras), list(ds.names), photos, style, dataset_background(ds), dict(sources)),
+            in_bytes)
 
 
 def _scene_only_inputs(sp: Path, cfg, style, sources: dict):

@@ -25,6 +25,7 @@ from .. import config_io, runs
 from ..config_io import ConfigError, check_run_settings
 from ..errors import InputError
 from ..fileio import write_image, write_json
+from ..io.datasets import dataset_background
 from ..types import Gaussians
 from .density import DENSITY_RENAMED, DensityConfig
 from .loop import Diverged, Fit, train
@@ -200,9 +201,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
 
     train_idx, test_idx = split_views(len(cams), cfg.holdout_every)
     targets = _image_list(dataset, device)
-    bg_fixed = cfg.background if cfg.background is not None else getattr(
-        dataset, "background", (1.0, 1.0, 1.0) if getattr(dataset, "kind", "") == "blender" else (0.0, 0.0, 0.0))
-    bg_fixed = tuple(float(v) for v in bg_fixed)
+    bg_fixed = tuple(float(v) for v in cfg.background) if cfg.background is not None else dataset_background(dataset)
 
     # --- the initial state ------------------------------------------------------------------------------------
     init_note = "given Gaussians"
