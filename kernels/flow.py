@@ -17,6 +17,7 @@ import warp as wp
 from .camera import camera_struct
 from .projection import EWA_BLUR
 
+COHERENCE_MIN = 1e-3  # below this the painting has no direction to follow at that spot
 ISO_EPS = 1e-12  # keeps an exactly isotropic footprint (no major axis) at a finite, zero-ish gradient
 
 

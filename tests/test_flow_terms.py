@@ -116,3 +116,14 @@ def test_fused_targets_match_the_torch_targets_in_hard_cases():
     g3 = leafs(g.to(dtype=torch.float32))
     a3, b3 = flow_terms(g3, cam, field.float(), weights.float())
     assert abs(a3.item() - a1.item()) < 1e-5 and abs(b3.item() - b1.item()) < 1e-4 * max(1.0, abs(b1.item()))
+
+
+def test_flow_functions_live_in_autograd_and_stay_importable_from_flow():
+    """The flow energies' autograd Functions are tlvg_warp.autograd's (the raster layer's one module of them);
+    tlvg_warp.flow re-exports the same objects, and its coherence threshold is the targets kernel's."""
+    from tlvg_warp import autograd, flow
+    from tlvg_warp.kernels import flow as flow_kernels
+
+    assert flow.FlowEnergiesFn is autograd.FlowEnergiesFn and flow.FlowTermsFn is autograd.FlowTermsFn
+    assert autograd.FlowEnergiesFn.__module__ == autograd.FlowTermsFn.__module__ == "tlvg_warp.autograd"
+    assert flow.COHERENCE_MIN == autograd.COHERENCE_MIN == flow_kernels.COHERENCE_MIN

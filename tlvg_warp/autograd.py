@@ -1,13 +1,18 @@
-"""The rasterizer's torch autograd Functions: ``ShadeFn`` (SH colours) and ``RasterizeFn`` (projection, binning,
-blending), over the stages of ``raster`` launched through ``launch``. Gradients: the blending and SH backwards are
-hand-written; the projection's adjoint is Warp-generated, launched by hand with the torch-allocated gradient buffers
-as its adjoint arguments (``raster.project_adjoint``): no wp.Tape and no wp.array per render."""
+"""The raster layer's torch autograd Functions: ``ShadeFn`` (SH colours) and ``RasterizeFn`` (projection, binning,
+blending), over the stages of ``raster`` launched through ``launch``, and the flow energies on the Gaussians
+(``FlowEnergiesFn``, fused, and ``FlowTermsFn``, per Gaussian; tlvg_warp.flow calls them). Gradients: the blending
+and SH backwards are hand-written; the projection's adjoint is Warp-generated, launched by hand with the
+torch-allocated gradient buffers as its adjoint arguments (``raster.project_adjoint``): no wp.Tape and no wp.array
+per render."""
 from __future__ import annotations
 
 import torch
+import warp as wp
 
-from .launch import ct, ct_at, fast_launch, input_ct, kernels_for, warp_on
-from .raster import TILE, blend, count_intersections, packed_zeros, project, project_adjoint, zero_upstream
+from .kernels.flow import COHERENCE_MIN, flow_targets_kernel
+from .launch import ct, ct_at, fast_launch, input_ct, kernels_for, to_warp, warp_on
+from .raster import (TILE, blend, camera_arg, count_intersections, no_grad_camera, packed_zeros, project,
+                     project_adjoint, zero_upstream)
 
 
 class ShadeFn(torch.autograd.Function):
@@ -117,3 +122,86 @@ class RasterizeFn(torch.autograd.Function):
                                                      ct_at(geo_flat, 4 * n * e, (n,), e),
                                                      ct_at(geo_flat, 3 * n * e, (n,), e)), cam_arg, n, device)
         return (*grads, g_rgb, g_means2d, None, None, None)
+
+
+class FlowTermsFn(torch.autograd.Function):
+    """(means, quats, log_scales) -> per-Gaussian (align [N], aniso [N]) for fixed targets."""
+
+    @staticmethod
+    def forward(ctx, means, quats, log_scales, target, active, cam):
+        K = kernels_for(means.dtype)
+        n = means.shape[0]
+        grads = [torch.zeros_like(t) for t in (means, quats, log_scales)]
+        align = torch.zeros(n, dtype=means.dtype, device=means.device)
+        aniso = torch.zeros_like(align)
+        with warp_on(means.device) as wdev:
+            ins = [to_warp(means, K.vec3, grads[0]), to_warp(quats, K.vec4, grads[1]),
+                   to_warp(log_scales, K.vec3, grads[2]), to_warp(target, K.vec2),
+                   wp.from_torch(active.to(torch.int32).contiguous())]
+            outs = [to_warp(align, K.scalar, torch.zeros_like(align)), to_warp(aniso, K.scalar, torch.zeros_like(aniso))]
+            tape = wp.Tape()
+            with tape:
+                wp.launch(K.flow_terms, dim=n, inputs=ins + [camera_arg(K, cam)], outputs=outs, device=wdev)
+        ctx.state = (tape, outs, grads, means.device)
+        ctx.save_for_backward(means, quats, log_scales)  # autograd's in-place check on the inputs
+        return align, aniso
+
+    @staticmethod
+    def backward(ctx, g_align, g_aniso):
+        tape, outs, grads, device = ctx.state
+        ctx.saved_tensors  # noqa: B018 (raises if an input changed in place since the forward)
+        ctx.state = None
+        for o, g in zip(outs, (g_align, g_aniso)):
+            if g is not None:
+                wp.to_torch(o.grad).copy_(g)
+        with warp_on(device):
+            tape.backward()
+        return (*grads, None, None, None)
+
+
+class FlowEnergiesFn(torch.autograd.Function):
+    """(means, quats, log_scales) -> (alignment, anisotropy) energies [2] of one view: Σ w_i e_i / Σ w_i with the
+    targets and weights w_i = coherence x blend weight from the targets kernel (no gradient), e_i from the
+    energies kernel. Backward: ∂E/∂e_i = g·w_i/Σw, then the energies kernel's Warp-generated adjoint, launched by
+    hand with torch-allocated gradient buffers (as ``raster.project_adjoint``): no wp.Tape and no wp.array per call
+    (a fern stylize step spent ~1 ms of host time building them)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, log_scales, weights, field, cam):
+        K = kernels_for(means.dtype)
+        T = flow_targets_kernel({torch.float32: "float32", torch.float64: "float64"}[means.dtype])
+        n, dt, dev = means.shape[0], means.dtype, means.device
+        e = torch.zeros(4, n, dtype=dt, device=dev)  # align, aniso (written where active), and their gradients
+        target = torch.empty(n, 2, dtype=dt, device=dev)
+        active = torch.empty(n, dtype=torch.int32, device=dev)
+        w = torch.empty(n, dtype=dt, device=dev)
+        fld = field if (field.dtype == dt and field.is_contiguous()) else field.to(dt).contiguous()
+        wts = weights.detach()
+        wts = wts if (wts.dtype == dt and wts.is_contiguous()) else wts.to(dt).contiguous()
+        cam_arg = camera_arg(K, cam)
+        args = [input_ct(means, K.vec3), input_ct(quats, K.vec4), input_ct(log_scales, K.vec3), ct(target, K.vec2),
+                ct(active), cam_arg]
+        with warp_on(dev) as wdev:
+            fast_launch(T, n, [args[0], args[2], ct(wts), ct(fld), cam_arg, K.scalar(COHERENCE_MIN),
+                               args[3], args[4], ct(w)], wdev)
+            fast_launch(K.flow_terms, n, args + [ct(e[0]), ct(e[1])], wdev)
+        inv = w.sum().clamp_min(1e-12).reciprocal()
+        ctx.state = (args, e, w, inv)
+        ctx.save_for_backward(means, quats, log_scales)  # autograd's in-place check on the inputs
+        return torch.mv(e[:2], w) * inv
+
+    @staticmethod
+    def backward(ctx, g):
+        args, e, w, inv = ctx.state
+        means, quats, log_scales = ctx.saved_tensors  # (raises if an input changed in place since the forward)
+        ctx.state = None
+        K = kernels_for(means.dtype)
+        n = means.shape[0]
+        torch.outer(g * inv, w, out=e[2:])  # ∂E/∂align_i, ∂E/∂aniso_i: the adjoint's output gradients
+        flat = torch.zeros(10 * n, dtype=means.dtype, device=means.device)  # the three input gradients, one memset
+        grads = [flat[:3 * n].view(n, 3), flat[3 * n:7 * n].view(n, 4), flat[7 * n:].view(n, 3)]
+        with warp_on(means.device) as wdev:
+            fast_launch(K.flow_terms, n, args + [ct(e[0]), ct(e[1])], wdev,
+                        adj_args=[ct(grads[0], K.vec3), ct(grads[1], K.vec4), ct(grads[2], K.vec3), None, None]
+                        + [no_grad_camera(K), ct(e[2]), ct(e[3])])  # no gradient for the camera
+        return (*grads, None, None, None)

@@ -3,7 +3,8 @@
 - ``tlvg_warp.launch``: Warp's runtime (initialization, kernel sets, devices and streams, array descriptors,
   recorded launches, sort and scan) and every use of Warp's private API;
 - ``tlvg_warp.raster``: the pipeline's stages (camera struct, projection, binning, blending);
-- ``tlvg_warp.autograd``: the autograd Functions ``ShadeFn`` and ``RasterizeFn``.
+- ``tlvg_warp.autograd``: the autograd Functions ``ShadeFn`` and ``RasterizeFn`` (and the flow energies'
+  ``FlowEnergiesFn`` and ``FlowTermsFn``, which tlvg_warp.flow re-exports).
 
 The package imports from those modules; this one re-exports their public names for code written against it.
 Module-level settings (``raster.SCAN_INT32_LIMIT``) are read where they live: set them there."""
