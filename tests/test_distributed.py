@@ -139,3 +139,30 @@ def test_single_process_handle_is_a_no_op(monkeypatch):
     monkeypatch.setenv("WORLD_SIZE", "4")  # torchrun's environment, but inside local_only: one process
     with local_only():
         assert Dist.from_env("cuda").world == 1
+
+
+ISOLATE = r'''
+import os, sys
+from tlvg_warp.distributed import isolate_local_gpu
+assert "warp" not in sys.modules  # importing distributed does not import Warp
+assert isolate_local_gpu() and os.environ["CUDA_VISIBLE_DEVICES"] == "1"
+assert "warp" not in sys.modules  # nor does the check, Warp not loaded
+import warp  # loaded, not initialized: still isolates
+from tlvg_warp.launch import init_warp, warp_runtime_up
+os.environ["CUDA_VISIBLE_DEVICES"] = "0,5"
+assert not warp_runtime_up() and isolate_local_gpu() and os.environ["CUDA_VISIBLE_DEVICES"] == "5"
+os.environ["CUDA_VISIBLE_DEVICES"] = "0,5"
+init_warp()  # Warp's runtime up: too late, nothing changes
+assert warp_runtime_up() and not isolate_local_gpu() and os.environ["CUDA_VISIBLE_DEVICES"] == "0,5"
+print("ok")
+'''
+
+
+def test_isolate_local_gpu_before_and_after_warp_starts():
+    """Under torchrun's environment (rank 1 of 2) a process sees its own GPU only, unless Warp's runtime is already
+    up (read through launch.warp_runtime_up); the check imports Warp only where it is loaded already."""
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+               WORLD_SIZE="2", LOCAL_RANK="1")
+    env.pop("CUDA_VISIBLE_DEVICES", None)
+    p = subprocess.run([sys.executable, "-c", ISOLATE], capture_output=True, text=True, env=env, timeout=300, cwd=REPO)
+    assert p.returncode == 0 and p.stdout.split()[-1:] == ["ok"], p.stderr

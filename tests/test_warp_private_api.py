@@ -77,19 +77,12 @@ def _private_uses(path: Path) -> list[str]:
     return found
 
 
-# Known reads outside launch.py, each with why it stays where it is.
-ELSEWHERE = {
-    # whether Warp's runtime is up, read from sys.modules without importing Warp, before CUDA starts (torchrun)
-    "tlvg_warp/distributed.py": ["wp._src.context"],
-}
-
-
 def test_only_launch_touches_private_api():
     """No other module of the package imports from warp._src (or Warp's pre-1.10 private modules) or reads
-    torch._C, but the known reads in ELSEWHERE: the checks above cover every use the raster layer makes."""
+    torch._C: the checks above cover every use the package makes."""
     sources = sorted(p for f in (ROOT / "tlvg_warp", ROOT / "kernels") for p in f.rglob("*.py")
                      if "__pycache__" not in p.parts)
     outside = {str(p.relative_to(ROOT)): uses for p in sources if p.name != "launch.py" or p.parent.name != "tlvg_warp"
                if (uses := _private_uses(p))}
-    assert outside == ELSEWHERE
+    assert outside == {}
     assert _private_uses(ROOT / "tlvg_warp" / "launch.py")  # the rule sees launch.py's own uses

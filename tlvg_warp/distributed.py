@@ -215,10 +215,13 @@ def isolate_local_gpu() -> bool:
 
     if torch.cuda.is_initialized():
         return False
-    wp = sys.modules.get("warp")
-    if wp is not None and getattr(getattr(wp, "_src", None), "context", None) is not None \
-            and wp._src.context.runtime is not None:
-        return False
+    # Warp not loaded: its runtime cannot be up. Loaded: launch reads it (launch owns Warp's private API), imported
+    # here and only then, so that importing this module (or a rank that never uses Warp) imports neither Warp nor
+    # the kernels
+    if "warp" in sys.modules:
+        from .launch import warp_runtime_up
+        if warp_runtime_up():
+            return False
     local_rank = _env_int("LOCAL_RANK", 0)
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
     ids = [v.strip() for v in visible.split(",") if v.strip()] if visible else None

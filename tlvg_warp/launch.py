@@ -2,8 +2,8 @@
 descriptors of torch tensors, and kernel launches (recorded ``wp.Launch``es refilled per call), the radix sort and
 the scan. Every use the raster layer makes of Warp's private API (and torch's) is in this module, listed in
 ``PRIVATE_API`` and checked by ``private_api_problems`` (tests/test_warp_private_api.py), so a Warp upgrade that
-moves or changes one fails there, by name, rather than as a crash in a kernel. (The package's one other read,
-distributed.py's check that Warp's runtime is not up yet, must not import Warp.)
+moves or changes one fails there, by name, rather than as a crash in a kernel (distributed.py's check that Warp's
+runtime is not up yet included: ``warp_runtime_up``).
 
 Kernels get bare array descriptors of torch tensors (``ct``), launched through recorded ``wp.Launch``es
 (``fast_launch``): a render's host time, not its GPU time, bounds small and sparse scenes."""
@@ -356,6 +356,12 @@ def _runtime():
     return _RUNTIME
 
 
+def warp_runtime_up() -> bool:
+    """Whether Warp's runtime is up in this process (wp.init() has run, so Warp may have initialized CUDA); starts
+    nothing."""
+    return _runtime() is not None
+
+
 def _null_array():
     return (_ARRAY_T or warp_array_ctype())()
 
@@ -469,7 +475,7 @@ PRIVATE_API = (
      "array_t(data, grad, ndim, shape, strides)), what wp.from_torch(return_ctype=True) returns",
      "warp_array_ctype, ct, ct_at, _null_array, _bare"),
     ("warp._src.context.runtime (set by wp.init): .core, Warp's native library, and .default_device",
-     "_runtime, _WarpOn"),
+     "_runtime, _WarpOn, warp_runtime_up"),
     ("Device.runtime and Device.context (the CUDA context handle)", "_WarpOn"),
     ("runtime.core.wp_cuda_context_get_current() -> void*, wp_cuda_context_push_current(ctx), "
      "wp_cuda_context_pop_current()", "_WarpOn"),
@@ -521,7 +527,7 @@ def private_api_problems() -> list[str]:
 
     def runtime_attrs():
         rt = _runtime()
-        if rt is None:
+        if rt is None or not warp_runtime_up():
             return "None after wp.init()"
         missing = [a for a in ("core", "default_device") if not hasattr(rt, a)]
         return f"attributes {missing} missing" if missing else True
