@@ -15,7 +15,7 @@ def make_sh(scalar, mod: str, camera_t):
     @wp.func
     def eval_sh(sh: wp.array2d(dtype=vec3), i: int, degree: int, d: vec3) -> vec3:
         """Σ_k b_k(d) sh[i, k] up to ``degree``. Written out, not summed over sh_basis_all: the branches skip the
-        higher degrees' loads and products (sh_backward on fern, H200: 0.073 ms against 0.080 for the loop)."""
+        higher degrees' loads and products (sh_backward on fern, on the GPU: 0.073 ms against 0.080 for the loop)."""
         c = scalar(SH_C0) * sh[i, 0]
         if degree > 0:
             x = d[0]
@@ -82,7 +82,7 @@ def make_sh(scalar, mod: str, camera_t):
     ):
         # One thread per (Gaussian, channel), as gsplat: a warp's loads of coefficient k span 11 Gaussians' rows,
         # not 32 (a thread per Gaussian read 3 scalars of each of 16 vec3s from 32 rows 192 bytes apart: 2.28 ms
-        # at 20M Gaussians on the H200 against gsplat's 1.23). The loop has a constant trip count, so Warp unrolls
+        # at 20M Gaussians on the GPU against gsplat's 1.23). The loop has a constant trip count, so Warp unrolls
         # it and b[k] stays in registers.
         tid = wp.tid()
         i = tid / 3
@@ -103,7 +103,7 @@ def make_sh(scalar, mod: str, camera_t):
         """b_k(d), branch free: the 32 lanes of a warp hold two Gaussians' 16 coefficients, so an if-chain on k
         would run all 16 branches one after another; here every lane evaluates the 16 cheap products and selects.
         Selecting from sh_basis_all instead measured 4% slower in sh_coeff_grad_kernel (1.72 against 1.65 ms at 20M
-        Gaussians, 0.041 against 0.040 on fern; H200, 2026-11-23), so the products are written out here too."""
+        Gaussians, 0.041 against 0.040 on fern; on the GPU, 2026-11-23), so the products are written out here too."""
         x = d[0]
         y = d[1]
         z = d[2]
@@ -213,7 +213,7 @@ def make_sh(scalar, mod: str, camera_t):
         g_sh: wp.array2d(dtype=vec3),  # [N, Kmax] out dL/d sh[i, k] = b_k(d_i) g_rgb[i] for k < n_coeffs
     ):
         # one thread per (Gaussian, coefficient) in memory order: neighbouring threads store neighbouring vec3s
-        # (coalesced). Measured on the H200 at 1M Gaussians, degree 3: 0.33 ms; grouping a warp's threads by k
+        # (coalesced). Measured on the GPU at 1M Gaussians, degree 3: 0.33 ms; grouping a warp's threads by k
         # (no branch divergence, strided stores) 0.72 ms; indexing a vector of all 16 basis values 0.49 ms.
         tid = wp.tid()
         i = tid / n_coeffs

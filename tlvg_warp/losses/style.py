@@ -19,7 +19,7 @@ RIDGE = 1e-12  # FAST's A + 1e-12*I (reference code)
 # FAST's solve. A = a·diag(U1)·aᵀ is a Gram matrix of highly correlated relu3 channels: on fern x Starry
 # Night with the pretrained backbone 83 channels are dead and the live spectrum spans 12 decades. Measured against
 # a float64 LU of the float64 A (rel. error of the target b / of the loss's gradient):
-#   lu64 of the float32 A (the reference code, the loop before):  4e-5 / 1.4e-4,   2.30 ms on the H200
+#   lu64 of the float32 A (the reference code, the loop before):  4e-5 / 1.4e-4,   2.30 ms on the GPU
 #   cholesky64: A in float64, scaled to unit diagonal (Jacobi) + RIDGE64·I, Cholesky:  ~1e-5 / 1e-4, 1.2 ms
 #   cholesky32: the same in float32: fails (info > 0: rounding exceeds a 1e-7 ridge) on bf16 features of the
 #     same view; a ridge that always holds (1e-5) moves the gradient by 2-3%:       0.9 ms -> opt-in only.
@@ -131,7 +131,7 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     are reused).
 
     On CUDA: two products, each top-k along its rows (a top-k down the columns of one product was 2x slower on
-    the H200): sim = âᵀŝ [Nc,Ns] and simᵀ = ŝᵀâ [Ns,Nc']. The unit render features are laid out [Nc', C] with
+    the GPU): sim = âᵀŝ [Nc,Ns] and simᵀ = ŝᵀâ [Ns,Nc']. The unit render features are laid out [Nc', C] with
     Nc' the cell count rounded up to 8, so every operand and output of both float16 products is 16-byte aligned
     (tensor-core kernels; 0.23 -> 0.05 ms at fern size); the padding cells' similarities are set to -inf
     before their top-k. On the CPU (float32 products cost more than a top-k down the columns) one product, its
@@ -259,7 +259,7 @@ def fast_projection(a: torch.Tensor, s, k: int = K_CROSS, idx=None, solve: str =
         L, info = torch.linalg.cholesky_ex(As)
         DB = (a @ us).to(dt) * d[:, None]
         if kind == "cholesky64":  # L⁻¹ once (one triangular solve) and two products: ~0.25 ms less than the two
-            Li = torch.linalg.solve_triangular(L, _eye(L), upper=False)  # solves of cholesky_solve on the H200;
+            Li = torch.linalg.solve_triangular(L, _eye(L), upper=False)  # solves of cholesky_solve on the GPU;
             P = (Li.T @ (Li @ DB)) * d[:, None]  # in float64 as accurate (the float32 inverse is not: float32 keeps them)
         else:
             P = torch.cholesky_solve(DB, L) * d[:, None]

@@ -83,8 +83,8 @@ class VGG16Features(nn.Module):
         convolutions; fewer layout kernels). None / False restores float32 NCHW. Measured on the pretrained
         backbone, fern views x Starry Night, gradients with respect to the render: channels_last is float32
         arithmetic (FAST gradient within 3e-4, content within 8e-4 of NCHW; 98 -> 65 launches for the step's
-        batched pass on the H200); bf16 moves the FAST gradient by 20-60% and the content gradient by 12-14%
-        (losses within 1e-3) and was not faster on the H200 at fern size: leave it off."""
+        batched pass on the GPU); bf16 moves the FAST gradient by 20-60% and the content gradient by 12-14%
+        (losses within 1e-3) and was not faster on the GPU at fern size: leave it off."""
         if dtype not in (None, torch.float32, torch.bfloat16, torch.float16):
             raise ValueError(f"dtype must be None, float32, bfloat16 or float16, got {dtype}")
         self.lowp_dtype = None if dtype in (None, torch.float32) else dtype
@@ -179,7 +179,7 @@ class _GraphedPass:
     ``_GraphReplayFn``: what ``torch.cuda.make_graphed_callables`` builds, captured by hand so that the backward
     is seeded by a scalar, ``(out * grad_out).sum()``. Autograd given a tensor seed (as make_graphed_callables
     gives it) imports torch.fx's symbolic shapes, and with them sympy: 2.2 s of the stylize run's start on the
-    H200 host (``python -X importtime``), more than the graphs save over 3000 steps. The network's parameters
+    GPU host (``python -X importtime``), more than the graphs save over 3000 steps. The network's parameters
     are frozen, so the backward computes the input's gradient only. The graphs' buffers are static: the output
     is overwritten by the next replay, and a backward must run before the next forward (``use_cuda_graphs``)."""
 

@@ -277,7 +277,7 @@ def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
         title += f"\n{RANDOM_VGG_NOTE}"
     fig.suptitle(title, fontsize=10, color="red" if vgg_random else "black")
     # margins in inches for the fixed figure size: tight_layout measured every label's text extent, 0.4 s of
-    # Python holding the GIL while the output threads encode (py-spy over a stylize run on the H200 host)
+    # Python holding the GIL while the output threads encode (py-spy over a stylize run on the GPU host)
     height = 2.6 * rows
     fig.subplots_adjust(left=0.05, right=0.98, bottom=0.35 / height, top=1 - (0.8 if vgg_random else 0.55) / height,
                         hspace=0.5, wspace=0.22)

@@ -455,7 +455,7 @@ class _Loop:
             loss = weighted_sum(terms, weights)
             t.mark("loss")
             # on this thread: autograd's per-device worker thread costs a handoff per backward (about 40 us of host
-            # on the H200's host) and runs the Python backwards of the ops on a core whose caches are cold
+            # on the GPU host) and runs the Python backwards of the ops on a core whose caches are cold
             with torch.autograd.set_multithreading_enabled(False):
                 (loss if n == 1 else loss / n).backward()
             t.mark("backward")
