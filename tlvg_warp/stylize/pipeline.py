@@ -387,6 +387,9 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
     if fresh and cfg.refine_radius > 0:  # before the pre-process, which fits the children to the recoloured photos
         g_work, refined = refine_to_radius(g_work, cams, cfg.refine_radius * cfg.stroke_scale,
                                            budget or int(REFINE_UNCAPPED * g_in.num), background=bg, seed=cfg.seed)
+        if dist is not None and dist.world > 1:  # Σ αT sums by float atomics: a near tie may order differently on each
+            g_cpu, refined = dist.broadcast_object((g_work.to(device="cpu"), refined))  # GPU, and every rank must
+            g_work = g_cpu.to(device=device)  # start from the same Gaussians: rank 0's refinement
     params = GaussianParams(g_work, g_work.sh_degree)
     opt = optimizer(params, cfg, extent)
     density = density_control(cfg, g_work.num, device, cams, extent=extent, n_views=len(cams), dist=dist,
