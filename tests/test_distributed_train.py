@@ -38,7 +38,8 @@ SMALL = ["--set", "checkpoint_seconds=0", "--set", "log_every=2"]
 STYLIZE = ["--vgg-weights", "random", "--device", "cpu", "--iterations", "12", "--quiet", "--keep-checkpoint",
            "--set", "orbit_frames=0",
            "--set", "comparison_views=1", "--set", "web_formats=false", "--set", "style_height=64",
-           "--set", "densify_interval=2", "--set", "densify_grad_threshold=1e-7", *SMALL]
+           "--set", "densify_interval=2", "--set", "densify_grad_threshold=1e-7",
+           "--set", "refine_radius=1", *SMALL]  # splats over 2 px are refined first, by rank 0 for every rank
 # the means' learning rate decays over a fixed 1000 steps (by default over the run's own iterations, so an
 # extended run would follow another schedule than a straight one)
 RECON = ["demo", "--downscale", "4", "--device", "cpu", "--quiet", "--keep-checkpoint", "--set", "max_init_points=400",
@@ -204,6 +205,7 @@ def test_stylize_two_ranks_equal_one_rank_with_two_views_per_step(runs):
     m1, m2 = (json.loads((root / r / "metrics.json").read_text()) for r in ("s1", "s2"))
     assert m2["densify_events"] == m1["densify_events"]
     assert m2["gaussians_final"] == m1["gaussians_final"] > m1["gaussians_input"]  # density control ran, alike
+    assert m2["refine"] == m1["refine"] and m1["refine"]["refined"] > 0  # the stroke-size refinement ran, alike
     assert (root / "s2" / "stylized.ply").is_file() and (root / "s2" / "comparison.png").is_file()
 
 
