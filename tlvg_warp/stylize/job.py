@@ -25,6 +25,7 @@ from ..errors import InputError
 from ..runs import resolve_device, run_folder
 from .config import StylizeConfig, config_from_dict, load_config
 from .inputs import assemble_inputs
+from .outputs import write_outputs
 from .pipeline import RUN_FILES, load_checkpoint, run_stylize
 
 # The no-argument demo's settings (a user's flag or --set wins). On 2 CPU cores: 160x120 views (18,733 discs),
@@ -98,7 +99,7 @@ class StylizeJob:
             out = Path(resume)
         else:
             out = Path("runs") / time.strftime("stylize_%Y%m%d_%H%M%S")
-        from ..losses import load_vgg  # lazy: Warp
+        from ..losses import load_vgg  # lazy: imports Warp (after the checks above: bad input fails before it)
 
         dev = resolve_device(cfg.device)
         dist = Dist.from_env(str(dev))  # torchrun: one rank per GPU, data-parallel over the views of a step
@@ -137,8 +138,6 @@ class StylizeJob:
 
     def write(self, res, input_bytes) -> dict:
         """The run folder's outputs (stylize/outputs.py; the main rank only); returns metrics.json's content."""
-        from .outputs import write_outputs  # lazy: matplotlib
-
         res.metrics["load_split_s"] = {k: round(self.load_split.get(k, 0.0), 3) for k in ("vgg", "inputs")}
         return write_outputs(self.out, res, input_bytes=input_bytes, wall_start=self.wall_start)
 

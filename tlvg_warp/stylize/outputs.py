@@ -11,12 +11,18 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import torch
 
 from ..fileio import atomic_path, write_image, write_json
+from ..io import save_ply
+from ..io.splat_formats import save_compressed_ply, save_spz
+from ..renderer import render
 from ..train.optim import quat_to_rotmat, rotmat_to_quat
+from ..train.reconstruct import cameras_json
 from ..types import Camera, Gaussians
+from .pipeline import LOG_TERMS
 
 RANDOM_VGG_NOTE = "VGG-16 RANDOM (not pretrained): style/content losses are not meaningful"
 ZOOM = 4  # the comparison's zoom column: the centre of the stylized view magnified this much (nearest)
@@ -31,8 +37,6 @@ def _u8(img) -> np.ndarray:
 
 def _fit_painting(style: np.ndarray, h: int, w: int) -> np.ndarray:
     """The painting center-cropped to the view's aspect and resized to h x w."""
-    import cv2
-
     sh, sw = style.shape[:2]
     if sw / sh > w / h:
         cw = max(1, round(sh * w / h))
@@ -47,8 +51,6 @@ def _fit_painting(style: np.ndarray, h: int, w: int) -> np.ndarray:
 
 def font_scale(panel_width: int, longest: str = "original render") -> float:
     """The label font scale for panels ``panel_width`` pixels wide: ``longest`` fits one panel (0.3 to 0.8)."""
-    import cv2
-
     w1 = cv2.getTextSize(longest, cv2.FONT_HERSHEY_SIMPLEX, 1.0, 1)[0][0]
     return float(min(0.8, max(0.3, (panel_width - 8) / max(1, w1))))
 
@@ -56,8 +58,6 @@ def font_scale(panel_width: int, longest: str = "original render") -> float:
 def wrap_text(text: str, scale: float, width: int) -> list:
     """``text`` in lines no wider than ``width`` pixels at ``scale`` (Hershey simplex), broken between words only;
     a word wider than a line (a long path) is broken after a "/" (a word with none keeps a line of its own)."""
-    import cv2
-
     def fits(t):
         return cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] <= width
 
@@ -79,8 +79,6 @@ def wrap_text(text: str, scale: float, width: int) -> list:
 
 
 def _text_block(lines: list, width: int, scale: float, color, x_off: int = 0, canvas=None) -> np.ndarray:
-    import cv2
-
     (_, th), base = cv2.getTextSize("Ag", cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
     step = th + base + max(2, round(4 * scale))
     img = canvas if canvas is not None else np.full((step * len(lines) + 6, width, 3), 255, np.uint8)
@@ -191,7 +189,7 @@ def write_video(path: Path, frames: list, fps: int) -> str | None:
     frames = [_even(_u8(f)) for f in frames]
     h, w = frames[0].shape[:2]
     try:
-        import imageio_ffmpeg
+        import imageio_ffmpeg  # lazy: optional (without it, OpenCV's mp4v below)
     except ImportError:
         _write_video_mp4v(path, frames, fps, w, h)
         return "orbit.mp4 is MPEG-4 Part 2 (mp4v; browsers do not play it): pip install imageio-ffmpeg for H.264"
@@ -213,8 +211,6 @@ def write_video(path: Path, frames: list, fps: int) -> str | None:
 
 
 def _write_video_mp4v(path: Path, frames: list, fps: int, w: int, h: int) -> None:
-    import cv2
-
     with atomic_path(path) as tmp:
         vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
         if not vw.isOpened():
@@ -245,12 +241,11 @@ def curve(log: list, term: str) -> tuple:
 
 
 def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
+    # lazy: matplotlib is heavy and only the figure needs it
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from .pipeline import LOG_TERMS
 
     shown = [t for t in LOG_TERMS if any(r.get(t, 0) != 0 for r in log)]
     extra = ["flow_score"] if any("flow_score" in r for r in log) else []
@@ -293,7 +288,7 @@ def _write_view(out: Path, i: int, sty: torch.Tensor, org: torch.Tensor, photo: 
     """One view's renders/, originals/, photos/ and fields/ files, and the flow alignment of the stylized and
     the original render to its target field (None without fields); the three images as numpy when ``keep``
     (a row of comparison.png), else None (no view's render outlives its job)."""
-    from ..losses import flow_alignment_score
+    from ..losses import flow_alignment_score  # lazy: imports Warp
 
     write_image(out / "renders" / f"view_{i:03d}.png", sty)
     write_image(out / "originals" / f"view_{i:03d}.png", org)
@@ -328,10 +323,7 @@ def _write_orbit(out: Path, frames: list, fps: int) -> str | None:
 def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start: float | None = None,
                   progress: bool = False) -> dict:
     """Write every output file of a finished run; returns the metrics (also in metrics.json)."""
-    from ..io import save_ply
-    from ..losses import field_picture
-    from ..renderer import render
-    from ..train.reconstruct import cameras_json
+    from ..losses import field_picture  # lazy: imports Warp
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -347,8 +339,6 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
     with ThreadPoolExecutor(max_workers=OUTPUT_WORKERS) as pool:
         jobs = [pool.submit(save_ply, g_cpu, out / "stylized.ply")]
         if cfg.web_formats:  # the same scene for browser viewers (SuperSplat, PlayCanvas, SPZ)
-            from ..io.splat_formats import save_compressed_ply, save_spz
-
             jobs += [pool.submit(save_compressed_ply, g_cpu, out / "stylized.compressed.ply"),
                      pool.submit(save_spz, g_cpu, out / "stylized.spz")]
         write_json(out / "cameras.json", cameras_json(SimpleNamespace(cameras=inp.cameras, names=inp.names)))

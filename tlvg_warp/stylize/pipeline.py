@@ -43,9 +43,13 @@ import numpy as np
 import torch
 
 from .. import runs
+from ..distributed import Dist
 from ..errors import InputError
+from ..renderer import render
+from ..train.init import scene_extent
 from ..train.loop import Diverged, Fit, Phase, Run, View, train
-from ..train.optim import FIELDS
+from ..train.optim import FIELDS, GaussianParams, tangential_hook
+from ..train.refine import refine_to_radius
 from ..train.session import Session, density_control, new_run, optimizer
 from ..types import Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
@@ -105,7 +109,7 @@ def tv_loss(img: torch.Tensor) -> torch.Tensor:
 def chroma_tv_loss(img: torch.Tensor) -> torch.Tensor:
     """TV of the chroma residual ``img - Y`` (Y = 0.299R+0.587G+0.114B): strokes may vary luminance at any
     scale while colour stays in clean patches (the "muddy colour" the luminance-only style loss exists to avoid)."""
-    from ..losses import luminance
+    from ..losses import luminance  # lazy: imports Warp
 
     return tv_loss(img - luminance(img))
 
@@ -133,7 +137,7 @@ def flow_field_tensor(doubled: torch.Tensor) -> torch.Tensor:
 
 def flow_terms(g, cam, fld, weights):
     """The flow energies (paper eq. 1 + anisotropy), the Warp kernel of tlvg_warp.flow."""
-    from ..flow import flow_terms as _flow_terms
+    from ..flow import flow_terms as _flow_terms  # lazy: imports Warp
 
     return _flow_terms(g, cam, fld, weights)
 
@@ -159,9 +163,9 @@ class Targets:
 
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
+    # lazy: imports Warp
     from ..losses import (color_transfer, field_at_cells, flatten_feats, lab_chroma_stats, luminance, resize_style,
                           stroke_field)
-    from ..renderer import render
 
     style_np = inp.style.detach().cpu().numpy().astype(np.float32)
     view_h = int(np.median([c.height for c in inp.cameras]))
@@ -214,7 +218,7 @@ class Stylize(Phase):
 
     def __init__(self, steps: int, cfg: StylizeConfig, tg: Targets, vgg, **kw):
         super().__init__("stylize", steps, **kw)
-        from ..losses import StyleLoss
+        from ..losses import StyleLoss  # lazy: imports Warp
 
         self.cfg, self.tg, self.vgg, w = cfg, tg, vgg, cfg.loss
         self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss, refresh_every=w.fast_refresh,
@@ -252,8 +256,8 @@ class Stylize(Phase):
     @torch.no_grad()
     def make_fields(self, run: Run) -> list:
         """Per view the target stroke field [H,W,3] from the current render ("matched") or the canvas."""
+        # lazy: imports Warp
         from ..losses import flatten_feats, luminance, map_field_canvas, map_field_matched, match_style_cells
-        from ..renderer import render
 
         tg, out = self.tg, []
         g = run.params.gaussians()
@@ -268,7 +272,7 @@ class Stylize(Phase):
         return out
 
     def terms(self, run: Run, view: View) -> dict:
-        from ..losses import content_loss, lab_chroma_loss, luminance
+        from ..losses import content_loss, lab_chroma_loss, luminance  # lazy: imports Warp
 
         tg, on, t, vi = self.tg, self.on, run.timer, view.index
         p, anchors = run.params, run.density.tracked
@@ -312,7 +316,7 @@ class Stylize(Phase):
         return terms
 
     def flush_extra(self, run: Run, view: View) -> dict:
-        from ..losses import flow_alignment_score_torch
+        from ..losses import flow_alignment_score_torch  # lazy: imports Warp
 
         with torch.no_grad():
             s = flow_alignment_score_torch(view.out.color.detach(), self.fields[view.index][..., :2])
@@ -368,11 +372,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
               fresh: bool = True) -> Run:
     """Parameters, one Adam, density control and the three phases. ``fresh``: a new run (not a resume, whose
     checkpoint brings its own Gaussians): the scene's coarse splats are refined to the stroke size first."""
-    from ..losses import color_transfer, recolor_sh
-    from ..renderer import render
-    from ..train.init import scene_extent
-    from ..train.optim import GaussianParams, tangential_hook
-    from ..train.refine import refine_to_radius
+    from ..losses import color_transfer, recolor_sh  # lazy: imports Warp
 
     cams = list(inp.cameras)
     bg = tuple(float(v) for v in cfg.background)
@@ -426,8 +426,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     at the end of each phase) with the current Gaussians, detached (the live viewer, ``stylize --view``).
     ``dist``: a ``Dist`` (torchrun; default one process: only its main rank writes files).
     Raises KeyboardInterrupt after saving a checkpoint, StylizeDiverged on NaN."""
-    from ..distributed import Dist
-    from ..losses import load_vgg
+    from ..losses import load_vgg  # lazy: imports Warp
 
     t_start = time.perf_counter()
     cfg = cfg.validate()
