@@ -40,10 +40,12 @@ from dataclasses import dataclass
 
 import torch
 
+from ..distributed import Dist
 from ..fileio import save_torch, write_text
+from ..renderer import render
 from ..runs import Interrupt, StageTimer, plain_data
 from ..progress import Progress
-from .optim import FIELDS
+from .optim import FIELDS, GaussianOptimizer, GaussianParams
 
 STAGES = ("render", "loss", "backward", "optimizer", "density")  # what the loop itself times
 
@@ -121,7 +123,7 @@ class Phase:
 def photometric_loss(img: torch.Tensor, ref: torch.Tensor, lam: float = 0.2) -> torch.Tensor:
     """(1 − λ)·L1 + λ·(1 − SSIM) (3DGS; λ 0.2 is SPEC §3's 0.8·L1 + 0.2·(1 − SSIM)): one fused op for λ > 0
     (losses.fit_loss: the L1 and the SSIM in the same Warp kernels)."""
-    from ..losses import fit_loss
+    from ..losses import fit_loss  # lazy: imports Warp
 
     return (img - ref).abs().mean() if lam == 0 else fit_loss(img, ref, lam)
 
@@ -184,8 +186,6 @@ class Run:
     def __init__(self, params, opt, density, phases: list, cams: list, settings: LoopSettings, *, device,
                  seed: int = 0, view_ids=None, background=(0.0, 0.0, 0.0), dist=None, out=None,
                  fmt: str = "tlvg_warp.run.v1", extra=None, log_file: str | None = "log.jsonl"):
-        from ..distributed import Dist
-
         self.params, self.opt, self.density = params, opt, density
         self.phases, self.cams, self.settings = list(phases), list(cams), settings
         self.device, self.background = torch.device(device), tuple(background)
@@ -247,8 +247,6 @@ class Run:
         return {"ranks": self.dist.world, "per_rank": self.settings.views_per_step}
 
     def load_state_dict(self, sd: dict) -> None:
-        from .optim import GaussianOptimizer, GaussianParams
-
         params = GaussianParams.from_state_dict(sd["params"], self.device)
         opt = GaussianOptimizer(params, self.opt.lrs, self.opt.extent, self.opt.decay_steps)
         opt.load_state_dict(sd["optimizer"])
@@ -445,8 +443,6 @@ class _Loop:
         dens = phase.density and r.density.accumulating(k + 1)
         want_w = phase.render_weights or (dens and r.density.wants_weights(k + 1))
         weights, n, rows = phase.weights(k), len(mine), []
-        from ..renderer import render
-
         for vi, bg in mine:
             cam = r.cams[vi]
             view = View(vi, cam, bg, render(g, cam, bg, sh_degree=phase.sh_degree(step), return_weights=want_w), g)

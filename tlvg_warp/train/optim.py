@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch.optim.adam import adam
 
 from ..types import Gaussians, sh_coeffs
 
@@ -147,8 +148,6 @@ class FunctionalAdam:
 
     @torch.no_grad()
     def step(self) -> None:
-        from torch.optim.adam import adam
-
         d = self.defaults
         for g in self.param_groups:
             ps = [p for p in g["params"] if p.grad is not None]
@@ -329,6 +328,7 @@ def tangential_hook(lam: float = 1.0):
     twin = tangential_hook_torch(lam)
 
     def hook(params: GaussianParams, before: dict) -> None:
+        # lazy: imports Warp (config loading imports this module; stylize.config reads LearningRates here)
         from ..kernels.tangential import tangential_kernels
         from ..launch import ct, fast_launch, init_warp, warp_on
 

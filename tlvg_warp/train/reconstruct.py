@@ -25,9 +25,12 @@ from .. import config_io, runs
 from ..config_io import ConfigError, check_run_settings
 from ..errors import InputError
 from ..fileio import write_image, write_json
+from ..io import save_ply
 from ..io.datasets import dataset_background
+from ..renderer import render
 from ..types import Gaussians
 from .density import DENSITY_RENAMED, DensityConfig
+from .init import initialize, scene_extent
 from .loop import Diverged, Fit, train
 from .optim import LR_RENAMED, GaussianParams, LearningRates
 from .session import Session, density_control, new_run, optimizer
@@ -165,8 +168,6 @@ def load_checkpoint(path) -> dict:
 
 
 def _save_ply_checked(g: Gaussians, path: Path) -> int:
-    from ..io import save_ply
-
     bad = sum(int((~torch.isfinite(getattr(g, f))).sum()) for f in Gaussians.FIELDS)
     if bad:
         raise FitDiverged(f"refusing to write a PLY with {bad} non-finite values")
@@ -184,8 +185,6 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     resume: a run folder (or checkpoint path) to continue from.
     callback: ``fn(step, run)`` after every iteration (tests). dist: a ``Dist`` (torchrun; default: one process).
     Returns (Gaussians, metrics)."""
-    from .init import initialize, scene_extent
-
     t_start = time.perf_counter()
     cfg = (config or ReconstructConfig()).validate()
     session = Session(cfg, dist)
@@ -229,8 +228,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
         init_note = f"resumed at iteration {run.step} from {resume}"
 
     def eval_views(g, which):
-        from ..losses import psnr, ssim
-        from ..renderer import render
+        from ..losses import psnr, ssim  # lazy: imports Warp
 
         ps, ss, renders = [], [], []
         with torch.no_grad():
