@@ -199,6 +199,9 @@ def test_paper_study_and_ablations_are_the_papers(tmp_path):
     from tlvg_warp.eval.study import load_study
     from tlvg_warp.stylize.config import load_config
 
+    data = REPO.parent / "shared" / "data"  # the path configs/study_paper.yaml names, relative to the repository
+    if not data.is_dir():
+        pytest.skip(f"data absent: {data} (configs/study_paper.yaml names its scenes and paintings there)")
     st = load_study(REPO / "configs" / "study_paper.yaml")
     assert set(st.scenes) == {"fern", "beer", "lego"} and st.seeds == 3 and st.iterations is None
     assert set(st.paintings) == {"starry_night", "shipwreck", "starry_night_over_the_rhone", "monet_san_giorgio"}
