@@ -88,7 +88,7 @@ def test_full_disk_at_the_first_checkpoint(valid, tmp_path, capsys):
 def test_full_disk_while_writing_outputs_keeps_the_checkpoint(valid, tmp_path, capsys, monkeypatch):
     """The disk fills after the last checkpoint, as the outputs are written: one line naming the output folder,
     no temporary file, the checkpoint of the last iteration loads; with space again, --resume finishes."""
-    import tlvg_warp.stylize.outputs as outputs
+    import tlvg_warp.stylize.job as outputs  # the job calls write_outputs by the name it imported
 
     real = outputs.write_outputs
     fillers = []
