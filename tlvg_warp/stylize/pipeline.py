@@ -382,7 +382,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
     if cfg.palette_init and not cfg.keep_colors:  # the same colour map the pre-process targets went through, applied in closed form
         g_work = dataclasses.replace(g_work, sh=recolor_sh(g_work.sh, *tg.palette))
     extent = scene_extent(cams)
-    budget = cfg.density.budget(g_in.num) if cfg.density.use_budget else None
+    budget = cfg.density.budget(g_in.num)  # None without a budget
     refined = {}
     if fresh and cfg.refine_radius > 0:  # before the pre-process, which fits the children to the recoloured photos
         g_work, refined = refine_to_radius(g_work, cams, cfg.refine_radius * cfg.stroke_scale,
