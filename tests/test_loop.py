@@ -77,7 +77,8 @@ def _view(run, vi):
 def test_stylize_terms_against_closed_forms(demo):
     net = StubFeatures()
     run, cfg, tg = _stylize_run(demo, net, **{"loss.w_style_color": 0.5, "loss.w_chroma_tv": 0.3,
-                                              "loss.w_style_gram": 0.7, "loss.w_coverage": 0.9})
+                                              "loss.w_style_gram": 0.7, "loss.w_coverage": 0.9,
+                                              "loss.w_silhouette": 0.6})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -113,10 +114,11 @@ def test_stylize_terms_against_closed_forms(demo):
     gram = (((a_y @ a_y.T) / a_y.shape[1] - (s_y @ s_y.T) / s_y.shape[1]) ** 2).mean()
     hinge = (ro0.alpha.double().clamp(0, 1) - view.out.alpha.detach().double()).clamp_min(0).mean()
     assert float(hinge) > 1e-3
+    grown = (view.out.alpha.detach().double() - ro0.alpha.double().clamp(0, 1)).clamp_min(0).mean()
     opac = torch.full((run.params.num,), 0.25 ** 2, dtype=torch.float64)
     opac[::2] = (0.25 - 3.0) ** 2
     want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "style_gram": gram,
-            "coverage": hinge, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
+            "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k
     assert all(torch.isfinite(t) and t.requires_grad for t in terms.values())
@@ -124,6 +126,31 @@ def test_stylize_terms_against_closed_forms(demo):
     w0, w_last = sty.weights(0), sty.weights(sty.steps - 1)
     assert (w0["lab"], w_last["lab"]) == pytest.approx((cfg.loss.w_lab_start, cfg.loss.w_lab_end), abs=1e-12)
     assert all(isinstance(v, float) for v in w0.values()) and w0["style"] == cfg.loss.w_style
+
+
+def test_normalized_content_is_the_mse_over_the_photo_features_mean_square(demo):
+    """loss.content_norm: the content term is the raw feature MSE divided by that view's photo features' mean
+    square (float64 oracle from the stub's pooled pixels), so a scene's texture no longer sets its weight."""
+    net = StubFeatures()
+    run, cfg, tg = _stylize_run(demo, net, **{"loss.content_norm": True})
+    sty = run.phase("stylize")
+    sty.setup(run)
+    view = _view(run, 1)
+    terms = sty.terms(run, view)
+    with torch.no_grad():
+        ro0 = render(demo.gaussians, run.cams[1], run.background)
+    cov = ro0.alpha.double().clamp(0, 1)[..., None]
+    img = cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64)
+    pool = lambda x: F.avg_pool2d(x.permute(2, 0, 1)[None], 4).reshape(3, -1)  # noqa: E731
+    photo = pool(demo.photos[1].double())
+    want = ((pool(img) - photo) ** 2).mean() / (photo ** 2).mean()
+    assert float(terms["content"].detach()) == pytest.approx(float(want), rel=TERM_TOL)
+    raw, _, _ = _stylize_run(demo, net)
+    raw_sty = raw.phase("stylize")
+    raw_sty.setup(raw)
+    raw_c = float(raw_sty.terms(raw, _view(raw, 1))["content"].detach())
+    assert raw_c == pytest.approx(float(want * (photo ** 2).mean()), rel=TERM_TOL)  # the scale is not 1 here
+    assert abs(float((photo ** 2).mean()) - 1) > 0.05
 
 
 def test_zero_weighted_terms_are_not_computed(demo):

@@ -204,3 +204,15 @@ def test_coverage_loss_is_a_hinge_on_lost_alpha():
     assert float(loss) == pytest.approx(0.75 / 4)
     loss.backward()
     assert alpha.grad.tolist() == [[-0.25, 0.0], [0.0, 0.0]]
+
+
+def test_silhouette_loss_is_a_hinge_on_grown_alpha():
+    """The mirror of the coverage hinge: only alpha above the un-stylized scene's costs (closed form)."""
+    from tlvg_warp.stylize.pipeline import silhouette_loss
+
+    cov = torch.tensor([[1.0, 1.0], [0.0, 0.5]])[..., None]
+    alpha = torch.tensor([[0.25, 1.0], [1.0, 0.75]], requires_grad=True)
+    loss = silhouette_loss(alpha, cov)
+    assert float(loss) == pytest.approx(1.25 / 4)
+    loss.backward()
+    assert alpha.grad.tolist() == [[0.0, 0.0], [0.25, 0.25]]

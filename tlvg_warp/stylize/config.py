@@ -30,10 +30,15 @@ class StyleLoss:
     # painting's strokes over the whole view, where nearest-neighbour matching leaves flat regions smooth (ours; 0: off)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
+    content_norm: bool = False  # divide the content MSE by the photo features' mean square, per view (ours): the
+    # raw MSE scales with how much texture a scene has (relu3 energy of beer's photos is half fern's), so a
+    # weight chosen on one scene keeps photo structure unevenly on another; NNFM and FAST are scale-free already
     w_depth: float = 0.01  # MSE of inverse depth vs the un-stylized scene (reference code)
     w_tv: float = 0.02  # total variation of the render, horizontal + vertical (reference code, corrected)
     w_chroma_tv: float = 0.0  # TV of the render's chroma (RGB minus luminance): clean colour patches (ours; 0: off)
     w_coverage: float = 0.0  # hinge on the render's alpha below the un-stylized scene's: no holes open (ours; 0: off)
+    w_silhouette: float = 0.0  # hinge on the render's alpha above the un-stylized scene's: splats may not grow into an
+    # empty background, where the style terms do not look (ours; 0: off; zero on a capture covered everywhere)
     w_opacity_reg: float = 1.0  # ||opacity_logits - value at stylize start||_2 (reference code)
     w_scale_reg: float = 1.0  # ||log_scales - value at stylize start||_2 (reference code)
     w_lab_start: float = 0.2  # Lab chroma statistics weight at the first stylize step (paper, linear schedule)
@@ -49,6 +54,7 @@ class StyleLoss:
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0),
              **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_coverage",
+                                       "w_silhouette",
                                        "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}

@@ -55,7 +55,8 @@ from ..types import Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "coverage", "opacity_reg",
+STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "coverage", "silhouette",
+                 "opacity_reg",
                  "scale_reg", "lab", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
@@ -120,6 +121,13 @@ def coverage_loss(alpha: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
     return torch.relu(coverage[..., 0] - alpha).mean()
 
 
+def silhouette_loss(alpha: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
+    """Mean over pixels of how far the render's alpha [H,W] rises above the un-stylized scene's [H,W,1]: the mirror
+    of ``coverage_loss``. Where the scene was empty (a Blender background) the style terms see the background, not
+    the render, so nothing else stops splats from fraying outwards."""
+    return torch.relu(alpha - coverage[..., 0]).mean()
+
+
 def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
     """1/z where something was rendered (depth > 0), 0 elsewhere."""
     return torch.where(depth > 0, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
@@ -160,6 +168,8 @@ class Targets:
     inv_depth: list  # per view [H,W]: the un-stylized scene's inverse depth
     originals: list  # per view [H,W,3] (CPU): renders of the un-stylized scene
     coverage: list = field(default_factory=list)  # per view [H,W,1]: the un-stylized scene's alpha (on the device)
+    content_scale: list = field(default_factory=list)  # per view: what the content MSE is multiplied by (1, or
+    # 1 / the photo features' mean square with loss.content_norm)
 
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
@@ -198,7 +208,13 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
                    None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
                    flatten_feats(sf_lum).contiguous(), cells, recolored, [lab_chroma_stats(r) for r in recolored],
-                   (pal_m, pal_t), photo_feats, inv_depth, originals, coverage)
+                   (pal_m, pal_t), photo_feats, inv_depth, originals, coverage,
+                   [content_scale(f, cfg.loss.content_norm) for f in photo_feats])
+
+
+def content_scale(photo_feats: torch.Tensor, normalized: bool) -> float:
+    """1, or 1 / the mean square of a view's photo features (read once per view, at the run's start)."""
+    return 1.0 / max(float((photo_feats.double() ** 2).mean()), 1e-12) if normalized else 1.0
 
 
 def over_background(img: torch.Tensor, coverage: torch.Tensor, background) -> torch.Tensor:
@@ -230,7 +246,7 @@ class Stylize(Phase):
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
                       "style_gram": w.w_style_gram * w.strength,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
-                      "chroma_tv": w.w_chroma_tv, "coverage": w.w_coverage,
+                      "chroma_tv": w.w_chroma_tv, "coverage": w.w_coverage, "silhouette": w.w_silhouette,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
                       "aniso": w.w_aniso}
         # a term weighted 0 over the whole phase is not computed at all
@@ -294,7 +310,7 @@ class Stylize(Phase):
                 terms["style_color"] = self.color_fn(a_rgb, key=vi)
             t.mark("style")
             if on["content"]:
-                terms["content"] = content_loss(a_rgb, tg.photo_feats[vi])
+                terms["content"] = content_loss(a_rgb, tg.photo_feats[vi]) * tg.content_scale[vi]
         if on["depth"]:
             terms["depth"] = ((inverse_depth(view.out.depth) - tg.inv_depth[vi]) ** 2).mean()
         if on["tv"]:
@@ -303,6 +319,8 @@ class Stylize(Phase):
             terms["chroma_tv"] = chroma_tv_loss(img)
         if on["coverage"]:
             terms["coverage"] = coverage_loss(view.out.alpha, tg.coverage[vi])
+        if on["silhouette"]:
+            terms["silhouette"] = silhouette_loss(view.out.alpha, tg.coverage[vi])
         if on["opacity_reg"]:
             terms["opacity_reg"] = anchor_norm(p.opacity_logits, anchors["opacity_logits"])
         if on["scale_reg"]:

@@ -1,0 +1,75 @@
+#!/usr/bin/env bash
+# The paintings study on one lent GPU, every (scene, painting) pair in its own process (the stylize loop is bound by
+# the host, so pairs run side by side on one GPU; quality figures are unaffected, wall times are not comparable).
+#   PART=stage1  carry .gpu/a and .carry/d1 (VGG-16 conv1-4, fp16): stage warp part one and the weights
+#   PART=stage2  carry .gpu/b and .carry/d2 (styles, beer): `source .gpu/b/setup.sh` first; starts beer's fit
+#   PART=fit     carry .carry/d3 (fern, lego at 400 px): fits fern and lego (7000 iterations), waits for all three
+#   PART=pairs   PAIRS="scene:dataset:downscale:painting ..." VARIANTS="name:k=v;k=v ..." (benchmarks/tune.py's
+#                form): stylize and evaluate every pair in parallel, print the tables, return montages and JSON
+# Later calls on a warm machine: `source /tmp/tlvg-gpu/env.sh && PART=... bash benchmarks/device_paint.sh`.
+set -uo pipefail
+OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
+D=/tmp/tlvg-data; F=/tmp/tlvg-fits; R=/tmp/tlvg-runs; mkdir -p "$D" "$F" "$R"
+export TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1
+for d in .carry/d1 .carry/d2 .carry/d3; do [ -d "$d" ] && cp -r "$d"/. "$D/"; done
+nvidia-smi --query-gpu=name,memory.total --format=csv,noheader; date -u
+
+fit_bg() {  # fit_bg DATASET NAME: reconstruct in the background, then an SH-0 SPZ copy
+  [ -f "$F/$2.spz" ] || [ -f "$R/fit_$2.started" ] && return
+  touch "$R/fit_$2.started"
+  setsid nohup bash -c "python3 -m tlvg_warp reconstruct '$D/scenes/$1' --out '$R/fit_$2' --overwrite --quiet > '$R/fit_$2.log' 2>&1 &&
+    python3 -c \"import sys; from tlvg_warp.io.ply import load_ply; from tlvg_warp.io.splat_formats import save_spz
+g = load_ply(sys.argv[1]); save_spz(g.with_sh_degree(0), sys.argv[2]); print('fitted', g.num)\" \
+    '$R/fit_$2/point_cloud.ply' '$F/$2.spz' >> '$R/fit_$2.log' 2>&1" > /dev/null 2>&1 &
+}
+
+wait_for() {  # wait_for FILE... : until every file exists (or the call's time runs out)
+  for f in "$@"; do while [ ! -f "$f" ]; do sleep 2; done; done
+}
+
+case "${PART:-pairs}" in
+  stage1)
+    bash .gpu/a/stage.sh
+    python3 - "$D/vgg16_fp16.pt" "$TLVG_VGG_WEIGHTS" <<'EOF'
+import sys, torch
+sd = {k: v.float() for k, v in torch.load(sys.argv[1], weights_only=True).items()}
+for i in (24, 26, 28):  # conv5 (only HED's side outputs read it) did not travel: zeros keep the layout
+    sd[f"features.{i}.weight"], sd[f"features.{i}.bias"] = torch.zeros(512, 512, 3, 3), torch.zeros(512)
+torch.save(sd, sys.argv[2]); print("vgg", len(sd), "tensors")
+EOF
+    ;;
+  stage2) fit_bg beer_colmap beer; sleep 5; tail -2 "$R/fit_beer.log" ;;
+  fit)
+    fit_bg beer_colmap beer; fit_bg fern_llff fern; fit_bg lego_blender lego
+    timeout "${FIT_LIMIT:-500}" bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz"
+    for s in beer fern lego; do echo "$s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" | tail -n 2 | tr '\n' ' ')"; done
+    ls -la "$F"
+    ;;
+  pairs)
+    V=(); for v in $VARIANTS; do V+=(--variant "$v"); done
+    for spec in $PAIRS; do
+      IFS=: read -r s d ds st <<< "$spec"
+      stem=${st%.*}
+      [ -f "$R/pairs/$s/$stem/evaluation/evaluation.json" ] && [ -z "${REDO:-}" ] && continue
+      setsid nohup python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
+        --styles "$D/styles/$st" --out "$R/pairs/$s" "${V[@]}" --montage "$R/pairs/${s}_$stem.jpg" \
+        --view "${VIEW:-0}" > "$R/pairs/${s}_$stem.log" 2>&1 &
+      sleep 1
+    done
+    sleep 5
+    deadline=$((SECONDS + ${PAIR_LIMIT:-540}))
+    while pgrep -f benchmarks/tune.py > /dev/null && [ $SECONDS -lt $deadline ]; do sleep 5; done
+    pgrep -f benchmarks/tune.py > /dev/null && echo "still running: $(pgrep -f benchmarks/tune.py | wc -l) processes"
+    for f in "$R"/pairs/*.log; do echo "== $f"; grep "^|\|^run \|Error\|error" "$f" | grep -v "^run /tmp.*rc 0" | tail -n 20; done
+    (cd "$R/pairs" && tar -czf "$OUT/pairs_${TAG:-x}.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json 2>/dev/null))
+    python3 - "$R/pairs" "$OUT/montage_${TAG:-x}.jpg" <<'EOF'
+import sys, glob, cv2, numpy as np
+ims = [cv2.imread(f) for f in sorted(glob.glob(sys.argv[1] + "/*.jpg"))]
+ims = [i for i in ims if i is not None]
+if ims:
+    w = max(i.shape[1] for i in ims)
+    cv2.imwrite(sys.argv[2], np.concatenate([np.pad(i, ((0, 0), (0, w - i.shape[1]), (0, 0))) for i in ims]),
+                [cv2.IMWRITE_JPEG_QUALITY, 80])
+EOF
+    ;;
+esac
