@@ -45,7 +45,36 @@ EOF
     for s in beer fern lego; do echo "$s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" | tail -n 2 | tr '\n' ' ')"; done
     ls -la "$F"
     ;;
+  study)  # launch the study in the background once the fits exist: two queues side by side (tuning, validation),
+          # each pair stylized then evaluated on its first MAX_VIEWS views; `PART=wait` collects
+    mkdir -p "$R/pairs"
+    queue() {  # queue NAME "VARIANTS" PAIR...
+      local name=$1 vs=$2; shift 2
+      local V=(); for v in $vs; do V+=(--variant "$v"); done
+      for spec in "$@"; do
+        IFS=: read -r s d ds st <<< "$spec"
+        OMP_NUM_THREADS=6 python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
+          --styles "$D/styles/$st" --out "$R/pairs/$s" "${V[@]}" --montage "$R/pairs/${s}_${st%.*}.jpg" \
+          --view "${VIEW:-0}" --max-views "${MAX_VIEWS:-24}" >> "$R/pairs/queue_$name.log" 2>&1
+        echo "done $spec" >> "$R/pairs/queue_$name.log"
+      done
+      touch "$R/pairs/queue_$name.done"
+    }
+    export -f queue; export F D R
+    T="fern:fern_llff:0:starry_night.jpg fern:fern_llff:0:shipwreck.jpg lego:lego_blender:0:starry_night.jpg beer:beer_colmap:2:starry_night.jpg beer:beer_colmap:2:shipwreck.jpg"
+    V="fern:fern_llff:0:starry_night_over_the_rhone.png fern:fern_llff:0:monet_san_giorgio.jpg lego:lego_blender:0:shipwreck.jpg lego:lego_blender:0:starry_night_over_the_rhone.png lego:lego_blender:0:monet_san_giorgio.jpg beer:beer_colmap:2:starry_night_over_the_rhone.png beer:beer_colmap:2:monet_san_giorgio.jpg"
+    setsid nohup bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz; queue tuning 'tlvg: tlvg_before:loss.w_silhouette=0 abcgs:config=configs/abcgs.yaml' $T" > /dev/null 2>&1 &
+    setsid nohup bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz; queue validation 'tlvg: abcgs:config=configs/abcgs.yaml' $V" > /dev/null 2>&1 &
+    echo "study launched"
+    ;;
+  wait)  # wait up to WAIT seconds for the study's queues, then return what is finished
+    deadline=$((SECONDS + ${WAIT:-500}))
+    while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/pairs/queue_validation.done" ]; }; do sleep 5; done
+    grep -h "^done\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log | tail -n 60
+    (cd "$R/pairs" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json *.jpg 2>/dev/null))
+    ;;
   pairs)
+    mkdir -p "$R/pairs"
     V=(); for v in $VARIANTS; do V+=(--variant "$v"); done
     for spec in $PAIRS; do
       IFS=: read -r s d ds st <<< "$spec"

@@ -63,7 +63,8 @@ def evaluate(args, variants, styles):
         if not runs:
             continue
         t = time.perf_counter()
-        cli.main(["evaluate", *map(str, runs), "--scene", args.scene, "--out", str(d / "evaluation")])
+        cli.main(["evaluate", *map(str, runs), "--scene", args.scene, "--out", str(d / "evaluation"),
+                  *(["--max-views", str(args.max_views)] if args.max_views else [])])
         print(f"evaluate {d.name}: {time.perf_counter() - t:.1f} s", flush=True)
         table(d / "evaluation" / "evaluation.json")
 
@@ -128,6 +129,7 @@ def main():
     ap.add_argument("--phase", choices=["all", "run", "eval"], default="all")
     ap.add_argument("--montage", default=None, help="write a JPEG montage of view --view of every run here")
     ap.add_argument("--view", type=int, default=0)
+    ap.add_argument("--max-views", type=int, default=0, help="evaluate the first N views only (0: all)")
     args = ap.parse_args()
     variants = [parse_variant(v) for v in args.variant]
     styles = [s for s in args.styles.split(",") if s]
