@@ -39,6 +39,15 @@ torch.save(sd, sys.argv[2]); print("vgg", len(sd), "tensors")
 EOF
     ;;
   stage2) fit_bg beer_colmap beer; sleep 5; tail -2 "$R/fit_beer.log" ;;
+  scene)  # SCENE=name:dataset:downscale STYLES=a.jpg,b.jpg VARIANTS=...: one process, after that scene's fit
+    IFS=: read -r s d ds <<< "$SCENE"
+    timeout 300 bash -c "$(declare -f wait_for); wait_for $F/$s.spz"; grep -h PSNR "$R/fit_$s.log"
+    V=(); for v in $VARIANTS; do V+=(--variant "$v"); done
+    OMP_NUM_THREADS=8 python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
+      --styles "$(echo "$STYLES" | tr ',' '\n' | sed "s|^|$D/styles/|" | paste -sd, -)" --out "$R/scene/$s" "${V[@]}" \
+      --montage "$OUT/scene_$s.jpg" --max-views "${MAX_VIEWS:-24}" 2>&1 | grep "^|\|^run \|^evaluate \|Error"
+    (cd "$R/scene" && tar -czf "$OUT/scene_$s.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json))
+    ;;
   fit)
     fit_bg beer_colmap beer; fit_bg fern_llff fern; fit_bg lego_blender lego
     timeout "${FIT_LIMIT:-500}" bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz"
