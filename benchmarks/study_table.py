@@ -52,7 +52,8 @@ def main():
     ap.add_argument("study")
     ap.add_argument("--tuning", default="fern:starry_night,fern:shipwreck")
     args = ap.parse_args()
-    data = load(Path(args.study))
+    study = Path(args.study)
+    data = load(study)
     tuning = {tuple(x.split(":")) for x in args.tuning.split(",")}
     order = sorted(data, key=lambda k: (k not in tuning, k))
     cols = []
@@ -95,9 +96,12 @@ def main():
         if t.get("consistency_k1") and u.get("consistency_k1"):
             mv = f"{t['consistency_k1']['mean'] / max(u['consistency_k1']['mean'], 1e-12):.2f}"
         g = "-"
+        run_metrics = study / key[0] / key[1] / "tlvg" / "metrics.json"
         for rr in res["runs"]:
             if rr["name"] == "tlvg" and rr["summary"].get("gaussians"):
                 g = rr["summary"]["gaussians"]
+                if run_metrics.is_file():  # the ratio to the scene the run started from
+                    g = f"{g / json.loads(run_metrics.read_text())['gaussians_input']:.2f}"
         det = t.get("detail", {}).get("mean")
         print(f"| {key[0]} x {key[1]} | {'tuning' if key in tuning else 'validation'} | {flow_u} | "
               f"{pd('abcgs', 'flow_alignment')} | {pd('abcgs', 'style_gram', -1)} | {pd('abcgs', 'style_nnfm', -1)} | "

@@ -1,0 +1,61 @@
+"""docs/gallery.jpg from the per-pair montages that `benchmarks/tune.py --montage` writes (one row per pair: the
+un-stylized render, one tile per variant in the order they were given, the painting; tiles 504 px wide).
+
+    python benchmarks/gallery.py OUT.jpg PAIRS_DIR scene_painting:variant,variant,...:label [...]
+
+Each argument picks a montage (PAIRS_DIR/scene_painting.jpg), the variants it was made with (in order), and the
+row's label; the row shows un-stylized | abcgs | tlvg (and any other variant named) | painting.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+TILE_W = 504
+ROW_H = 300
+SHOWN = ("abcgs", "tlvg_before", "tlvg")
+
+
+def tiles_of(montage: np.ndarray, variants: list[str]) -> dict:
+    h, w = montage.shape[:2]
+    names = ["un-stylized", *variants]
+    out = {n: montage[:, i * TILE_W:(i + 1) * TILE_W] for i, n in enumerate(names)}
+    rest = montage[:, len(names) * TILE_W:]
+    out["painting"] = rest[:, :np.flatnonzero(rest.reshape(h, -1, 3).max(axis=(0, 2)) > 0).max() + 1]
+    return out
+
+
+def row(montage: np.ndarray, variants: list[str], label: str) -> np.ndarray:
+    t = tiles_of(montage, variants)
+    order = ["un-stylized", *[v for v in SHOWN if v in t], "painting"]
+    scaled = [cv2.resize(t[n], (round(t[n].shape[1] * ROW_H / t[n].shape[0]), ROW_H), interpolation=cv2.INTER_AREA)
+              for n in order]
+    img = np.concatenate(scaled, 1)
+    bar = np.zeros((26, img.shape[1], 3), np.uint8)
+    x = 0
+    for n, s in zip(order, scaled):
+        text = label if n == "painting" else ("tlvg, before the silhouette term" if n == "tlvg_before" else n)
+        cv2.putText(bar, text, (x + 6, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
+        x += s.shape[1]
+    return np.concatenate([bar, img], 0)
+
+
+def main(argv: list[str]) -> None:
+    out, folder, specs = argv[0], Path(argv[1]), argv[2:]
+    rows = []
+    for spec in specs:
+        name, variants, label = spec.split(":", 2)
+        m = cv2.imread(str(folder / f"{name}.jpg"))
+        if m is None:
+            raise SystemExit(f"{folder / (name + '.jpg')}: not a readable montage")
+        rows.append(row(m, variants.split(","), label))
+    w = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, w - r.shape[1]), (0, 0))) for r in rows]
+    cv2.imwrite(out, np.concatenate(rows, 0), [cv2.IMWRITE_JPEG_QUALITY, 82])
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
