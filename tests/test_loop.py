@@ -153,6 +153,27 @@ def test_normalized_content_is_the_mse_over_the_photo_features_mean_square(demo)
     assert abs(float((photo ** 2).mean()) - 1) > 0.05
 
 
+def test_palette_detail_reaches_the_pre_process_targets(demo):
+    """palette_detail: the pre-process targets are the palette transfer with the painting's detail put back
+    (match_detail against the painting as given), then the photo's background where the scene was empty; the
+    Lab targets are those targets' statistics. Off, the targets are the plain transfer."""
+    from tlvg_warp.losses import color_transfer, lab_chroma_stats, match_detail
+    from tlvg_warp.stylize.pipeline import over_background
+
+    net = StubFeatures()
+    _, _, off = _stylize_run(demo, net)
+    _, _, on = _stylize_run(demo, net, palette_detail=True)
+    raw, _, _ = color_transfer(list(demo.photos), off.style_work)
+    boosted, g = match_detail(raw, demo.style)
+    assert g > 1.0  # the premise: the demo's painting carries more detail than its recolored photos
+    for i, photo in enumerate(demo.photos):
+        want = over_background(boosted[i], on.coverage[i], photo)
+        assert torch.allclose(on.recolored[i], want, atol=1e-6), i
+        assert not torch.allclose(off.recolored[i], on.recolored[i], atol=1e-3), i
+    for got, r in zip(on.lab_stats, on.recolored):
+        assert all(torch.allclose(a, b) for a, b in zip(got, lab_chroma_stats(r)))
+
+
 def test_zero_weighted_terms_are_not_computed(demo):
     net = StubFeatures()
     run, _, _ = _stylize_run(demo, net, **{"loss.w_align": 0.0, "loss.w_aniso": 0.0, "loss.w_lab_start": 0.0,

@@ -174,8 +174,8 @@ class Targets:
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     # lazy: imports Warp
-    from ..losses import (color_transfer, field_at_cells, flatten_feats, lab_chroma_stats, luminance, resize_style,
-                          stroke_field)
+    from ..losses import (color_transfer, field_at_cells, flatten_feats, lab_chroma_stats, luminance, match_detail,
+                          resize_style, stroke_field)
 
     style_np = inp.style.detach().cpu().numpy().astype(np.float32)
     view_h = int(np.median([c.height for c in inp.cameras]))
@@ -193,6 +193,8 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
         pal_m, pal_t = torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
     else:
         recolored, pal_m, pal_t = color_transfer(photos, style_work.to(device))
+        if cfg.palette_detail:  # the painting's level of luminance detail back into the pre-process targets
+            recolored, _ = match_detail(recolored, inp.style.to(device=device, dtype=torch.float32))
     g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
     inv_depth, photo_feats, originals, coverage = [], [], [], []
     with torch.no_grad():
