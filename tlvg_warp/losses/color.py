@@ -81,7 +81,7 @@ def match_detail(images, painting: torch.Tensor, max_gain: float = DETAIL_MAX_GA
 
     Why (ours): the ARF transfer matches the painting's global colour covariance, and a dark nocturne has little
     of it (Starry Night over the Rhône: luminance std 0.08), so it flattens the photos' local contrast 4-9x
-    (fern, lego and beer to 0.2-0.27 of the painting's detail); the scene fitted to those targets starts as a wash.
+    (fern, lego and beer to 0.22-0.31 of the painting's detail); the scene fitted to those targets starts as a wash.
     Only the high-pass residual is scaled, so tones and chroma statistics stay the transfer's.
     ``images``: list of [H,W,3] in [0,1]; ``painting`` [h,w,3], compared at the views' height. Returns
     ``(images, g)``."""
