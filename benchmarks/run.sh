@@ -33,7 +33,7 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   ssim               the fused SSIM against its torch twin on CUDA: differences and forward+backward time
                      (benchmarks/ssim_check.py). Reproduces: "Scene fitting", the fused loss.
   paint PART         the paintings study, every (scene, painting) pair with tlvg, abcgs and the anchors
-                     (benchmarks/device_paint.sh; PART: stage1, stage2, fit, study, wait, scene, pairs).
+                     (benchmarks/device_paint.sh; PART: carry, stage1, stage2, fit, study, wait, scene).
                      Reproduces: docs/study.md's current tables and gallery.
   tune | study       the earlier tuning rounds and study runs (benchmarks/device_tune.sh; docs/study.md's
                      sections on how the settings were chosen).

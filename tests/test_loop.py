@@ -115,6 +115,7 @@ def test_stylize_terms_against_closed_forms(demo):
     hinge = (ro0.alpha.double().clamp(0, 1) - view.out.alpha.detach().double()).clamp_min(0).mean()
     assert float(hinge) > 1e-3
     grown = (view.out.alpha.detach().double() - ro0.alpha.double().clamp(0, 1)).clamp_min(0).mean()
+    assert float(grown) > 1e-6  # the other half grew (+0.25): the silhouette hinge is not zero either
     opac = torch.full((run.params.num,), 0.25 ** 2, dtype=torch.float64)
     opac[::2] = (0.25 - 3.0) ** 2
     want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "style_gram": gram,

@@ -7,9 +7,12 @@ import math
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from ..types import SH_C0
 from .lab_warp import LabChromaLossFn, chroma_stats_of, lab_ab_jacobian
+from .ssim import gauss1d
+from .vgg import resize_style
 
 EIG_FLOOR = 1e-8  # ARF clamps covariance eigenvalues to [1e-8, 1e8]: a flat channel must not blow up
 
@@ -62,11 +65,9 @@ DETAIL_MAX_GAIN = 3.0  # at most this factor on a view's luminance detail
 def _blur(y: torch.Tensor, sigma: float) -> torch.Tensor:
     """Gaussian blur of [B,1,H,W] (separable, reflected border, radius 3σ)."""
     r = max(1, int(round(3 * sigma)))
-    x = torch.arange(-r, r + 1, dtype=y.dtype, device=y.device)
-    k = torch.exp(-0.5 * (x / sigma) ** 2)
-    k = k / k.sum()
-    y = torch.nn.functional.conv2d(torch.nn.functional.pad(y, (r, r, 0, 0), mode="reflect"), k.view(1, 1, 1, -1))
-    return torch.nn.functional.conv2d(torch.nn.functional.pad(y, (0, 0, r, r), mode="reflect"), k.view(1, 1, -1, 1))
+    k = gauss1d(2 * r + 1, sigma, y.dtype, y.device)  # [2r+1]
+    y = F.conv2d(F.pad(y, (r, r, 0, 0), mode="reflect"), k.view(1, 1, 1, -1))
+    return F.conv2d(F.pad(y, (0, 0, r, r), mode="reflect"), k.view(1, 1, -1, 1))
 
 
 def luminance_detail(img: torch.Tensor, sigma: float = DETAIL_SIGMA) -> torch.Tensor:
@@ -87,11 +88,7 @@ def match_detail(images, painting: torch.Tensor, max_gain: float = DETAIL_MAX_GA
     ``(images, g)``."""
     items = [_as_torch(im) for im in images]
     h = int(np.median([im.shape[0] for im in items]))
-    p = _as_torch(painting).double().permute(2, 0, 1)[None]
-    size = (h, max(1, round(p.shape[-1] * h / p.shape[-2])))
-    down = h < p.shape[-2]  # area averaging going down (as the evaluation's OpenCV INTER_AREA), bilinear going up
-    p = torch.nn.functional.interpolate(p, size=size, mode="area" if down else "bilinear",
-                                        **({} if down else {"align_corners": False}))[0].permute(1, 2, 0)
+    p = torch.from_numpy(resize_style(_as_torch(painting).detach().cpu().numpy(), h)).double()  # [h,w',3]
     e_p = float((luminance_detail(p, sigma) ** 2).mean())
     e_v = float(np.mean([float((luminance_detail(im, sigma) ** 2).mean()) for im in items]))
     g = float(min(max(math.sqrt(e_p / e_v), 1.0), max_gain)) if e_v > 0 else 1.0

@@ -23,7 +23,8 @@ from ..launch import ct, fast_launch, init_warp, warp_on
 _kernels: dict = {}
 
 
-def _gauss1d(size: int, sigma: float, dtype, device) -> torch.Tensor:
+def gauss1d(size: int, sigma: float, dtype, device) -> torch.Tensor:
+    """A normalized 1-D Gaussian of ``size`` taps (cached per size, σ, dtype and device)."""
     key = (size, sigma, dtype, str(device))
     if key not in _kernels:
         x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
@@ -50,7 +51,7 @@ def _blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 
 def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     x, y = to_bchw(img), to_bchw(ref).to(img.dtype)
-    g = _gauss1d(WINDOW, SIGMA, x.dtype, x.device)
+    g = gauss1d(WINDOW, SIGMA, x.dtype, x.device)
     mx, my = _blur(x, g), _blur(y, g)  # [B,3,H,W]
     sxx = _blur(x * x, g) - mx * mx
     syy = _blur(y * y, g) - my * my
