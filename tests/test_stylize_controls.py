@@ -194,25 +194,19 @@ def test_gram_term_is_logged_and_switched_by_its_weight():
     assert vals and all(math.isfinite(v) and v > 0 for v in vals)
 
 
-def test_coverage_loss_is_a_hinge_on_lost_alpha():
-    """Only alpha below the un-stylized scene's costs; covering more is free (closed form on a known pattern)."""
-    from tlvg_warp.stylize.pipeline import coverage_loss
+@pytest.mark.parametrize("name,alpha,loss,grad", [
+    # only alpha below the un-stylized scene's costs; covering more is free
+    ("coverage_loss", [[0.25, 1.0], [1.0, 0.5]], 0.75 / 4, [[-0.25, 0.0], [0.0, 0.0]]),
+    # the mirror: only alpha above the un-stylized scene's costs
+    ("silhouette_loss", [[0.25, 1.0], [1.0, 0.75]], 1.25 / 4, [[0.0, 0.0], [0.25, 0.25]]),
+])
+def test_alpha_hinges_against_the_unstylized_coverage(name, alpha, loss, grad):
+    """The coverage and silhouette hinges: closed forms on a known pattern, values and gradients."""
+    from tlvg_warp.stylize import pipeline
 
     cov = torch.tensor([[1.0, 1.0], [0.0, 0.5]])[..., None]
-    alpha = torch.tensor([[0.25, 1.0], [1.0, 0.5]], requires_grad=True)
-    loss = coverage_loss(alpha, cov)
-    assert float(loss) == pytest.approx(0.75 / 4)
-    loss.backward()
-    assert alpha.grad.tolist() == [[-0.25, 0.0], [0.0, 0.0]]
-
-
-def test_silhouette_loss_is_a_hinge_on_grown_alpha():
-    """The mirror of the coverage hinge: only alpha above the un-stylized scene's costs (closed form)."""
-    from tlvg_warp.stylize.pipeline import silhouette_loss
-
-    cov = torch.tensor([[1.0, 1.0], [0.0, 0.5]])[..., None]
-    alpha = torch.tensor([[0.25, 1.0], [1.0, 0.75]], requires_grad=True)
-    loss = silhouette_loss(alpha, cov)
-    assert float(loss) == pytest.approx(1.25 / 4)
-    loss.backward()
-    assert alpha.grad.tolist() == [[0.0, 0.0], [0.25, 0.25]]
+    a = torch.tensor(alpha, requires_grad=True)
+    out = getattr(pipeline, name)(a, cov)
+    assert float(out) == pytest.approx(loss)
+    out.backward()
+    assert a.grad.tolist() == grad
