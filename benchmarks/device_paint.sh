@@ -95,16 +95,21 @@ EOF
       touch "$R/pairs/queue_$name.done"
     }
     export -f queue; export F D R
-    T="fern:fern_llff:0:starry_night.jpg fern:fern_llff:0:shipwreck.jpg lego:lego_blender:0:starry_night.jpg beer:beer_colmap:2:starry_night.jpg beer:beer_colmap:2:shipwreck.jpg"
-    V="fern:fern_llff:0:starry_night_over_the_rhone.png fern:fern_llff:0:monet_san_giorgio.jpg lego:lego_blender:0:shipwreck.jpg lego:lego_blender:0:starry_night_over_the_rhone.png lego:lego_blender:0:monet_san_giorgio.jpg beer:beer_colmap:2:starry_night_over_the_rhone.png beer:beer_colmap:2:monet_san_giorgio.jpg"
-    setsid nohup bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz; queue tuning 'tlvg: tlvg_before:loss.w_silhouette=0 abcgs:config=configs/abcgs.yaml' $T" > /dev/null 2>&1 &
-    setsid nohup bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz; queue validation 'tlvg: abcgs:config=configs/abcgs.yaml' $V" > /dev/null 2>&1 &
+    # queue one: the five tuning pairs and lego x The Shipwreck; queue two: the other six validation pairs, then the
+    # seeds of one pair (SEEDS_PAIR, in its own folder $R/seeds) to set run-to-run spread against the view intervals
+    T="beer:beer_colmap:2:starry_night.jpg beer:beer_colmap:2:shipwreck.jpg fern:fern_llff:0:starry_night.jpg fern:fern_llff:0:shipwreck.jpg lego:lego_blender:0:starry_night.jpg lego:lego_blender:0:shipwreck.jpg"
+    V="beer:beer_colmap:2:starry_night_over_the_rhone.png fern:fern_llff:0:starry_night_over_the_rhone.png beer:beer_colmap:2:monet_san_giorgio.jpg fern:fern_llff:0:monet_san_giorgio.jpg lego:lego_blender:0:starry_night_over_the_rhone.png lego:lego_blender:0:monet_san_giorgio.jpg"
+    SV=${STUDY_VARIANTS:-tlvg: abcgs:config=configs/abcgs.yaml}
+    SP=${SEEDS_PAIR:-beer:beer_colmap:2:starry_night.jpg}
+    setsid nohup bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz; queue tuning '$SV' $T" > /dev/null 2>&1 &
+    setsid nohup bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz; queue validation '$SV' $V;
+      mkdir -p $R/seeds/pairs; R=$R/seeds queue seeds 'tlvg: seed1:seed=1 seed2:seed=2' $SP" > /dev/null 2>&1 &
     echo "study launched"
     ;;
   wait)  # wait up to WAIT seconds for the study's queues, then return what is finished
     deadline=$((SECONDS + ${WAIT:-500}))
-    while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/pairs/queue_validation.done" ]; }; do sleep 5; done
-    grep -h "^done\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log | tail -n 60
-    (cd "$R/pairs" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json *.jpg 2>/dev/null))
+    while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/seeds/pairs/queue_seeds.done" ]; }; do sleep 5; done
+    grep -h "^done\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log "$R"/seeds/pairs/queue_*.log 2>/dev/null | tail -n 60
+    (cd "$R" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d {pairs,seeds/pairs}/*/*/evaluation/evaluation.json {pairs,seeds/pairs}/*/*/*/metrics.json pairs/*.jpg 2>/dev/null))
     ;;
 esac
