@@ -114,7 +114,7 @@ class StylizeConfig:
     # 0: off. A flat region held by a few huge splats cannot take a brushstroke (train/refine.py)
     keep_colors: bool = False  # keep the scene's own colours: no palette transfer, style on luminance only
     palette_detail: bool = False  # after the palette transfer, raise the recolored photos' luminance detail toward the
-    # painting's (losses.match_detail; off: not yet measured on the study). A dark nocturne's palette flattens them 4-9x
+    # painting's (losses.match_detail). Off: on the study it raised detail but lowered flow alignment on one tuning pair
     vgg_weights: str | None = None  # torchvision vgg16 state dict path, "random", or None (env / torch hub cache)
     vgg_scale: float = 0.5  # the render is resized by this before VGG (SPEC §3: x0.5)
     vgg_channels_last: bool = True  # on CUDA: VGG in NHWC (cuDNN's layout; float32 arithmetic, gradients within 3e-4)
