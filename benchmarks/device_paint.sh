@@ -48,6 +48,11 @@ g = load_ply(sys.argv[1]); save_spz(g.with_sh_degree(0), sys.argv[2]); print('fi
     '$R/fit_$2/point_cloud.ply' '$F/$2.spz' >> '$R/fit_$2.log' 2>&1" > /dev/null 2>&1 &
 }
 
+# the scenes to fit (SCENES, default all three) and their datasets; FITS: the fitted files the study waits for
+SCENES=${SCENES:-beer fern lego}
+declare -A DATASET=([beer]=beer_colmap [fern]=fern_llff [lego]=lego_blender)
+FITS=$(for s in $SCENES; do printf '%s ' "$F/$s.spz"; done)
+
 wait_for() {  # wait_for FILE... : until every file exists (or the call's time runs out)
   for f in "$@"; do while [ ! -f "$f" ]; do sleep 2; done; done
 }
@@ -74,14 +79,14 @@ EOF
     (cd "$R/scene" && tar -czf "$OUT/scene_$s.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json))
     ;;
   fit)
-    fit_bg beer_colmap beer; fit_bg fern_llff fern; fit_bg lego_blender lego
-    timeout "${FIT_LIMIT:-500}" bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz"
-    for s in beer fern lego; do echo "$s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" | tail -n 2 | tr '\n' ' ')"; done
+    for s in $SCENES; do fit_bg "${DATASET[$s]}" "$s"; done
+    timeout "${FIT_LIMIT:-500}" bash -c "$(declare -f wait_for); wait_for $FITS"
+    for s in $SCENES; do echo "$s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" | tail -n 2 | tr '\n' ' ')"; done
     ls -la "$F"
     ;;
   study)  # launch the study in the background once the fits exist: two queues side by side (tuning, validation),
           # each pair stylized then evaluated on its first MAX_VIEWS views; `PART=wait` collects
-    mkdir -p "$R/pairs"
+    mkdir -p "$R/pairs" "$R/seeds/pairs"
     queue() {  # queue NAME "VARIANTS" PAIR...
       local name=$1 vs=$2; shift 2
       local V=(); for v in $vs; do V+=(--variant "$v"); done
@@ -101,14 +106,17 @@ EOF
     V="beer:beer_colmap:2:starry_night_over_the_rhone.png fern:fern_llff:0:starry_night_over_the_rhone.png beer:beer_colmap:2:monet_san_giorgio.jpg fern:fern_llff:0:monet_san_giorgio.jpg lego:lego_blender:0:starry_night_over_the_rhone.png lego:lego_blender:0:monet_san_giorgio.jpg"
     SV=${STUDY_VARIANTS:-tlvg: abcgs:config=configs/abcgs.yaml}
     SP=${SEEDS_PAIR:-beer:beer_colmap:2:starry_night.jpg}
-    setsid nohup bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz; queue tuning '$SV' $T" > /dev/null 2>&1 &
-    setsid nohup bash -c "$(declare -f wait_for); wait_for $F/beer.spz $F/fern.spz $F/lego.spz; queue validation '$SV' $V;
-      mkdir -p $R/seeds/pairs; R=$R/seeds queue seeds 'tlvg: seed1:seed=1 seed2:seed=2' $SP" > /dev/null 2>&1 &
+    T=${PAIRS_A:-$T}; V=${PAIRS_B:-$V}  # other pair lists (e.g. an ablation on a few pairs); SEEDS_PAIR=none: no seeds
+    [ "$SP" = none ] && touch "$R/seeds/pairs/queue_seeds.done"
+    setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue tuning '$SV' $T" > /dev/null 2>&1 &
+    setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue validation '$SV' $V;
+      [ '$SP' = none ] || R=$R/seeds queue seeds 'tlvg: seed1:seed=1 seed2:seed=2' $SP" > /dev/null 2>&1 &
     echo "study launched"
     ;;
   wait)  # wait up to WAIT seconds for the study's queues, then return what is finished
     deadline=$((SECONDS + ${WAIT:-500}))
-    while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/seeds/pairs/queue_seeds.done" ]; }; do sleep 5; done
+    while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/pairs/queue_validation.done" ] ||
+      [ ! -f "$R/seeds/pairs/queue_seeds.done" ]; }; do sleep 5; done
     grep -h "^done\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log "$R"/seeds/pairs/queue_*.log 2>/dev/null | tail -n 60
     (cd "$R" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d {pairs,seeds/pairs}/*/*/evaluation/evaluation.json {pairs,seeds/pairs}/*/*/*/metrics.json pairs/*.jpg 2>/dev/null))
     ;;
