@@ -38,6 +38,8 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   tune | study       the earlier tuning rounds and study runs (benchmarks/device_tune.sh; docs/study.md's
                      sections on how the settings were chosen).
   study-table        the study's tables from its runs (benchmarks/study_table.py).
+  field-agreement    on the CPU: does the palette transfer move the matched stroke field? (benchmarks/
+                     field_agreement.py; docs/study.md, the ablations).
 
 Environment: DATA (default /tmp/tlvg-data: fern_llff, beer_colmap, lego_blender, styles/starry_night.jpg),
 FITS (default /tmp/tlvg-fits), OUT (default /tmp/tlvg-out: logs and JSON), TLVG_VGG_WEIGHTS (the pretrained
@@ -115,6 +117,7 @@ case "$cmd" in
   paint) PART=${1:?paint needs a PART} exec bash benchmarks/device_paint.sh;;
   tune|study) exec bash benchmarks/device_tune.sh "$cmd" "$@";;
   study-table) exec python3 benchmarks/study_table.py "$@";;
+  field-agreement) exec python3 benchmarks/field_agreement.py "$@";;
   -h|--help|help|"") usage;;
   *) echo "unknown subcommand: $cmd"; usage; exit 2;;
 esac
