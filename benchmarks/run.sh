@@ -40,6 +40,8 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   study-table        the study's tables from its runs (benchmarks/study_table.py).
   field-agreement    on the CPU: does the palette transfer move the matched stroke field? (benchmarks/
                      field_agreement.py; docs/study.md, the ablations).
+  field-vs-ruler PAINTING...
+                     on the CPU: the training field against `evaluate`'s common field (benchmarks/field_vs_ruler.py).
 
 Environment: DATA (default /tmp/tlvg-data: fern_llff, beer_colmap, lego_blender, styles/starry_night.jpg),
 FITS (default /tmp/tlvg-fits), OUT (default /tmp/tlvg-out: logs and JSON), TLVG_VGG_WEIGHTS (the pretrained
@@ -118,6 +120,7 @@ case "$cmd" in
   tune|study) exec bash benchmarks/device_tune.sh "$cmd" "$@";;
   study-table) exec python3 benchmarks/study_table.py "$@";;
   field-agreement) exec python3 benchmarks/field_agreement.py "$@";;
+  field-vs-ruler) exec python3 benchmarks/field_vs_ruler.py "$@";;
   -h|--help|help|"") usage;;
   *) echo "unknown subcommand: $cmd"; usage; exit 2;;
 esac
