@@ -19,6 +19,9 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      Reproduces: "Stress cases".
   stylize            fern (fern.spz, 504x378, The Starry Night) stylized 3000 iterations, RUNS processes (default
                      2) after a 300-iteration warm-up. Reproduces: "Stylization" (process wall, flow alignment).
+  startup            fern stylized for 1 iteration, twice (warm caches the second time): process wall against the
+                     run's own wall, and where the import time goes (python -X importtime). Reproduces: the
+                     1-iteration figure of "Stylization".
   quality            `evaluate` on the runs of `stylize` (first 10 views, one ruler). Reproduces: "Stylization",
                      the quality row.
   demo               the CPU demo with empty kernel and weight caches (`python -m tlvg_warp stylize`).
@@ -101,6 +104,15 @@ case "$cmd" in
         --out "$R/fern_$i" --overwrite --quiet > "$R/fern_$i.log" 2>&1; tail -n 2 "$R/fern_$i.log"
       metrics "$R/fern_$i/metrics.json" wall_time_s train_time_s flow_alignment time_per_phase_s
     done;;
+  startup)
+    gpu
+    for i in 1 2; do
+      /usr/bin/time -f "1-iteration stylize $i: process wall %e s" python3 -m tlvg_warp stylize $FERN --iterations 1 \
+        --out "$R/one" --overwrite --quiet 2>&1 | tail -n 1
+      metrics "$R/one/metrics.json" wall_time_s train_time_s outputs_time_s
+    done
+    python3 -X importtime -c "import tlvg_warp.cli" 2> "$R/importtime.txt"
+    sort -t'|' -k2 -n "$R/importtime.txt" | tail -n 6;;
   quality)
     runs=$(ls -d "$R"/fern_[0-9]* 2>/dev/null | grep -v "\.log$")
     [ -n "$runs" ] || { echo "no runs: run \`stylize\` first"; exit 1; }
