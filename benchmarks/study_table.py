@@ -88,10 +88,7 @@ def main():
             mark = "yes" if lo > 0 else ("no" if hi < 0 else "tie")
             return f"{mark} ({m:+.3f})"
 
-        fu = t.get("flow_alignment", {}), u.get("flow_alignment", {})
-        flow_u = "-"
-        if fu[0].get("lo") is not None and fu[1].get("hi") is not None:
-            flow_u = ("yes" if fu[0]["lo"] > fu[1]["hi"] else "no") + f" ({fu[0]['mean'] - fu[1]['mean']:+.3f})"
+        flow_u = pd("no stylization", "flow_alignment")
         mv = "-"
         if t.get("consistency_k1") and u.get("consistency_k1"):
             mv = f"{t['consistency_k1']['mean'] / max(u['consistency_k1']['mean'], 1e-12):.2f}"
@@ -106,6 +103,30 @@ def main():
         print(f"| {key[0]} x {key[1]} | {'tuning' if key in tuning else 'validation'} | {flow_u} | "
               f"{pd('abcgs', 'flow_alignment')} | {pd('abcgs', 'style_gram', -1)} | {pd('abcgs', 'style_nnfm', -1)} | "
               f"{'-' if det is None else f'{det:.2f}'} | {pd('abcgs', 'chroma_noise', -1)} | {mv} | {g} |")
+
+    cost_table(study, order, tuning)
+
+
+def cost_table(study: Path, order, tuning) -> None:
+    """Each run's wall time, Gaussians (final / input) and output size, from its metrics.json. In a study the
+    queues share the GPU, so wall times compare runs of one queue, not machines."""
+    names = sorted({p.parent.name for key in order for p in (study / key[0] / key[1]).glob("*/metrics.json")})
+    if not names:
+        return
+    print("\n### cost per run: wall time (s), Gaussians final / input, output MB\n")
+    print("| pair | split | " + " | ".join(names) + " |")
+    print("|" + " --- |" * (len(names) + 2))
+    for key in order:
+        cells = []
+        for n in names:
+            f = study / key[0] / key[1] / n / "metrics.json"
+            if not f.is_file():
+                cells.append("-")
+                continue
+            m = json.loads(f.read_text())
+            ratio = m.get("gaussians_final", 0) / max(m.get("gaussians_input", 1), 1)
+            cells.append(f"{m.get('wall_time_s', 0):.1f} s, {ratio:.2f}x, {m.get('bytes_out', 0) / 1e6:.1f} MB")
+        print(f"| {key[0]} x {key[1]} | {'tuning' if key in tuning else 'validation'} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":
