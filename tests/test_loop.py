@@ -16,6 +16,8 @@ import sys
 import threading
 from dataclasses import dataclass
 
+import cv2
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -23,7 +25,8 @@ import torch.nn.functional as F
 from tlvg_warp import render
 from _demo_helpers import demo_stylize_inputs
 from tlvg_warp.stylize.config import config_from_dict as stylize_config
-from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, prepare
+from tlvg_warp.losses import detail_energy, resize_style
+from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, over_background, prepare
 from tlvg_warp.train.density import DensityStrategy
 from tlvg_warp.train.loop import Fit, LoopSettings, Phase, Run, View, train
 from tlvg_warp.train.reconstruct import config_from_dict as fit_config
@@ -78,7 +81,7 @@ def test_stylize_terms_against_closed_forms(demo):
     net = StubFeatures()
     run, cfg, tg = _stylize_run(demo, net, **{"loss.w_style_color": 0.5, "loss.w_chroma_tv": 0.3,
                                               "loss.w_style_gram": 0.7, "loss.w_coverage": 0.9,
-                                              "loss.w_silhouette": 0.6})
+                                              "loss.w_silhouette": 0.6, "loss.w_detail": 0.4})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -87,6 +90,10 @@ def test_stylize_terms_against_closed_forms(demo):
         run.params.opacity_logits[::2] -= 3.0  # half of the splats fade: the coverage hinge is not zero
     net.calls.clear()
     view = _view(run, 2)
+    e_render = float(detail_energy(over_background(view.out.color.detach(), tg.coverage[2], run.background),
+                                   tg.coverage[2]))
+    setup_target = sty.detail_target
+    sty.detail_target = 3 * e_render  # the demo's painting at 64 rows has less detail than the render: raise it
     terms = sty.terms(run, view)
     assert tuple(terms) == STYLIZE_TERMS  # every term, in the summation order
     with torch.no_grad():  # the terms see the render over the background where the un-stylized scene was empty
@@ -116,10 +123,21 @@ def test_stylize_terms_against_closed_forms(demo):
     assert float(hinge) > 1e-3
     grown = (view.out.alpha.detach().double() - ro0.alpha.double().clamp(0, 1)).clamp_min(0).mean()
     assert float(grown) > 1e-6  # the other half grew (+0.25): the silhouette hinge is not zero either
+    # the detail hinge, its blur by OpenCV (13 taps, σ 2, reflected border): the render's luminance high-pass energy
+    # where the scene was, against the painting's at the views' height
+    def hp_energy(lum, w=None):
+        hp2 = (lum - cv2.GaussianBlur(lum, (13, 13), 2.0, borderType=cv2.BORDER_REFLECT_101)) ** 2
+        return float(hp2.mean()) if w is None else float((hp2 * w).sum() / w.sum())
+
+    paint = resize_style(tg.style_work.numpy(), int(np.median([c.height for c in run.cams]))).astype(np.float64)
+    e_star = hp_energy(paint @ np.array([0.299, 0.587, 0.114]))
+    assert setup_target == pytest.approx(e_star, rel=1e-6)  # the target setup computed
+    e = hp_energy(y.numpy(), cov[..., 0].numpy())
+    detail = max(0.0, 1.0 - e / (3 * e)) ** 2  # against a target of 3x the render's energy (set below): active
     opac = torch.full((run.params.num,), 0.25 ** 2, dtype=torch.float64)
     opac[::2] = (0.25 - 3.0) ** 2
     want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "style_gram": gram,
-            "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
+            "detail": detail, "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k
     assert all(torch.isfinite(t) and t.requires_grad for t in terms.values())

@@ -76,6 +76,17 @@ def luminance_detail(img: torch.Tensor, sigma: float = DETAIL_SIGMA) -> torch.Te
     return (y - _blur(y, sigma))[0, 0]
 
 
+def detail_energy(img: torch.Tensor, weight: torch.Tensor | None = None, sigma: float = DETAIL_SIGMA) -> torch.Tensor:
+    """Mean squared luminance high-pass (Y minus its σ-blur) of an [H,W,3] image, over the pixels weighted by
+    ``weight`` [H,W,1] (all pixels when None). Differentiable, in the image's dtype: the detail hinge's measure."""
+    y = luminance(img)[..., :1].permute(2, 0, 1)[None]  # [1,1,H,W]
+    hp2 = ((y - _blur(y, sigma)) ** 2)[0, 0]  # [H,W]
+    if weight is None:
+        return hp2.mean()
+    w = weight[..., 0].to(hp2)
+    return (hp2 * w).sum() / w.sum().clamp_min(1e-12)
+
+
 def match_detail(images, painting: torch.Tensor, max_gain: float = DETAIL_MAX_GAIN, sigma: float = DETAIL_SIGMA):
     """Give recolored views the painting's level of luminance detail: ``x + (g - 1)·(Y - blur(Y))`` on every
     channel, with one gain g = sqrt(painting's / views' mean detail energy) for all views, in [1, max_gain].

@@ -39,6 +39,9 @@ class StyleLoss:
     w_coverage: float = 0.0  # hinge on the render's alpha below the un-stylized scene's: no holes open (ours; 0: off)
     w_silhouette: float = 0.0  # hinge on the render's alpha above the un-stylized scene's: splats may not grow into an
     # empty background, where the style terms do not look (ours; 0: off; zero on a capture covered everywhere)
+    w_detail: float = 0.0  # hinge (1 - E/E_painting)^2 on the render's luminance detail energy E (what a σ 2 px blur
+    # removes, where the scene was) below the painting's at the view's height: nearest-neighbour matching lets a smooth
+    # render match the painting's smooth passages, this asks for the painting's level of detail (ours; 0: off)
     w_opacity_reg: float = 1.0  # ||opacity_logits - value at stylize start||_2 (reference code)
     w_scale_reg: float = 1.0  # ||log_scales - value at stylize start||_2 (reference code)
     w_lab_start: float = 0.2  # Lab chroma statistics weight at the first stylize step (paper, linear schedule)
@@ -54,7 +57,7 @@ class StyleLoss:
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0),
              **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_coverage",
-                                       "w_silhouette",
+                                       "w_silhouette", "w_detail",
                                        "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}

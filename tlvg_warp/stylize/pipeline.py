@@ -55,8 +55,8 @@ from ..types import Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "coverage", "silhouette",
-                 "opacity_reg", "scale_reg", "lab", "align", "aniso")
+STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "detail", "coverage",
+                 "silhouette", "opacity_reg", "scale_reg", "lab", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
 REFINE_UNCAPPED = 2.0  # the refinement's Gaussian count limit (x the input) when density control has no budget
@@ -125,6 +125,20 @@ def silhouette_loss(alpha: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor
     of ``coverage_loss``. Where the scene was empty (a Blender background) the style terms see the background, not
     the render, so nothing else stops splats from fraying outwards."""
     return torch.relu(alpha - coverage[..., 0]).mean()
+
+
+def detail_hinge(energy: torch.Tensor, target: float) -> torch.Tensor:
+    """(1 - E/E*)² while the render's detail energy E is below the painting's E*, 0 above: detail is asked for up to
+    the painting's level, never beyond (more would be noise)."""
+    return torch.relu(1.0 - energy / max(target, 1e-12)) ** 2
+
+
+def painting_detail(style_work: torch.Tensor, height: int) -> float:
+    """The painting's luminance detail energy at ``height`` rows (the views' height), the detail hinge's target."""
+    from ..losses import detail_energy, resize_style  # lazy: imports Warp
+
+    p = torch.from_numpy(resize_style(style_work.detach().cpu().numpy(), height)).double()
+    return float(detail_energy(p))
 
 
 def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
@@ -244,10 +258,11 @@ class Stylize(Phase):
         self.color_fn = None if tg.style_feats_rgb is None else StyleLoss(  # prepare makes them when the term is on
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         self.fields = None  # per view [H,W,3] on the device
+        self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
                       "style_gram": w.w_style_gram * w.strength,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
-                      "chroma_tv": w.w_chroma_tv, "coverage": w.w_coverage, "silhouette": w.w_silhouette,
+                      "chroma_tv": w.w_chroma_tv, "detail": w.w_detail * w.strength, "coverage": w.w_coverage, "silhouette": w.w_silhouette,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
                       "aniso": w.w_aniso}
         # a term weighted 0 over the whole phase is not computed at all
@@ -269,6 +284,8 @@ class Stylize(Phase):
         run.density.track("log_scales", p.log_scales.detach().clone())
         if self.fields is None:
             self.fields = self.make_fields(run)
+        if self.on["detail"] and self.detail_target is None:
+            self.detail_target = painting_detail(self.tg.style_work, int(np.median([c.height for c in run.cams])))
 
     @torch.no_grad()
     def make_fields(self, run: Run) -> list:
@@ -289,7 +306,7 @@ class Stylize(Phase):
         return out
 
     def terms(self, run: Run, view: View) -> dict:
-        from ..losses import content_loss, lab_chroma_loss, luminance  # lazy: imports Warp
+        from ..losses import content_loss, detail_energy, lab_chroma_loss, luminance  # lazy: imports Warp
 
         tg, on, t, vi = self.tg, self.on, run.timer, view.index
         p, anchors = run.params, run.density.tracked
@@ -318,6 +335,8 @@ class Stylize(Phase):
             terms["tv"] = tv_loss(img)
         if on["chroma_tv"]:
             terms["chroma_tv"] = chroma_tv_loss(img)
+        if on["detail"]:
+            terms["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
         if on["coverage"]:
             terms["coverage"] = coverage_loss(view.out.alpha, tg.coverage[vi])
         if on["silhouette"]:
