@@ -102,7 +102,7 @@ case "$cmd" in
     for i in $(seq 1 "${RUNS:-2}"); do
       /usr/bin/time -f "fern stylize $i 3000 wall %e s" python3 -m tlvg_warp stylize $FERN --iterations 3000 \
         --out "$R/fern_$i" --overwrite --quiet > "$R/fern_$i.log" 2>&1; tail -n 2 "$R/fern_$i.log"
-      metrics "$R/fern_$i/metrics.json" wall_time_s train_time_s flow_alignment time_per_phase_s
+      metrics "$R/fern_$i/metrics.json" wall_time_s train_time_s training_field_alignment time_per_phase_s
     done;;
   startup)
     gpu
