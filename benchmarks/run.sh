@@ -31,6 +31,8 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   cuda-tests         the CUDA tests (rasterizer against the float64 reference, graphed VGG).
   host-profile [SCENE_SPEC] [fwd|fwd_bwd]
                      host against GPU timeline of one render (benchmarks/profile_host.py): where the GPU waits.
+  cost-curves        time and peak memory of a stylize step against Gaussians (0.1M-10M) and pixels (0.1-4 MP) on
+                     random scenes (benchmarks/cost_curves.py; the chart and CSV under $OUT/cost_curves).
   step-profile       is a fern stylize step host-bound? (benchmarks/profile_step.py: wall per step, GPU time
                      per step, top kernels).
   ssim               the fused SSIM against its torch twin on CUDA: differences and forward+backward time
@@ -126,6 +128,7 @@ case "$cmd" in
   scaling) exec bash benchmarks/scaling.sh "$@";;
   cuda-tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py tests/test_losses_vgg.py;;
   host-profile) exec python3 benchmarks/profile_host.py "$@";;
+  cost-curves) gpu; exec python3 benchmarks/cost_curves.py --out "$OUT/cost_curves" "$@";;
   step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet;;
   ssim) exec python3 benchmarks/ssim_check.py;;
   paint) PART=${1:?paint needs a PART} exec bash benchmarks/device_paint.sh;;

@@ -1,0 +1,131 @@
+"""Cost curves: wall time and peak GPU memory of one stylize step against the number of Gaussians and of pixels.
+
+    python benchmarks/cost_curves.py --out OUT [--gaussians 100000,300000,1000000,3000000,10000000] \
+        [--megapixels 0.1,0.5,1,2,4] [--base-gaussians 1000000] [--base-megapixels 0.76] [--steps 40] [--warm 20]
+
+Each point is a random scene (bench raster's: uniform in a cube, log-scale -4, SH degree 0) stylized by `stylize`
+with configs/tlvg.yaml, the stylize phase only, in this process, on orbit views of the point's size (4:3). Steps
+WARM..WARM+STEPS are timed with a synchronize at both ends (the wall per step as the run sees it: host and GPU);
+peak memory is torch.cuda.max_memory_allocated over the run (torch's allocations: VGG, the optimizer, the raster's
+buffers on torch memory). Writes cost_curves.csv and cost_curves.png under OUT. The rasterizer alone against gsplat
+at the same points: `python -m tlvg_warp bench raster --sizes N,... --size WxH --peers tlvg_warp,gsplat`.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import tlvg_warp.stylize.pipeline as pipeline  # noqa: E402
+from tlvg_warp import cli  # noqa: E402
+from tlvg_warp.eval.bench_raster import random_scene  # noqa: E402
+from tlvg_warp.io.ply import save_ply  # noqa: E402
+from tlvg_warp.io.scene_views import ORBIT_SIZE  # noqa: E402
+
+TIMER = {}
+
+
+def _sync():
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
+def _timed_train(orig):
+    def train(run, callback=None, **kw):
+        def both(step, r):
+            if step == TIMER["warm"]:
+                _sync()
+                TIMER["t0"] = time.perf_counter()
+            elif step == TIMER["warm"] + TIMER["steps"]:
+                _sync()
+                TIMER["ms"] = (time.perf_counter() - TIMER["t0"]) / TIMER["steps"] * 1e3
+            if callback is not None:
+                callback(step, r)
+        return orig(run, callback=both, **kw)
+    return train
+
+
+def point(out: Path, n: int, megapixels: float, args) -> dict:
+    """One stylize run of a random scene of ``n`` Gaussians on views of ``megapixels``: ms per step, peak MiB."""
+    scene = out / f"scene_{n}.ply"
+    if not scene.is_file():
+        save_ply(random_scene(n, -4.0, 0, "cpu"), scene)
+    # orbit views are ORBIT_SIZE / downscale: pick the downscale that gives the point's pixel count
+    downscale = math.sqrt(ORBIT_SIZE[0] * ORBIT_SIZE[1] / (megapixels * 1e6))
+    TIMER.update(warm=args.warm, steps=args.steps, ms=float("nan"))
+    if torch.cuda.is_available():
+        torch.cuda.reset_peak_memory_stats()
+    argv = ["stylize", "--scene", str(scene), "--out", str(out / f"run_{n}_{megapixels}"), "--overwrite", "--quiet",
+            "--iterations", str(args.warm + args.steps + 1), "--downscale", f"{downscale:.6f}",
+            "--set", "phases=[0,1,0]", "--set", "orbit_frames=0", "--set", "web_formats=false",
+            *(["--vgg-weights", args.vgg_weights] if args.vgg_weights else []),
+            *(["--device", args.device] if args.device else [])]
+    rc = cli.main(argv)
+    peak = torch.cuda.max_memory_allocated() / 2 ** 20 if torch.cuda.is_available() else float("nan")
+    w, h = round(ORBIT_SIZE[0] / downscale), round(ORBIT_SIZE[1] / downscale)
+    return {"gaussians": n, "width": w, "height": h, "megapixels": round(w * h / 1e6, 3), "rc": rc,
+            "ms_per_step": round(TIMER["ms"], 3), "peak_mib": round(peak, 1)}
+
+
+def chart(rows: list[dict], path: Path, base_n: int, base_mp: float) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # lazy: only the figure needs it
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 4))
+    FigureCanvasAgg(fig)
+    for k, (key, label, keep) in enumerate((("gaussians", "Gaussians", lambda r: r["megapixels_asked"] == base_mp),
+                                            ("megapixels", "megapixels", lambda r: r["gaussians"] == base_n))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        pts = sorted((r for r in rows if keep(r)), key=lambda r: r[key])
+        ax.plot([r[key] for r in pts], [r["ms_per_step"] for r in pts], "o-", label="ms per stylize step")
+        ax2 = ax.twinx()
+        ax2.plot([r[key] for r in pts], [r["peak_mib"] for r in pts], "s--", color="tab:red", label="peak MiB")
+        ax.set_xscale("log")
+        ax.set_xlabel(label)
+        ax.set_ylabel("ms per step")
+        ax2.set_ylabel("peak MiB", color="tab:red")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--gaussians", default="100000,300000,1000000,3000000,10000000")
+    ap.add_argument("--megapixels", default="0.1,0.5,1,2,4")
+    ap.add_argument("--base-gaussians", type=int, default=1_000_000, help="the Gaussians of the pixel curve")
+    ap.add_argument("--base-megapixels", type=float, default=0.76, help="the pixels of the Gaussian curve (1008x756)")
+    ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--warm", type=int, default=20)
+    ap.add_argument("--vgg-weights", default=None)
+    ap.add_argument("--device", default=None)
+    args = ap.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    pipeline.train = _timed_train(pipeline.train)
+    todo = [(int(float(n)), args.base_megapixels) for n in args.gaussians.split(",")]
+    todo += [(args.base_gaussians, float(m)) for m in args.megapixels.split(",")
+             if (args.base_gaussians, float(m)) not in todo]
+    rows = []
+    print("| Gaussians | view | ms per stylize step | peak MiB |\n| --- | --- | --- | --- |")
+    for n, mp in todo:
+        r = point(out, n, mp, args) | {"megapixels_asked": mp}
+        rows.append(r)
+        print(f"| {n:,} | {r['width']}x{r['height']} | {r['ms_per_step']} | {r['peak_mib']} |", flush=True)
+    with open(out / "cost_curves.csv", "w", newline="") as f:
+        wr = csv.DictWriter(f, fieldnames=list(rows[0]))
+        wr.writeheader()
+        wr.writerows(rows)
+    chart(rows, out / "cost_curves.png", args.base_gaussians, args.base_megapixels)
+
+
+if __name__ == "__main__":
+    main()
