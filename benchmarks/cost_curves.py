@@ -1,10 +1,12 @@
-"""Cost curves: wall time and peak GPU memory of one stylize step against the number of Gaussians and of pixels.
+"""Cost curves: wall time and peak GPU memory of one stylize step and one fit step against Gaussians and pixels.
 
     python benchmarks/cost_curves.py --out OUT [--gaussians 100000,300000,1000000,3000000,10000000] \
         [--megapixels 0.1,0.5,1,2,4] [--base-gaussians 1000000] [--base-megapixels 0.76] [--steps 40] [--warm 20]
 
 Each point is a random scene (bench raster's: uniform in a cube, log-scale -4, SH degree 0) stylized by `stylize`
-with configs/tlvg.yaml, the stylize phase only, in this process, on orbit views of the point's size (4:3). Steps
+with configs/tlvg.yaml in this process, on orbit views of the point's size (4:3): a stylize step with the stylize
+phase alone, a fit step with the pre-process alone (L1 + SSIM against the recoloured views, as `reconstruct` fits,
+with density control; reconstruct's own step adds only its SfM-free schedule). Steps
 WARM..WARM+STEPS are timed with a synchronize at both ends (the wall per step as the run sees it: host and GPU);
 peak memory is torch.cuda.max_memory_allocated over the run (torch's allocations: VGG, the optimizer, the raster's
 buffers on torch memory). Writes cost_curves.csv and cost_curves.png under OUT. The rasterizer alone against gsplat
@@ -53,8 +55,9 @@ def _timed_train(orig):
     return train
 
 
-def point(out: Path, n: int, megapixels: float, args) -> dict:
-    """One stylize run of a random scene of ``n`` Gaussians on views of ``megapixels``: ms per step, peak MiB."""
+def point(out: Path, n: int, megapixels: float, kind: str, args) -> dict:
+    """One run of a random scene of ``n`` Gaussians on views of ``megapixels``, ``kind`` stylize or fit steps only:
+    ms per step, peak MiB."""
     scene = out / f"scene_{n}.ply"
     if not scene.is_file():
         save_ply(random_scene(n, -4.0, 0, "cpu"), scene)
@@ -63,15 +66,17 @@ def point(out: Path, n: int, megapixels: float, args) -> dict:
     TIMER.update(warm=args.warm, steps=args.steps, ms=float("nan"))
     if torch.cuda.is_available():
         torch.cuda.reset_peak_memory_stats()
-    argv = ["stylize", "--scene", str(scene), "--out", str(out / f"run_{n}_{megapixels}"), "--overwrite", "--quiet",
+    argv = ["stylize", "--scene", str(scene), "--out", str(out / f"run_{kind}_{n}_{megapixels}"), "--overwrite",
+            "--quiet",
             "--iterations", str(args.warm + args.steps + 1), "--downscale", f"{downscale:.6f}",
-            "--set", "phases=[0,1,0]", "--set", "orbit_frames=0", "--set", "web_formats=false",
+            "--set", "phases=" + ("[0,1,0]" if kind == "stylize" else "[1,0,0]"), "--set", "orbit_frames=0",
+            "--set", "web_formats=false",
             *(["--vgg-weights", args.vgg_weights] if args.vgg_weights else []),
             *(["--device", args.device] if args.device else [])]
     rc = cli.main(argv)
     peak = torch.cuda.max_memory_allocated() / 2 ** 20 if torch.cuda.is_available() else float("nan")
     w, h = round(ORBIT_SIZE[0] / downscale), round(ORBIT_SIZE[1] / downscale)
-    return {"gaussians": n, "width": w, "height": h, "megapixels": round(w * h / 1e6, 3), "rc": rc,
+    return {"step": kind, "gaussians": n, "width": w, "height": h, "megapixels": round(w * h / 1e6, 3), "rc": rc,
             "ms_per_step": round(TIMER["ms"], 3), "peak_mib": round(peak, 1)}
 
 
@@ -84,14 +89,17 @@ def chart(rows: list[dict], path: Path, base_n: int, base_mp: float) -> None:
     for k, (key, label, keep) in enumerate((("gaussians", "Gaussians", lambda r: r["megapixels_asked"] == base_mp),
                                             ("megapixels", "megapixels", lambda r: r["gaussians"] == base_n))):
         ax = fig.add_subplot(1, 2, k + 1)
-        pts = sorted((r for r in rows if keep(r)), key=lambda r: r[key])
-        ax.plot([r[key] for r in pts], [r["ms_per_step"] for r in pts], "o-", label="ms per stylize step")
         ax2 = ax.twinx()
-        ax2.plot([r[key] for r in pts], [r["peak_mib"] for r in pts], "s--", color="tab:red", label="peak MiB")
+        for kind, color in (("stylize", "tab:blue"), ("fit", "tab:green")):
+            pts = sorted((r for r in rows if keep(r) and r["step"] == kind), key=lambda r: r[key])
+            ax.plot([r[key] for r in pts], [r["ms_per_step"] for r in pts], "o-", color=color, label=f"{kind} ms")
+            ax2.plot([r[key] for r in pts], [r["peak_mib"] for r in pts], "s--", color=color, alpha=0.5,
+                     label=f"{kind} peak MiB")
+        ax.legend(loc="upper left", fontsize=8)
         ax.set_xscale("log")
         ax.set_xlabel(label)
         ax.set_ylabel("ms per step")
-        ax2.set_ylabel("peak MiB", color="tab:red")
+        ax2.set_ylabel("peak MiB (dashed)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -107,6 +115,7 @@ def main() -> None:
     ap.add_argument("--warm", type=int, default=20)
     ap.add_argument("--vgg-weights", default=None)
     ap.add_argument("--device", default=None)
+    ap.add_argument("--steps-of", default="stylize,fit", help="which steps to time: stylize, fit or both")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -115,11 +124,12 @@ def main() -> None:
     todo += [(args.base_gaussians, float(m)) for m in args.megapixels.split(",")
              if (args.base_gaussians, float(m)) not in todo]
     rows = []
-    print("| Gaussians | view | ms per stylize step | peak MiB |\n| --- | --- | --- | --- |")
-    for n, mp in todo:
-        r = point(out, n, mp, args) | {"megapixels_asked": mp}
-        rows.append(r)
-        print(f"| {n:,} | {r['width']}x{r['height']} | {r['ms_per_step']} | {r['peak_mib']} |", flush=True)
+    print("| step | Gaussians | view | ms per step | peak MiB |\n| --- | --- | --- | --- | --- |")
+    for kind in args.steps_of.split(","):
+        for n, mp in todo:
+            r = point(out, n, mp, kind, args) | {"megapixels_asked": mp}
+            rows.append(r)
+            print(f"| {kind} | {n:,} | {r['width']}x{r['height']} | {r['ms_per_step']} | {r['peak_mib']} |", flush=True)
     with open(out / "cost_curves.csv", "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=list(rows[0]))
         wr.writeheader()

@@ -31,7 +31,7 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   cuda-tests         the CUDA tests (rasterizer against the float64 reference, graphed VGG).
   host-profile [SCENE_SPEC] [fwd|fwd_bwd]
                      host against GPU timeline of one render (benchmarks/profile_host.py): where the GPU waits.
-  cost-curves        time and peak memory of a stylize step against Gaussians (0.1M-10M) and pixels (0.1-4 MP) on
+  cost-curves        time and peak memory of a stylize step and a fit step against Gaussians (0.1M-10M) and pixels (0.1-4 MP) on
                      random scenes (benchmarks/cost_curves.py; the chart and CSV under $OUT/cost_curves).
   step-profile       is a fern stylize step host-bound? (benchmarks/profile_step.py: wall per step, GPU time
                      per step, top kernels).
