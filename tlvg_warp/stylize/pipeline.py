@@ -262,7 +262,8 @@ class Stylize(Phase):
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
                       "style_gram": w.w_style_gram * w.strength,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
-                      "chroma_tv": w.w_chroma_tv, "detail": w.w_detail * w.strength, "coverage": w.w_coverage, "silhouette": w.w_silhouette,
+                      "chroma_tv": w.w_chroma_tv, "detail": w.w_detail * w.strength, "coverage": w.w_coverage,
+                      "silhouette": w.w_silhouette,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
                       "aniso": w.w_aniso}
         # a term weighted 0 over the whole phase is not computed at all
