@@ -21,19 +21,13 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tlvg_warp.losses import color_transfer, luminance, resize_style  # noqa: E402
+from field_agreement import DATA, PAINTINGS, read  # noqa: E402
+from tlvg_warp.losses import color_transfer, luminance  # noqa: E402
 from tlvg_warp.losses.vgg import load_vgg  # noqa: E402
 
 torch.set_num_threads(2)
-S = os.environ.get("SHARED", "../shared") + "/data/"
 SETS = {"relu1_2": ("relu1_2",), "relu2_2": ("relu2_2",), "relu3 (the loss)": ("relu3_1", "relu3_2", "relu3_3"),
         "relu4_3": ("relu4_3",)}
-PAINTINGS = ("starry_night.jpg", "shipwreck.jpg", "starry_night_over_the_rhone.png", "monet_san_giorgio.jpg")
-
-
-def read(path: str, height: int) -> np.ndarray:
-    im = cv2.imread(path)[:, :, ::-1].astype(np.float32) / 255
-    return np.ascontiguousarray(resize_style(im, height))
 
 
 def feats(net, img: np.ndarray, names) -> torch.Tensor:
@@ -52,14 +46,14 @@ def nnfm(a: torch.Tensor, s: torch.Tensor) -> float:
 
 
 def main() -> None:
-    photos = [read(S + "scenes/beer_colmap/images/%04d.jpg" % i, 256) for i in (0, 30)]
-    fern = sorted(os.listdir(S + "scenes/fern_llff/images_8"))
-    photos += [read(S + "scenes/fern_llff/images_8/" + f, 256) for f in fern[::10][:2]]
+    photos = [read(DATA / "scenes/beer_colmap/images" / f"{i:04d}.jpg", 256) for i in (0, 30)]
+    fern = sorted(os.listdir(DATA / "scenes/fern_llff/images_8"))
+    photos += [read(DATA / "scenes/fern_llff/images_8" / f, 256) for f in fern[::10][:2]]
     nets = {"HED (pretrained)": load_vgg("hed"), "random weights": load_vgg("random")}
     print("| painting | backbone | layers | same | blurred | photo | stroke sensitivity |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for name in PAINTINGS:
-        p = read(S + "styles/" + name, 256)
+        p = read(DATA / "styles" / name, 256)
         half = p.shape[1] // 2
         blurred = cv2.GaussianBlur(p, (0, 0), 2.0)
         rec = [r.numpy() for r in color_transfer([torch.from_numpy(x) for x in photos], torch.from_numpy(p))[0]]

@@ -70,17 +70,21 @@ def _blur(y: torch.Tensor, sigma: float) -> torch.Tensor:
     return F.conv2d(F.pad(y, (0, 0, r, r), mode="reflect"), k.view(1, 1, -1, 1))
 
 
-def luminance_detail(img: torch.Tensor, sigma: float = DETAIL_SIGMA) -> torch.Tensor:
-    """The luminance's high-pass residual [H,W] of an [H,W,3] image: Y minus its σ-blur."""
-    y = luminance(img)[..., :1].permute(2, 0, 1)[None].double()  # [1,1,H,W]
+def _highpass(img: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Y minus its σ-blur [H,W] of an [H,W,3] image, in the image's dtype (differentiable)."""
+    y = luminance(img)[..., :1].permute(2, 0, 1)[None]  # [1,1,H,W]
     return (y - _blur(y, sigma))[0, 0]
+
+
+def luminance_detail(img: torch.Tensor, sigma: float = DETAIL_SIGMA) -> torch.Tensor:
+    """The luminance's high-pass residual [H,W] of an [H,W,3] image, in float64: Y minus its σ-blur."""
+    return _highpass(img.double(), sigma)
 
 
 def detail_energy(img: torch.Tensor, weight: torch.Tensor | None = None, sigma: float = DETAIL_SIGMA) -> torch.Tensor:
     """Mean squared luminance high-pass (Y minus its σ-blur) of an [H,W,3] image, over the pixels weighted by
     ``weight`` [H,W,1] (all pixels when None). Differentiable, in the image's dtype: the detail hinge's measure."""
-    y = luminance(img)[..., :1].permute(2, 0, 1)[None]  # [1,1,H,W]
-    hp2 = ((y - _blur(y, sigma)) ** 2)[0, 0]  # [H,W]
+    hp2 = _highpass(img, sigma) ** 2  # [H,W]
     if weight is None:
         return hp2.mean()
     w = weight[..., 0].to(hp2)
@@ -100,8 +104,8 @@ def match_detail(images, painting: torch.Tensor, max_gain: float = DETAIL_MAX_GA
     items = [_as_torch(im) for im in images]
     h = int(np.median([im.shape[0] for im in items]))
     p = torch.from_numpy(resize_style(_as_torch(painting).detach().cpu().numpy(), h)).double()  # [h,w',3]
-    e_p = float((luminance_detail(p, sigma) ** 2).mean())
-    e_v = float(np.mean([float((luminance_detail(im, sigma) ** 2).mean()) for im in items]))
+    e_p = float(detail_energy(p, sigma=sigma))
+    e_v = float(np.mean([float(detail_energy(im.double(), sigma=sigma)) for im in items]))
     g = float(min(max(math.sqrt(e_p / e_v), 1.0), max_gain)) if e_v > 0 else 1.0
     if g == 1.0:
         return list(images), g
