@@ -7,6 +7,7 @@ set -uo pipefail
 OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
 D=/tmp/tlvg-data; F=/tmp/tlvg-fits; R=/tmp/tlvg-runs; mkdir -p "$D" "$F" "$R"
 export TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1
+source "$(dirname "${BASH_SOURCE[0]}")/source_view.sh"; export PYTHONPATH=$(source_view .)${PYTHONPATH:+:$PYTHONPATH}  # kernels/ as tlvg_warp.kernels
 if [ -f .carry/vgg/vgg16_hed_fp16.pt ] && [ ! -f "$TLVG_VGG_WEIGHTS" ]; then
   python3 -c "import torch,sys; sd=torch.load(sys.argv[1], weights_only=True); torch.save({k: v.float() for k, v in sd.items()}, sys.argv[2])" \
     .carry/vgg/vgg16_hed_fp16.pt "$TLVG_VGG_WEIGHTS"

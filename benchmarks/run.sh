@@ -59,6 +59,8 @@ D=${DATA:-/tmp/tlvg-data}; F=${FITS:-/tmp/tlvg-fits}; OUT=${OUT:-/tmp/tlvg-out};
 mkdir -p "$F" "$OUT" "$R"
 export OUT PYTHONUNBUFFERED=1
 [ -d /tmp/tlvg-gpu/site ] && export PYTHONPATH=/tmp/tlvg-gpu/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
+source "$(dirname "${BASH_SOURCE[0]}")/source_view.sh"; export PYTHONPATH=$(source_view .)${PYTHONPATH:+:$PYTHONPATH}  # kernels/ as tlvg_warp.kernels
+[ -z "${TLVG_VGG_WEIGHTS:-}" ] && [ -f /tmp/tlvg-gpu/vgg16_hed.pt ] && export TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt
 FERN="--scene $F/fern.spz --data $D/fern_llff --downscale 2 --style $D/styles/starry_night.jpg"
 metrics() { python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print({k: m.get(k) for k in sys.argv[2:]})" "$@"; }
 gpu() { nvidia-smi --query-gpu=name,memory.total --format=csv,noheader; date -u; }

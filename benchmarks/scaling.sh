@@ -19,6 +19,7 @@
 set -uo pipefail
 export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1  # NVLink multicast off
 export TLVG_VGG_WEIGHTS=${TLVG_VGG_WEIGHTS:-/tmp/tlvg-gpu/vgg16_hed.pt}
+source "$(dirname "${BASH_SOURCE[0]}")/source_view.sh"; export PYTHONPATH=$(source_view .)${PYTHONPATH:+:$PYTHONPATH}  # kernels/ as tlvg_warp.kernels
 OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
 R=/tmp/tlvg-runs; S=$R/scaling; L=$S/logs; mkdir -p "$L"; D=/tmp/tlvg-data  # logs in $L; $OUT gets 3 files
 ITS=${ITS:-1000}; STUDY_ITS=${STUDY_ITS:-600}

@@ -11,12 +11,13 @@
 set -uo pipefail
 [ $# -eq 0 ] && set -- many 4k huge
 OUT=${OUT:-/tmp/tlvg-out}; R=/tmp/tlvg-runs; mkdir -p "$OUT" "$R"; ROOT=${ROOT:-$PWD}; TAG=${TAG:-}
+source "$(dirname "${BASH_SOURCE[0]}")/source_view.sh"
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16  # gsplat builds its extension on first import
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 bench() {  # name, then `bench raster` arguments
   local name=stress${TAG}_$1; shift
   echo "== $name ($ROOT): $*"
-  ( cd "$ROOT" && PYTHONPATH=/tmp/tlvg-gpu/site:$ROOT /usr/bin/time -f "process wall %e s" timeout 280 python3 -m \
+  ( cd "$ROOT" && PYTHONPATH=$(source_view "$ROOT"):/tmp/tlvg-gpu/site:$ROOT /usr/bin/time -f "process wall %e s" timeout 280 python3 -m \
     tlvg_warp bench raster --garden "" --peers tlvg_warp,gsplat --repeats 5 --profile-reps 1 --out "$R/$name" "$@" \
     > "$R/$name.log" 2>&1 )
   grep "^|" "$R/$name.log" | tail -n 8; grep "process wall\|Error\|error" "$R/$name.log" | tail -n 3

@@ -25,6 +25,7 @@ from ..io.datasets import dataset_background
 from ..io.demo import builtin_painting, demo_dataset
 from ..io.images import composite, read_image_fit
 from ..io.scene_views import render_stand_in_photos, scene_views
+from ..runs import resolve_device
 from ..train.init import points_in_front
 from ..train.reconstruct import ReconstructConfig, fit_scene
 from .pipeline import StylizeInputs
@@ -122,7 +123,9 @@ def _scene_only_inputs(sp: Path, cfg, style, sources: dict):
     views = scene_views(g, sources.get("cameras"), cfg.downscale)
     # a scene without photos has no background of its own: white (like the demo) unless the config names one
     bg = tuple(float(v) for v in cfg.background) if cfg.background is not None else (1.0, 1.0, 1.0)
-    photos = render_stand_in_photos(g, views.cameras, bg)
+    # rendered where the run will work: a large scene on the CPU takes minutes, and a CUDA-only Warp build has no
+    # CPU compiler at all
+    photos = render_stand_in_photos(g.to(resolve_device(cfg.device)), views.cameras, bg)
     return StylizeInputs(g, views.cameras, views.names, photos, style, bg, dict(sources)), sp.stat().st_size
 
 
