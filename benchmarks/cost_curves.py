@@ -55,10 +55,10 @@ def _timed_train(orig):
     return train
 
 
-def point(out: Path, n: int, megapixels: float, kind: str, args) -> dict:
+def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
     """One run of a random scene of ``n`` Gaussians on views of ``megapixels``, ``kind`` stylize or fit steps only:
-    ms per step, peak MiB."""
-    scene = out / f"scene_{n}.ply"
+    ms per step, peak MiB. Scenes and runs go to ``work``."""
+    scene = work / f"scene_{n}.ply"
     if not scene.is_file():
         save_ply(random_scene(n, -4.0, 0, "cpu"), scene)
     # orbit views are ORBIT_SIZE / downscale: pick the downscale that gives the point's pixel count
@@ -66,7 +66,7 @@ def point(out: Path, n: int, megapixels: float, kind: str, args) -> dict:
     TIMER.update(warm=args.warm, steps=args.steps, ms=float("nan"))
     if torch.cuda.is_available():
         torch.cuda.reset_peak_memory_stats()
-    argv = ["stylize", "--scene", str(scene), "--out", str(out / f"run_{kind}_{n}_{megapixels}"), "--overwrite",
+    argv = ["stylize", "--scene", str(scene), "--out", str(work / f"run_{kind}_{n}_{megapixels}"), "--overwrite",
             "--quiet",
             "--iterations", str(args.warm + args.steps + 1), "--downscale", f"{downscale:.6f}",
             "--set", "phases=" + ("[0,1,0]" if kind == "stylize" else "[1,0,0]"), "--set", "orbit_frames=0",
@@ -106,7 +106,8 @@ def chart(rows: list[dict], path: Path, base_n: int, base_mp: float) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--out", required=True, help="cost_curves.csv and cost_curves.png, rewritten after each point")
+    ap.add_argument("--work", default="/tmp/tlvg-cost", help="the random scenes and the runs (large)")
     ap.add_argument("--gaussians", default="100000,300000,1000000,3000000,10000000")
     ap.add_argument("--megapixels", default="0.1,0.5,1,2,4")
     ap.add_argument("--base-gaussians", type=int, default=1_000_000, help="the Gaussians of the pixel curve")
@@ -119,6 +120,8 @@ def main() -> None:
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
     pipeline.train = _timed_train(pipeline.train)
     todo = [(int(float(n)), args.base_megapixels) for n in args.gaussians.split(",")]
     todo += [(args.base_gaussians, float(m)) for m in args.megapixels.split(",")
@@ -127,9 +130,13 @@ def main() -> None:
     print("| step | Gaussians | view | ms per step | peak MiB |\n| --- | --- | --- | --- | --- |")
     for kind in args.steps_of.split(","):
         for n, mp in todo:
-            r = point(out, n, mp, kind, args) | {"megapixels_asked": mp}
+            r = point(work, n, mp, kind, args) | {"megapixels_asked": mp}
             rows.append(r)
             print(f"| {kind} | {n:,} | {r['width']}x{r['height']} | {r['ms_per_step']} | {r['peak_mib']} |", flush=True)
+            write(rows, out, args)  # after every point: a run cut short keeps what it measured
+
+
+def write(rows: list[dict], out: Path, args) -> None:
     with open(out / "cost_curves.csv", "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=list(rows[0]))
         wr.writeheader()
