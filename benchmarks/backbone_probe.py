@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.append(str(Path(__file__).resolve().parents[1]))  # after an installed package or the GPU scripts' source view
 from field_agreement import DATA, PAINTINGS, read  # noqa: E402
 from tlvg_warp.losses import color_transfer, luminance  # noqa: E402
 from tlvg_warp.losses.vgg import load_vgg  # noqa: E402

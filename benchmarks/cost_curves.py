@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.append(str(ROOT))  # after an installed package or the GPU scripts' source view
 
 import tlvg_warp.stylize.pipeline as pipeline  # noqa: E402
 from tlvg_warp import cli  # noqa: E402

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.append(str(Path(__file__).resolve().parents[1]))  # after an installed package or the GPU scripts' source view
 from tlvg_warp.losses import (  # noqa: E402
     color_transfer, field_at_cells, flatten_feats, luminance, map_field_matched, match_style_cells, resize_style,
     stroke_field)

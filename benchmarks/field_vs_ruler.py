@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.append(str(Path(__file__).resolve().parents[1]))  # after an installed package or the GPU scripts' source view
 from field_agreement import DATA, VIEW_HEIGHT, agreement, matched_field, read, scene_photos  # noqa: E402
 from tlvg_warp.eval.refs import common_field  # noqa: E402
 from tlvg_warp.losses import field_at_cells, flatten_feats, luminance, resize_style, stroke_field  # noqa: E402

@@ -61,3 +61,10 @@ def test_source_view_runs_the_tree_uninstalled(tmp_path):
     found = Path(_import_kernels(env, tmp_path, drop_editable=True))
     assert found.resolve() == (REPO / "kernels" / "blend.py").resolve()
     assert str(found).startswith(view)
+
+
+def test_benchmark_scripts_do_not_shadow_the_package():
+    """A benchmark that puts the repository root first on sys.path imports tlvg_warp from there, without its kernels
+    when nothing is installed (the GPU machine): the root may only be appended."""
+    for script in (REPO / "benchmarks").glob("*.py"):
+        assert "sys.path.insert(0" not in script.read_text(), script.name
