@@ -76,7 +76,7 @@ EOF
     V=(); for v in $VARIANTS; do V+=(--variant "$v"); done
     OMP_NUM_THREADS=8 python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
       --styles "$(echo "$STYLES" | tr ',' '\n' | sed "s|^|$D/styles/|" | paste -sd, -)" --out "$R/scene/$s" "${V[@]}" \
-      --montage "$OUT/scene_$s.jpg" --max-views "${MAX_VIEWS:-24}" 2>&1 | grep "^|\|^run \|^evaluate \|Error"
+      --montage "$OUT/scene_$s.jpg" --view "${VIEW:-0}" --max-views "${MAX_VIEWS:-24}" 2>&1 | grep "^|\|^run \|^evaluate \|Error"
     (cd "$R/scene" && tar -czf "$OUT/scene_$s.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json))
     ;;
   fit)

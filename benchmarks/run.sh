@@ -40,8 +40,6 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   paint PART         the paintings study, every (scene, painting) pair with tlvg, abcgs and the anchors
                      (benchmarks/device_paint.sh; PART: carry, stage1, stage2, fit, study, wait, scene).
                      Reproduces: docs/study.md's current tables and gallery.
-  tune | study       the earlier tuning rounds and study runs (benchmarks/device_tune.sh; docs/study.md's
-                     sections on how the settings were chosen).
   study-table        the study's tables from its runs (benchmarks/study_table.py).
   field-agreement    on the CPU: does the palette transfer move the matched stroke field? (benchmarks/
                      field_agreement.py; docs/study.md, the ablations).
@@ -134,7 +132,6 @@ case "$cmd" in
   step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet;;
   ssim) exec python3 benchmarks/ssim_check.py;;
   paint) PART=${1:?paint needs a PART} exec bash benchmarks/device_paint.sh;;
-  tune|study) exec bash benchmarks/device_tune.sh "$cmd" "$@";;
   study-table) exec python3 benchmarks/study_table.py "$@";;
   field-agreement) exec python3 benchmarks/field_agreement.py "$@";;
   field-vs-ruler) exec python3 benchmarks/field_vs_ruler.py "$@";;

@@ -162,21 +162,19 @@ def test_each_config_keeps_its_own_schedule_unless_the_study_forces_one(tmp_path
     sets no iterations; a study that sets them passes them to every run."""
     import yaml
 
-    from tlvg_warp.eval.study import stylize_argv
+    from tlvg_warp.eval.study import stylize_kwargs
     from tlvg_warp.stylize.config import load_config
 
     st = _study(tmp_path, "")
     assert st.iterations is None and st.seeds == 3
     for c, want in (("abcgs", 1400), ("tlvg", 3000)):
-        argv = stylize_argv(st, "demo", None, "starry", c, seed=2, device="cpu")
-        assert "--iterations" not in argv and argv[argv.index("--set") + 1] == "seed=2"
-        cfg_file = argv[argv.index("--config") + 1]
-        assert yaml.safe_load(Path(cfg_file).read_text())["iterations"] == want
-        assert load_config(cfg_file).iterations == want
+        kw = stylize_kwargs(st, "demo", None, "starry", c, seed=2, device="cpu")
+        assert kw["iterations"] is None and kw["overrides"][0] == "seed=2"
+        assert yaml.safe_load(Path(kw["config"]).read_text())["iterations"] == want
+        assert load_config(kw["config"]).iterations == want
     assert load_config(f"{REPO}/configs/abcgs.yaml").phase_steps() == (400, 600, 400)
     forced = _study(tmp_path, "iterations: 4\nseeds: 1")
-    argv = stylize_argv(forced, "demo", None, "starry", "abcgs", seed=0, device="cpu")
-    assert argv[argv.index("--iterations") + 1] == "4"
+    assert stylize_kwargs(forced, "demo", None, "starry", "abcgs", seed=0, device="cpu")["iterations"] == 4
 
 
 def test_only_configs_keeps_a_subset_and_drops_orphan_roles(tmp_path):

@@ -361,3 +361,10 @@ def run_sources(run) -> dict:
     d = load_data(ck, mmap=True)
     src = d.get("sources") if isinstance(d, dict) else None
     return {str(k): str(v) for k, v in src.items() if isinstance(v, (str, Path))} if isinstance(src, dict) else {}
+
+
+def drop_checkpoints(out: Path, *subdirs: str) -> None:
+    """A finished run: its outputs are written, so checkpoint.pt (most of the folder's size) goes, also in
+    ``subdirs`` (e.g. the reconstruct/ of a scene fitted first)."""
+    for d in (Path(out), *(Path(out) / s for s in subdirs)):
+        (d / "checkpoint.pt").unlink(missing_ok=True)

@@ -13,13 +13,6 @@ KEEP_CHECKPOINT_HELP = ("keep checkpoint.pt after the run finishes (to extend it
                         "kill) always keeps it")
 
 
-def drop_checkpoints(out: Path, *subdirs: str) -> None:
-    """A finished run: its outputs are written, so checkpoint.pt (most of the folder's size) goes, also in
-    ``subdirs`` (e.g. the reconstruct/ of a scene fitted first)."""
-    for d in (Path(out), *(Path(out) / s for s in subdirs)):
-        (d / "checkpoint.pt").unlink(missing_ok=True)
-
-
 def check_resumable(run) -> None:
     """--resume of a folder whose run finished (its outputs are there) without --keep-checkpoint: one line that
     says why there is nothing to resume from."""

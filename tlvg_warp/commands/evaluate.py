@@ -17,8 +17,7 @@ from pathlib import Path
 import torch
 
 from ..errors import InputError
-from ..eval.engine import (CPU_MAX_VIEWS, DEFAULT_EVAL_HEIGHT, MIN_EVAL_HEIGHT, print_table, default_cache,
-                           evaluate_runs, pick_weights, report_html, stage_logger)
+from ..eval import CPU_MAX_VIEWS, DEFAULT_EVAL_HEIGHT, MIN_EVAL_HEIGHT, default_cache
 from ..fileio import write_json, write_text
 
 
@@ -40,7 +39,8 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    # lazy: imports Warp
+    # what an evaluation runs (OpenCV, Warp) loads here, not when the parser is built
+    from ..eval.engine import evaluate_runs, pick_weights, print_table, report_html, stage_logger
     from ..losses.vgg import load_vgg
 
     log = stage_logger()

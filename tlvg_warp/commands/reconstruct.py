@@ -12,7 +12,8 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..runs import resolve_device, run_folder
-from . import KEEP_CHECKPOINT_HELP, check_resumable, drop_checkpoints
+from ..runs import drop_checkpoints
+from . import KEEP_CHECKPOINT_HELP, check_resumable
 
 
 def add_arguments(p):

@@ -13,7 +13,8 @@ import math
 import sys
 
 from ..viewer import SceneViewer, scene_center, scene_radius, up_from_cameras
-from . import KEEP_CHECKPOINT_HELP, check_resumable, drop_checkpoints
+from ..runs import drop_checkpoints
+from . import KEEP_CHECKPOINT_HELP, check_resumable
 from .view import serve_forever
 
 

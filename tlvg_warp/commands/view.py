@@ -15,7 +15,6 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
-from ..eval.engine import demo_original
 from ..runs import run_sources
 from ..viewer import (DEFAULT_HOST, DEFAULT_PORT, DEFAULT_UP, UP_AXES, SceneViewer, scene_center, scene_radius,
                       up_from_cameras)
@@ -40,6 +39,7 @@ def add_arguments(p):
 def find_original(run: Path, cams: list):
     """(Gaussians or None, where from / why not)."""
     # lazy: CLI startup
+    from ..eval.engine import demo_original
     from ..io.ply import load_ply
     src = run_sources(run)
     for cand in (src.get("scene"), run / "reconstruct" / "point_cloud.ply"):

@@ -12,7 +12,6 @@ where it also beats the anchor that metric exists to beat (eval/metrics.py ANCHO
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -20,18 +19,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..config_io import read_yaml_mapping
 from ..errors import InputError
+from ..io.datasets import read_inria_cameras
+from ..io.demo import demo_scene
+from ..io.images import read_image
+from ..io.ply import load_ply
+from ..losses.stroke_field import field_picture, stroke_field
+from ..losses.vgg import resize_style
 from ..runs import run_sources
-
-# The command line imports this module when it builds its parser (commands/evaluate.py): what only an evaluation
-# needs is imported inside the functions that use it ("lazy: CLI startup").
-
-MAX_REPORT_VIEWS = 4  # views shown as thumbnails (evenly spaced)
-CPU_MAX_VIEWS = 12  # evaluate's default view count on a CPU (a demo run's 24 views took 38 s there, 12 take under 30)
-CAM_TOL = 1e-4  # cameras.json round trip (float32 positions): runs of the same views agree far closer
-DEFAULT_EVAL_HEIGHT = 256  # style/content size (the style loss's working height, SPEC §3)
-MIN_EVAL_HEIGHT = 64  # smaller views are enlarged to this (VGG's relu4 needs a few cells)
-
+from . import metrics as M
+from . import report as H
+from . import CAM_TOL, DEFAULT_EVAL_HEIGHT, MAX_REPORT_VIEWS, MIN_EVAL_HEIGHT
+from .refs import anchor_views, build_references, compare, score_views, stylized_views, summarize
+from .report import fmt
 
 def auto_eval_height(cameras) -> int:
     """The style/content evaluation height for views of this size: their own height within
@@ -48,10 +49,6 @@ def stage_logger(stream=None):
     return log
 
 
-def default_cache() -> Path:
-    return Path(os.environ.get("TLVG_EVAL_CACHE", Path.home() / ".cache" / "tlvg_warp" / "eval_refs"))
-
-
 # ---------------------------------------------------------------- reading a run folder
 def _read_json(path: Path):
     try:
@@ -64,7 +61,6 @@ def _read_json(path: Path):
 
 def _image(path: Path, shape=None) -> np.ndarray:
     # lazy: CLI startup
-    from ..io.images import read_image
 
     a = read_image(path)[:, :, :3]
     if shape is not None and a.shape[:2] != tuple(shape):
@@ -82,7 +78,6 @@ def _view_file(folder: Path, name: str, index: int):
 
 def _yaml(path: Path) -> dict:
     # lazy: CLI startup
-    from ..config_io import read_yaml_mapping
 
     return read_yaml_mapping(path) if path.is_file() else {}
 
@@ -90,7 +85,6 @@ def _yaml(path: Path) -> dict:
 def load_run(run, max_views: int = 0) -> dict:
     """What evaluate reads from a run folder; InputError naming the file when something is wrong."""
     # lazy: CLI startup
-    from ..io.ply import load_ply
 
     run = Path(run)
     if not run.is_dir():
@@ -100,7 +94,6 @@ def load_run(run, max_views: int = 0) -> dict:
     if not ply.is_file():
         raise InputError("missing stylized.ply (not a stylization run folder?)", run)
     # lazy: CLI startup
-    from ..io.datasets import read_inria_cameras
 
     names, cams = read_inria_cameras(run / "cameras.json")
     n_total = len(cams)
@@ -129,7 +122,6 @@ def load_run(run, max_views: int = 0) -> dict:
 def resolve_scene(run: dict, scene=None):
     """The un-stylized scene of a run (see the module doc)."""
     # lazy: CLI startup
-    from ..io.ply import load_ply
 
     if scene is not None:
         return load_ply(Path(scene))
@@ -149,7 +141,6 @@ def demo_original(run_dir, cameras, n_total: int | None = None):
     demo samples its surfaces more sparsely at a larger downscale (stylize: spacing = max(1, downscale)), so the
     run's config.yaml downscale picks the same density (e.g. 4,678 Gaussians at downscale 2, not 18,733)."""
     # lazy: CLI startup
-    from ..io.demo import demo_scene
 
     if not cameras:
         return None
@@ -199,8 +190,6 @@ def winners(names, per_views, anchors: dict | None = None) -> dict:
     anchor the metric exists to beat (metrics.ANCHOR_TO_BEAT; ``anchors``: {anchor name: per-view dict}),
     else absent."""
     # lazy: CLI startup
-    from ..eval import metrics as M
-    from ..eval.refs import compare
 
     out = {}
     anchors = anchors or {}
@@ -226,8 +215,6 @@ def not_discriminating(per_views, anchors: dict) -> dict:
     pasting the painting (content, multi-view, chroma noise). The other anchor winning is expected (the painting
     has the painting's style; the un-stylized scene is the scene) and is not a verdict."""
     # lazy: CLI startup
-    from ..eval import metrics as M
-    from ..eval.refs import compare
 
     out = {}
     for k, target in M.ANCHOR_TO_BEAT.items():
@@ -245,8 +232,6 @@ def evaluate_runs(run_dirs, net, device, *, scene=None, max_views: int = 0, eval
     """Score every run, and the two anchors, with one set of references. Returns (result dict, loaded runs,
     refs)."""
     # lazy: CLI startup
-    from ..eval import metrics as M
-    from ..eval.refs import anchor_views, build_references, compare, score_views, stylized_views, summarize
 
     log(f"reading {len(run_dirs)} run folder(s)")
     runs = [load_run(d, max_views) for d in run_dirs]
@@ -303,11 +288,7 @@ def unique_names(runs) -> list[str]:
 
 def report_html(res: dict, runs: list, refs) -> str:
     # lazy: CLI startup
-    from ..eval import metrics as M
-    from ..eval import report as H
     # lazy: imports Warp
-    from ..losses.stroke_field import field_picture, stroke_field
-    from ..losses.vgg import resize_style
 
     names = res["names"]
     sums = [r["summary"] for r in res["runs"]]
@@ -353,7 +334,6 @@ def report_html(res: dict, runs: list, refs) -> str:
 
 def comparisons_table(comparisons: dict) -> str:
     # lazy: CLI startup
-    from ..eval import report as H
 
     keys = [k for k in H.M.METRICS if any(k in c for c in comparisons.values())]
     head = "<tr><th class=l>metric</th>" + "".join(f"<th>{H.esc(p)}: a − b [95%]</th>" for p in comparisons) + "</tr>"
@@ -375,8 +355,6 @@ def comparisons_table(comparisons: dict) -> str:
 
 def print_table(res: dict) -> None:
     # lazy: CLI startup
-    from ..eval import metrics as M
-    from ..eval.report import fmt
 
     names = res["names"]
     anchors = res.get("anchors") or []

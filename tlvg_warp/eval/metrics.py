@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..losses.stroke_field import stroke_field
 from .quick import pixel_grid, reproject  # noqa: F401  (re-exported: the reprojection oracle is tested there)
 
 ALPHA_MIN = 0.5  # covered pixel (SPEC §4 holes: alpha >= 0.5)
@@ -124,9 +125,6 @@ def field_at_pixels(field: np.ndarray, h: int, w: int) -> np.ndarray:
 
 def render_field(img: np.ndarray) -> np.ndarray:
     """The render's own doubled-angle field [H,W,2] (length = coherence), SPEC §3 structure tensor."""
-    # lazy: imports Warp
-    from ..losses.stroke_field import stroke_field
-
     return stroke_field(img)[2]
 
 

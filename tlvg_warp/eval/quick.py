@@ -22,6 +22,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..losses.stroke_field import flow_alignment_score, map_field_canvas, stroke_field
+from ..losses.style import content_loss, fast_loss, gram_loss
+from ..losses.vgg import flatten_feats, resize_style
 from ..renderer import render
 from ..types import Camera
 
@@ -119,9 +122,6 @@ def multiview_consistency(views, ks=(SHORT_K, LONG_K), rel_tol: float = DEPTH_RE
 # ---------------------------------------------------------------- VGG-space distances
 def style_target_feats(net, painting) -> torch.Tensor:
     """The painting's relu3 features [C, Ns] (resized to height 256, SPEC §3)."""
-    # lazy: imports Warp
-    from ..losses.vgg import flatten_feats, resize_style
-
     p = painting.detach().cpu().numpy() if isinstance(painting, torch.Tensor) else np.asarray(painting)
     dev = next(net.parameters()).device
     with torch.no_grad():
@@ -132,10 +132,6 @@ def vgg_distances(net, stylized, original=None, style_feats=None, scale: float =
     """FAST and Gram style distance of a stylized view [H,W,3] to the painting features, and content
     distance (relu3 MSE) to the un-stylized render. Render scale 0.5 as in training (SPEC §3); a view too
     small for VGG (under 4 px after scaling) gives None rather than a crash."""
-    # lazy: imports Warp
-    from ..losses.style import content_loss, fast_loss, gram_loss
-    from ..losses.vgg import flatten_feats
-
     h, w = stylized.shape[:2]
     s = scale if min(h, w) * scale >= 4 else 1.0
     out = {"style_fast": None, "style_gram": None, "content": None}
@@ -155,10 +151,6 @@ def vgg_distances(net, stylized, original=None, style_feats=None, scale: float =
 
 def painting_field(painting) -> np.ndarray:
     """The painting's doubled-angle stroke field at its VGG working size (height 256), [h,w,2]."""
-    # lazy: imports Warp
-    from ..losses.stroke_field import stroke_field
-    from ..losses.vgg import resize_style
-
     p = painting.detach().cpu().numpy() if isinstance(painting, torch.Tensor) else np.asarray(painting)
     return stroke_field(resize_style(p))[2]
 
@@ -166,9 +158,6 @@ def painting_field(painting) -> np.ndarray:
 def flow_alignment(stylized, painting_doubled=None, target_doubled=None) -> float:
     """Flow-alignment score (SPEC §4) of one view: against the stored target field [H,W,2] when given,
     else the painting's field mapped "canvas" onto the view."""
-    # lazy: imports Warp
-    from ..losses.stroke_field import flow_alignment_score, map_field_canvas
-
     h, w = stylized.shape[:2]
     if target_doubled is None:
         target_doubled = map_field_canvas(painting_doubled, h, w)[2]

@@ -17,6 +17,9 @@ import torch
 
 from ..errors import InputError
 from ..fileio import write_bytes
+from ..losses.color import color_transfer
+from ..losses.stroke_field import field_at_cells, map_field_matched, stroke_field
+from ..losses.vgg import flatten_feats, resize_style
 from ..renderer import render
 from ..types import Camera
 from . import metrics as M
@@ -76,10 +79,6 @@ def content_key(scene, cameras, background, painting, photos, net, eval_height) 
 def common_field(net, base_color: np.ndarray, painting: np.ndarray, style_cells_field, style_feats) -> np.ndarray:
     """The painting's stroke field carried onto a view [H,W,2]: every relu3 cell of the UN-stylized render
     (RGB, x FIELD_SCALE) takes the doubled-angle vector of its nearest painting cell (cosine), upsampled."""
-    # lazy: imports Warp
-    from ..losses.stroke_field import map_field_matched
-    from ..losses.vgg import flatten_feats
-
     dev = next(net.parameters()).device
     with torch.no_grad():
         f = net(torch.from_numpy(base_color).to(dev), FIELD_SCALE)  # [1,768,hc,wc]
@@ -91,10 +90,6 @@ def common_field(net, base_color: np.ndarray, painting: np.ndarray, style_cells_
 
 
 def _painting_side(net, painting: np.ndarray, eval_height: int, pretrained: bool) -> dict:
-    # lazy: imports Warp
-    from ..losses.stroke_field import field_at_cells, stroke_field
-    from ..losses.vgg import flatten_feats, resize_style
-
     p_eval = M.resize_to_height(painting, eval_height)
     out = {"strokes": M.stroke_descriptor(painting), "hf": M.hf_energy(M.luma(p_eval))}
     if pretrained:
@@ -113,9 +108,6 @@ def build_references(scene, cameras, background, painting, photos, net, *, eval_
     """References of (scene, painting, views). ``net`` a VGG16Features; without pretrained weights the
     common field is not built (flow alignment is then not measured). ``log``: a line per stage."""
     log = log or (lambda msg: None)
-    # lazy: imports Warp
-    from ..losses.color import color_transfer
-
     painting = np.ascontiguousarray(M._np(painting)[..., :3], np.float32)
     photos = [np.ascontiguousarray(M._np(p)[..., :3], np.float32) for p in photos]
     pretrained = not net.is_random

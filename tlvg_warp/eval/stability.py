@@ -18,6 +18,7 @@ import cv2
 import torch
 
 from ..io.demo import builtin_painting, demo_dataset
+from ..losses.vgg import load_vgg
 from ..renderer import render
 from ..stylize import StylizeInputs, run_stylize
 from ..stylize.config import config_from_dict
@@ -269,9 +270,6 @@ def run_suite(quick: bool, device: str | None = None, only=None, vgg_weights="ra
               long_iters: int = 10000, base: Base | None = None, extra=(), vgg_metrics: bool = True) -> dict:
     """Run every scenario (the quick subset with ``quick``); ``base`` replaces the demo scene, ``extra`` adds
     scenarios. Never raises for a failing scenario: its row says finished False and the error."""
-    # lazy: imports Warp
-    from ..losses.vgg import load_vgg
-
     dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
     vgg = load_vgg(vgg_weights, device=dev)
     base = base or demo_base(quick, dev)

@@ -37,9 +37,12 @@ import torch
 
 from ..config_io import read_yaml_mapping
 from ..distributed import Dist, local_only
-from ..errors import InputError
+from ..errors import InputError, WriteError, one_line
 from ..fileio import write_json, write_text
 from ..io import load_dataset
+from ..losses.vgg import load_vgg
+from ..stylize.job import stylize_run
+from ..stylize.pipeline import StylizeDiverged
 from ..train.reconstruct import ReconstructConfig, fit_scene
 from . import judge
 from . import metrics as M
@@ -163,46 +166,44 @@ def finished(d: Path) -> bool:
     return (d / "metrics.json").is_file() and (d / "stylized.ply").is_file()
 
 
-def stylize_argv(st: Study, scene: str, ply, painting: str, config: str, seed: int, device: str | None = None):
-    """The `stylize` command line of one run: the config's own schedule unless the study forces `iterations`."""
+def stylize_kwargs(st: Study, scene: str, ply, painting: str, config: str, seed: int,
+                   device: str | None = None) -> dict:
+    """One run's stylize_run keywords (stylize/job.py; `stylize`'s options): the config's own schedule unless the
+    study forces `iterations`."""
     s = st.scenes[scene]
-    d = run_dir(st, scene, painting, config, seed)
-    argv = ["stylize", "--config", st.configs[config], "--out", str(d),
-            "--device", device or resolve_device(st.device), "--quiet", "--set", f"seed={seed}"]
-    if st.iterations is not None:
-        argv += ["--iterations", str(st.iterations)]
+    kw = {"config": st.configs[config], "out": str(run_dir(st, scene, painting, config, seed)),
+          "device": device or resolve_device(st.device), "quiet": True,
+          "overrides": [f"seed={seed}", *(str(o) for o in st.overrides)], "iterations": st.iterations,
+          "vgg_weights": None if st.vgg_weights is None else str(st.vgg_weights)}
     if st.paintings[painting] != "builtin":
-        argv += ["--style", st.paintings[painting]]
+        kw["style"] = st.paintings[painting]
     if ply is not None:
-        argv += ["--scene", str(ply), "--data", s["data"]]
+        kw |= {"scene": str(ply), "data": s["data"]}
     if s.get("downscale"):
-        argv += ["--downscale", str(s["downscale"])]
-    if st.vgg_weights is not None:
-        argv += ["--vgg-weights", str(st.vgg_weights)]
-    for o in st.overrides:
-        argv += ["--set", str(o)]
-    return argv
+        kw["downscale"] = s["downscale"]
+    return kw
 
 
 def stylize_once(st: Study, scene: str, ply, painting: str, config: str, log, device: str | None = None,
                  seed: int = 0) -> str:
-    """'skipped' (finished before), 'ran', or 'failed (rc)'."""
-    # lazy: the command line sits above this module (cli runs commands/study.py, which imports it)
-    from ..cli import main
-
+    """'skipped' (finished before), 'ran', or 'failed (why)'."""
     d = run_dir(st, scene, painting, config, seed)
     key = f"{scene}/{painting}/{config}/seed_{seed}"
     if finished(d):
         log(f"skip {key}: finished")
         return "skipped"
-    argv = stylize_argv(st, scene, ply, painting, config, seed, device)
+    kw = stylize_kwargs(st, scene, ply, painting, config, seed, device)
     if (d / "checkpoint.pt").is_file():
-        argv += ["--resume", str(d)]
+        kw["resume"] = str(d)
     elif d.exists():
-        argv += ["--overwrite"]
+        kw["overwrite"] = True
     log(f"stylize {key} ...")
-    rc = main(argv)
-    return "ran" if rc == 0 and finished(d) else f"failed ({rc})"
+    try:
+        stylize_run(**kw)
+    except (InputError, WriteError, StylizeDiverged) as e:
+        log(f"error: {key}: {one_line(e)}")
+        return f"failed ({type(e).__name__})"
+    return "ran" if finished(d) else "failed (no outputs)"
 
 
 # ---------------------------------------------------------------- tables
@@ -297,9 +298,6 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
     first (a shared queue, then a barrier), then the stylizations (the same queue: one job per rank at a
     time), then the evaluations (one (scene, painting) per rank at a time); the main rank gathers every
     rank's results and writes the one table. Returns the result on the main rank, None on the others."""
-    # lazy: imports Warp
-    from ..losses.vgg import load_vgg
-
     dist = dist or Dist()
     t0 = time.perf_counter()
     dev_name = resolve_device(st.device)

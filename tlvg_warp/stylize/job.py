@@ -22,7 +22,7 @@ import torch
 from ..config_io import canonical
 from ..distributed import Dist
 from ..errors import InputError
-from ..runs import resolve_device, run_folder
+from ..runs import drop_checkpoints, resolve_device, run_folder
 from .config import StylizeConfig, config_from_dict, load_config
 from .inputs import assemble_inputs
 from .outputs import write_outputs
@@ -140,6 +140,22 @@ class StylizeJob:
         """The run folder's outputs (stylize/outputs.py; the main rank only); returns metrics.json's content."""
         res.metrics["load_split_s"] = {k: round(self.load_split.get(k, 0.0), 3) for k in ("vgg", "inputs")}
         return write_outputs(self.out, res, input_bytes=input_bytes, wall_start=self.wall_start)
+
+
+def stylize_run(keep_checkpoint: bool = False, **start) -> dict:
+    """One stylization from its inputs to its written run folder (what `stylize` does without a viewer), with
+    ``start`` as StylizeJob.start's keywords. Returns metrics.json's content ({} on every rank but the main one).
+    InputError, WriteError and StylizeDiverged reach the caller."""
+    job = StylizeJob.start(**start)
+    with job.folder():
+        inp, input_bytes = job.inputs()
+        res = job.stylize(inp)
+        if not job.dist.is_main:
+            return {}  # every rank holds the same result; the main rank writes it
+        metrics = job.write(res, input_bytes)
+        if not keep_checkpoint:  # finished: the outputs are written, the checkpoint goes
+            drop_checkpoints(job.out, "reconstruct")
+        return metrics
 
 
 def _names_key(overrides, key: str) -> bool:
