@@ -45,6 +45,13 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      field_agreement.py; docs/study.md, the ablations).
   field-vs-ruler PAINTING...
                      on the CPU: the training field against `evaluate`'s common field (benchmarks/field_vs_ruler.py).
+  backbone-probe     on the CPU: does the VGG-16 backbone see brushstrokes? (benchmarks/backbone_probe.py;
+                     docs/study.md).
+  footprints SCENE DATASET [--downscale F]
+                     on the CPU: the share of the views that coarse splats paint, before and after the stroke-size
+                     refinement (benchmarks/footprints.py; docs/study.md).
+  gallery OUT.jpg PAIRS_DIR scene_painting:variants:label...
+                     docs/gallery.jpg from the study's montages (benchmarks/gallery.py).
 
 Environment: DATA (default /tmp/tlvg-data: fern_llff, beer_colmap, lego_blender, styles/starry_night.jpg),
 FITS (default /tmp/tlvg-fits), OUT (default /tmp/tlvg-out: logs and JSON), TLVG_VGG_WEIGHTS (the pretrained
@@ -135,6 +142,9 @@ case "$cmd" in
   study-table) exec python3 benchmarks/study_table.py "$@";;
   field-agreement) exec python3 benchmarks/field_agreement.py "$@";;
   field-vs-ruler) exec python3 benchmarks/field_vs_ruler.py "$@";;
+  backbone-probe) exec python3 benchmarks/backbone_probe.py "$@";;
+  footprints) exec python3 benchmarks/footprints.py "$@";;
+  gallery) exec python3 benchmarks/gallery.py "$@";;
   -h|--help|help|"") usage;;
   *) echo "unknown subcommand: $cmd"; usage; exit 2;;
 esac
