@@ -22,6 +22,8 @@ import torch
 import warp as wp
 
 from .kernels import raster_kernels
+from .kernels.camera import camera_struct
+from .kernels.flow import flow_targets_kernel
 
 _initialized = False
 
@@ -561,9 +563,6 @@ def private_api_problems() -> list[str]:
           lambda: _runtime().core.wp_cuda_context_get_current.restype is ctypes.c_void_p)
 
     def recorded_launch():
-        from .kernels.camera import camera_struct
-        from .kernels.flow import flow_targets_kernel
-
         kernel, cam = flow_targets_kernel("float32"), camera_struct("float32")()
         if not wp.types.is_struct(cam):
             return "wp.types.is_struct(camera struct instance) is False"
