@@ -10,25 +10,24 @@ import os
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
 sys.path.append(str(Path(__file__).resolve().parents[1]))  # after an installed package or the GPU scripts' source view
+from tlvg_warp.io.images import read_image  # noqa: E402
 from tlvg_warp.losses import (  # noqa: E402
-    color_transfer, field_at_cells, flatten_feats, luminance, map_field_matched, match_style_cells, resize_style,
-    stroke_field)
+    color_transfer, field_at_cells, flatten_feats, luminance, matched_view_field, resize_style, stroke_field)
 from tlvg_warp.losses.vgg import load_vgg  # noqa: E402
 
 DATA = Path(os.environ.get("SHARED", "../shared")) / "data"
 PAINTINGS = ("starry_night.jpg", "shipwreck.jpg", "starry_night_over_the_rhone.png", "monet_san_giorgio.jpg")
 VIEW_HEIGHT = {"beer": 640, "fern": 378}  # the study's view heights
+VGG_SCALE = 0.5  # the view's scale before VGG in training (configs/tlvg.yaml's vgg_scale)
 
 
 def read(path: Path, height: int) -> np.ndarray:
     """An image as float RGB [height, w, 3], aspect kept (INTER_AREA)."""
-    im = cv2.imread(str(path))[:, :, ::-1].astype(np.float32) / 255
-    return np.ascontiguousarray(resize_style(im, height))
+    return np.ascontiguousarray(resize_style(read_image(path)[..., :3], height))
 
 
 def scene_photos(scene: str) -> list:
@@ -46,13 +45,6 @@ def agreement(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a * b).sum() / (a.norm(dim=-1) * b.norm(dim=-1)).sum())
 
 
-def matched_field(vgg, img: torch.Tensor, style_feats, cells) -> torch.Tensor:
-    with torch.no_grad():
-        f = vgg(luminance(img), scale=0.5)  # [1,768,hc,wc]
-    idx, w = match_style_cells(flatten_feats(f), style_feats)
-    return map_field_matched(cells, idx, w, img.shape[0], img.shape[1], tuple(f.shape[-2:]))[2]
-
-
 def main() -> None:
     torch.set_num_threads(2)
     vgg = load_vgg("hed", device="cpu")
@@ -64,8 +56,9 @@ def main() -> None:
                 sf = vgg(luminance(torch.from_numpy(work)), scale=1.0)
             cells = torch.from_numpy(field_at_cells(stroke_field(work)[2], tuple(sf.shape[-2:])))
             recoloured = color_transfer(photos, torch.from_numpy(work))[0]
-            scores = [agreement(matched_field(vgg, p, flatten_feats(sf), cells),
-                                matched_field(vgg, r, flatten_feats(sf), cells)) for p, r in zip(photos, recoloured)]
+            sf = flatten_feats(sf)
+            scores = [agreement(matched_view_field(vgg, p, sf, cells, VGG_SCALE),
+                                matched_view_field(vgg, r, sf, cells, VGG_SCALE)) for p, r in zip(photos, recoloured)]
             print(f"{scene} x {painting}: original against recoloured field {np.mean(scores):.3f} "
                   f"({len(scores)} photos)", flush=True)
 

@@ -17,9 +17,10 @@ import numpy as np
 import torch
 
 sys.path.append(str(Path(__file__).resolve().parents[1]))  # after an installed package or the GPU scripts' source view
-from field_agreement import DATA, VIEW_HEIGHT, agreement, matched_field, read, scene_photos  # noqa: E402
+from field_agreement import DATA, VGG_SCALE, VIEW_HEIGHT, agreement, read, scene_photos  # noqa: E402
 from tlvg_warp.eval.refs import common_field  # noqa: E402
-from tlvg_warp.losses import field_at_cells, flatten_feats, luminance, resize_style, stroke_field  # noqa: E402
+from tlvg_warp.losses import (field_at_cells, flatten_feats, luminance, matched_view_field, resize_style,  # noqa: E402
+                              stroke_field)
 from tlvg_warp.losses.vgg import load_vgg  # noqa: E402
 
 RULER_HEIGHT = 256  # the painting's working height in `evaluate` (SPEC §3)
@@ -45,8 +46,8 @@ def main(paintings: list[str]) -> None:
             at_work, at_256 = [], []
             for photo in scene_photos(scene):
                 ruler = torch.from_numpy(common_field(vgg, photo.numpy(), full, ruler_cells, ruler_feats))
-                at_work.append(agreement(matched_field(vgg, photo, sf, cells_work), ruler))
-                at_256.append(agreement(matched_field(vgg, photo, sf, cells_256), ruler))
+                at_work.append(agreement(matched_view_field(vgg, photo, sf, cells_work, VGG_SCALE), ruler))
+                at_256.append(agreement(matched_view_field(vgg, photo, sf, cells_256, VGG_SCALE), ruler))
             print(f"{scene} x {painting}: training's field against the ruler's {np.mean(at_work):.3f}; with the "
                   f"painting's field at {RULER_HEIGHT} rows {np.mean(at_256):.3f} ({len(at_work)} photos)", flush=True)
 

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from tlvg_warp.losses import (field_at_cells, field_picture, flow_alignment_score, flow_alignment_score_torch,
-                              map_field_canvas, map_field_matched, render_orientation, stroke_field)
+                              luminance, map_field_canvas, map_field_matched, matched_view_field, render_orientation,
+                              stroke_field)
 
 ANGLE_TOL_DEG = 1.0  # Scharr's residual anisotropy bends 30°/60° stripes by ~0.14°; 1° is still tight
 LIC_TOL_DEG = 5.0  # LIC streaks are noise averaged over 31 px: their own orientation is estimated, not exact
@@ -106,6 +107,31 @@ def test_matched_mapping_carries_the_matched_style_direction():
     assert float(c.min()) >= 0 and abs(float(c[-3, 25]) - 1) < 1e-5
     with pytest.raises(ValueError):
         map_field_matched(cells, idx, w, 30, 50, cell_shape=(4, 4))
+
+
+def test_view_field_matches_luminance_features_at_the_scale_and_carries_their_directions():
+    """matched_view_field: a stub network records what it sees and gives every cell of the top render row the
+    features of the painting's 90° cells, the other rows the 0° cells' (each direction held by K_CROSS identical
+    painting cells, so the top-k is unambiguous). Oracle: the field is 90° at the top, 0° at the bottom, and the
+    network saw the view's luminance at the scale asked for."""
+    hc, wc, k = 3, 5, 5
+    style = torch.zeros(2, 2 * k)  # [C, Ns]: cells 0..k-1 point along channel 0 (0°), cells k..2k-1 along channel 1
+    style[0, :k], style[1, k:] = 1.0, 1.0
+    cells = torch.tensor([[1.0, 0.0]] * k + [[-1.0, 0.0]] * k)  # doubled angles: 0° and 90°
+    seen = {}
+
+    def net(x, scale):
+        seen["x"], seen["scale"] = x, scale
+        f = torch.zeros(1, 2, hc, wc)
+        f[0, 1, 0], f[0, 0, 1:] = 1.0, 1.0  # top row like the 90° cells, the rest like the 0° cells
+        return f
+
+    img = torch.rand(30, 50, 3)
+    d = matched_view_field(net, img, style, cells, 0.7)
+    assert d.shape == (30, 50, 2) and seen["scale"] == 0.7
+    assert torch.allclose(seen["x"], luminance(img))
+    assert torch.allclose(d[2, 25], torch.tensor([-1.0, 0.0]), atol=1e-5)  # 90°
+    assert torch.allclose(d[-3, 25], torch.tensor([1.0, 0.0]), atol=1e-5)  # 0°
 
 
 def test_lic_picture_follows_theta():

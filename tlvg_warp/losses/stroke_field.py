@@ -17,6 +17,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .color import luminance
+from .style import match_style_cells
+from .vgg import flatten_feats
+
 PRE_SIGMA = 1.0
 TENSOR_SIGMA = 3.0
 # Added to λ1+λ2 (units: Scharr gradient², Scharr = 32 x the per-pixel slope). 1e-4 is a slope of ~3e-4
@@ -162,6 +166,18 @@ def map_field_matched(doubled_style_at_cells, idx: torch.Tensor, w: torch.Tensor
 
 
 # ---------------------------------------------------------------- evaluation (SPEC §4)
+
+
+@torch.no_grad()
+def matched_view_field(vgg, img: torch.Tensor, style_feats, style_cells, scale: float) -> torch.Tensor:
+    """The painting's stroke field carried onto a view as training makes it [H,W,2] (doubled angle): luminance VGG
+    features of ``img`` [H,W,3] at ``scale``, each cell's top-k painting cells (:func:`match_style_cells` against
+    ``style_feats``), their doubled-angle vectors ``style_cells`` [Ns,2] averaged and upsampled."""
+    f = vgg(luminance(img), scale=scale)  # [1,768,hc,wc]
+    idx, w = match_style_cells(flatten_feats(f), style_feats)
+    return map_field_matched(style_cells, idx, w, img.shape[0], img.shape[1], tuple(f.shape[-2:]))[2]
+
+
 def _np(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 

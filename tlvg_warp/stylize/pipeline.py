@@ -292,7 +292,7 @@ class Stylize(Phase):
     def make_fields(self, run: Run) -> list:
         """Per view the target stroke field [H,W,3] from the current render ("matched") or the canvas."""
         # lazy: imports Warp
-        from ..losses import flatten_feats, luminance, map_field_canvas, map_field_matched, match_style_cells
+        from ..losses import map_field_canvas, matched_view_field
 
         tg, out = self.tg, []
         g = run.params.gaussians()
@@ -300,9 +300,8 @@ class Stylize(Phase):
             if self.cfg.loss.field_mapping == "canvas":
                 _, _, d = map_field_canvas(torch.from_numpy(tg.style_field[2]).to(run.device), cam.height, cam.width)
             else:
-                f = self.vgg(luminance(render(g, cam, run.background).color), scale=self.cfg.vgg_scale)  # [1,768,hc,wc]
-                idx, wt = match_style_cells(flatten_feats(f), tg.match_feats)
-                _, _, d = map_field_matched(tg.style_doubled_cells, idx, wt, cam.height, cam.width, tuple(f.shape[-2:]))
+                d = matched_view_field(self.vgg, render(g, cam, run.background).color, tg.match_feats,
+                                       tg.style_doubled_cells, self.cfg.vgg_scale)
             out.append(flow_field_tensor(d.to(device=run.device, dtype=torch.float32)))
         return out
 
