@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from tlvg_warp import render
 from _demo_helpers import demo_stylize_inputs
 from tlvg_warp.stylize.config import config_from_dict as stylize_config
-from tlvg_warp.losses import resize_style
+from tlvg_warp.losses import flow_alignment_score, resize_style
 from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, over_background, prepare
 from tlvg_warp.train.density import DensityStrategy
 from tlvg_warp.train.loop import Fit, LoopSettings, Phase, Run, View, train
@@ -81,7 +81,8 @@ def test_stylize_terms_against_closed_forms(demo):
     net = StubFeatures()
     run, cfg, tg = _stylize_run(demo, net, **{"loss.w_style_color": 0.5, "loss.w_chroma_tv": 0.3,
                                               "loss.w_style_gram": 0.7, "loss.w_coverage": 0.9,
-                                              "loss.w_silhouette": 0.6, "loss.w_detail": 0.4})
+                                              "loss.w_silhouette": 0.6, "loss.w_detail": 0.4,
+                                              "loss.w_orient": 0.5})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -145,6 +146,9 @@ def test_stylize_terms_against_closed_forms(demo):
             "detail": detail, "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k
+    # the orientation term: 1 - the alignment OpenCV's structure tensor (float32) measures against the view's field
+    orient = 1.0 - flow_alignment_score(img.numpy().astype(np.float32), sty.fields[2][..., :2].numpy())
+    assert float(terms["orient"].detach()) == pytest.approx(orient, abs=2e-3)
     assert all(torch.isfinite(t) and t.requires_grad for t in terms.values())
     # the weight schedule: Lab linear over the phase, the others constant (Python floats: no tensor ops)
     w0, w_last = sty.weights(0), sty.weights(sty.steps - 1)

@@ -13,7 +13,6 @@ import math
 import sys
 
 from ..viewer import SceneViewer, scene_center, scene_radius, up_from_cameras
-from ..runs import drop_checkpoints
 from . import KEEP_CHECKPOINT_HELP, check_resumable
 from .view import serve_forever
 
@@ -64,6 +63,7 @@ def add_arguments(p):
 
 def run(args) -> int:
     # lazy: CLI startup
+    from ..stylize import StylizeDiverged
     from ..stylize.job import StylizeJob
 
     if args.resume is not None:
@@ -73,40 +73,49 @@ def run(args) -> int:
                            downscale=args.downscale, device=args.device, vgg_weights=args.vgg_weights,
                            strength=args.strength, stroke_scale=args.stroke_scale, keep_colors=args.keep_colors,
                            resume=args.resume, out=args.out, overwrite=args.overwrite, quiet=args.quiet)
-    with job.folder():
-        return _run(args, job)
+    viewer = []  # the live viewer, made once the inputs are known
 
+    def on_start(inp):
+        _announce(job, inp)
+        if getattr(args, "view", False) and job.dist.is_main:
+            viewer.append(_live_viewer(inp, job.cfg, args))
+            return viewer[0].on_progress
+        return None
 
-def _run(args, job) -> int:
-    # lazy: CLI startup
-    from ..stylize import StylizeDiverged
-    from ..stylize.outputs import RANDOM_VGG_NOTE
-
-    inp, in_bytes = job.inputs()
-    cfg, out, vgg = job.cfg, job.out, job.vgg
-    if job.speaks:
-        c = inp.cameras[0]
-        print(f"stylize: {inp.gaussians.num} Gaussians, {len(inp.cameras)} views at {c.width}x{c.height}, "
-              f"{cfg.iterations} iterations {cfg.phase_steps()} on {job.device}; VGG: "
-              + (RANDOM_VGG_NOTE if vgg.is_random else vgg.source) + f"; out: {out}")
-    viewer = _live_viewer(inp, cfg, args) if getattr(args, "view", False) and job.dist.is_main else None
     try:
-        res = job.stylize(inp, on_progress=viewer.on_progress if viewer else None)
+        m, res = job.run(getattr(args, "keep_checkpoint", False), on_start)
     except StylizeDiverged as e:
+        if viewer:
+            viewer[0].stop()
         if job.dist.is_main:
             print(f"error: {e}", file=sys.stderr)
-        if viewer is not None:
-            viewer.stop()
         return 1
     except BaseException:
-        if viewer is not None:
-            viewer.stop()
+        if viewer:
+            viewer[0].stop()
         raise
     if not job.dist.is_main:
-        return 0  # every rank holds the same result; the main rank writes it
-    m = job.write(res, in_bytes)
-    if not getattr(args, "keep_checkpoint", False):  # finished: the outputs are written, the checkpoint goes
-        drop_checkpoints(out, "reconstruct")
+        return 0
+    _summary(job.out, m)
+    if viewer:
+        viewer[0].update("stylized", res.gaussians)
+        viewer[0].set_status(f"finished: {job.out / 'stylized.ply'}")
+        print(f"viewer: {viewer[0].address} shows the result; press Ctrl-C to stop", flush=True)
+        serve_forever(viewer[0], quiet=True)
+    return 0 if math.isfinite(m["training_field_alignment"]) else 1
+
+
+def _announce(job, inp) -> None:
+    from ..stylize.outputs import RANDOM_VGG_NOTE  # lazy: CLI startup
+
+    if job.speaks:
+        c, cfg = inp.cameras[0], job.cfg
+        print(f"stylize: {inp.gaussians.num} Gaussians, {len(inp.cameras)} views at {c.width}x{c.height}, "
+              f"{cfg.iterations} iterations {cfg.phase_steps()} on {job.device}; VGG: "
+              + (RANDOM_VGG_NOTE if job.vgg.is_random else job.vgg.source) + f"; out: {job.out}")
+
+
+def _summary(out, m: dict) -> None:
     tp = m["time_per_phase_s"]
     print(f"{out}: alignment to its training field {m['training_field_alignment']:.3f} (un-stylized "
           f"{m['training_field_alignment_unstylized']:.3f}; `evaluate` scores all runs against one common field), "
@@ -115,14 +124,6 @@ def _run(args, job) -> int:
           f"wall {m['wall_time_s']:.1f}s")
     print(f"open {out / 'comparison.png'} (photo, original and stylized views beside the painting); "
           f"the stylized scene is {out / 'stylized.ply'}")
-    if viewer is not None:
-        viewer.update("stylized", res.gaussians)
-        viewer.set_status(f"finished: {out / 'stylized.ply'}")
-        print(f"viewer: {viewer.address} shows the result; press Ctrl-C to stop", flush=True)
-        serve_forever(viewer, quiet=True)
-    if not math.isfinite(m["training_field_alignment"]):
-        return 1
-    return 0
 
 
 def _live_viewer(inp, cfg, args):

@@ -42,6 +42,9 @@ class StyleLoss:
     w_detail: float = 0.0  # hinge (1 - E/E_painting)^2 on the render's luminance detail energy E (what a σ 2 px blur
     # removes, where the scene was) below the painting's at the view's height: nearest-neighbour matching lets a smooth
     # render match the painting's smooth passages, this asks for the painting's level of detail (ours; 0: off)
+    w_orient: float = 0.0  # 1 - the render's own structure-tensor alignment with the stroke field (the flow energy
+    # of eq. 1 read off the image instead of the footprints): the texture the style terms paint, not only the splats'
+    # axes, follows the painter's directions (ours; 0: off)
     w_opacity_reg: float = 1.0  # ||opacity_logits - value at stylize start||_2 (reference code)
     w_scale_reg: float = 1.0  # ||log_scales - value at stylize start||_2 (reference code)
     w_lab_start: float = 0.2  # Lab chroma statistics weight at the first stylize step (paper, linear schedule)
@@ -57,7 +60,7 @@ class StyleLoss:
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0),
              **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_coverage",
-                                       "w_silhouette", "w_detail",
+                                       "w_silhouette", "w_detail", "w_orient",
                                        "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}
@@ -115,6 +118,9 @@ class StylizeConfig:
     refine_radius: float = 0.0  # before the pre-process, split splats wider on screen than this x stroke_scale
     # pixels (their mean 3-sigma radius over the views) into stroke-sized children, within the Gaussian budget;
     # 0: off. A flat region held by a few huge splats cannot take a brushstroke (train/refine.py)
+    stroke_jitter: float = 0.0  # at the start of stylize, every Gaussian's luminance moves by a random amount of this x
+    # the painting's stroke contrast (its luminance high-pass std), chroma unchanged: each splat (already shaped along
+    # the field) reads as a stroke of its own tone, as a painter varies the paint per stroke; 0: off
     keep_colors: bool = False  # keep the scene's own colours: no palette transfer, style on luminance only
     palette_detail: bool = False  # after the palette transfer, raise the recolored photos' luminance detail toward the
     # painting's (losses.match_detail). Off: on the study it raised detail but lowered flow alignment on one tuning pair
@@ -138,7 +144,7 @@ class StylizeConfig:
     density: DensityConfig = field(default_factory=_density)  # adaptive density control, per phase step
 
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
-             "stroke_scale": (">", 0), "refine_radius": (">=", 0),
+             "stroke_scale": (">", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
              "orbit_frames": (">=", 0), "orbit_fps": (">=", 1), "comparison_views": (">=", 0)}

@@ -7,6 +7,8 @@ run folder:
         result = job.stylize(inp)            # run_stylize
         metrics = job.write(result, input_bytes)
 
+or all of it in one call, the checkpoint dropped once the outputs are written: ``metrics, result = job.run()``.
+
 ``start`` resolves everything that can fail before a file is written: the config (a checkpoint's on resume; else
 --config, configs/tlvg.yaml when present or the built-in defaults; the demo's size when no scene or data is named
 and the user chose none), the sources, the device (one rank per GPU under torchrun) and the VGG weights."""
@@ -136,6 +138,22 @@ class StylizeJob:
         return run_stylize(inp, self.cfg, self.out, resume=self.resume, overwrite=True, progress=not quiet,
                            vgg=self.vgg, quiet=quiet, on_progress=on_progress, dist=self.dist)
 
+    def run(self, keep_checkpoint: bool = False, on_start=None) -> tuple[dict, object]:
+        """The whole run in the claimed folder: inputs, run_stylize, the outputs (main rank), and the checkpoint
+        dropped once they are written (unless ``keep_checkpoint``). ``on_start(inputs)`` is called once the inputs
+        are assembled and may return an ``on_progress(step, gaussians)`` callback (the live viewer's).
+        Returns (metrics.json's content, the StylizeResult); the content is {} on every rank but the main one."""
+        with self.folder():
+            inp, input_bytes = self.inputs()
+            on_progress = on_start(inp) if on_start is not None else None
+            res = self.stylize(inp, on_progress)
+            if not self.dist.is_main:
+                return {}, res  # every rank holds the same result; the main rank writes it
+            metrics = self.write(res, input_bytes)
+            if not keep_checkpoint:  # finished: the outputs are written, the checkpoint goes
+                drop_checkpoints(self.out, "reconstruct")
+            return metrics, res
+
     def write(self, res, input_bytes) -> dict:
         """The run folder's outputs (stylize/outputs.py; the main rank only); returns metrics.json's content."""
         res.metrics["load_split_s"] = {k: round(self.load_split.get(k, 0.0), 3) for k in ("vgg", "inputs")}
@@ -146,16 +164,7 @@ def stylize_run(keep_checkpoint: bool = False, **start) -> dict:
     """One stylization from its inputs to its written run folder (what `stylize` does without a viewer), with
     ``start`` as StylizeJob.start's keywords. Returns metrics.json's content ({} on every rank but the main one).
     InputError, WriteError and StylizeDiverged reach the caller."""
-    job = StylizeJob.start(**start)
-    with job.folder():
-        inp, input_bytes = job.inputs()
-        res = job.stylize(inp)
-        if not job.dist.is_main:
-            return {}  # every rank holds the same result; the main rank writes it
-        metrics = job.write(res, input_bytes)
-        if not keep_checkpoint:  # finished: the outputs are written, the checkpoint goes
-            drop_checkpoints(job.out, "reconstruct")
-        return metrics
+    return StylizeJob.start(**start).run(keep_checkpoint)[0]
 
 
 def _names_key(overrides, key: str) -> bool:

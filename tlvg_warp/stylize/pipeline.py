@@ -51,12 +51,12 @@ from ..train.loop import Diverged, Fit, Phase, Run, View, train
 from ..train.optim import FIELDS, GaussianParams, tangential_hook
 from ..train.refine import refine_to_radius
 from ..train.session import Session, density_control, new_run, optimizer
-from ..types import Gaussians
+from ..types import SH_C0, Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
 STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "detail", "coverage",
-                 "silhouette", "opacity_reg", "scale_reg", "lab", "align", "aniso")
+                 "silhouette", "opacity_reg", "scale_reg", "lab", "orient", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
 REFINE_UNCAPPED = 2.0  # the refinement's Gaussian count limit (x the input) when density control has no budget
@@ -139,6 +139,16 @@ def painting_detail(style_work: torch.Tensor, height: int) -> float:
 
     p = torch.from_numpy(resize_style(style_work.detach().cpu().numpy(), height)).double()
     return float(detail_energy(p))
+
+
+def jitter_luminance_(sh_dc: torch.Tensor, amplitude: float, seed: int) -> torch.Tensor:
+    """Moves every Gaussian's DC colour [N,1,3] by one N(0, amplitude²) offset, the same on R, G and B (so luminance
+    moves by it and RGB minus luminance does not), in place; returns the offsets [N] in colour units."""
+    gen = torch.Generator().manual_seed(int(seed))
+    delta = torch.randn(sh_dc.shape[0], generator=gen, dtype=torch.float64) * amplitude  # [N]
+    with torch.no_grad():
+        sh_dc.add_((delta / SH_C0).to(sh_dc)[:, None, None])
+    return delta
 
 
 def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
@@ -265,7 +275,7 @@ class Stylize(Phase):
                       "chroma_tv": w.w_chroma_tv, "detail": w.w_detail * w.strength, "coverage": w.w_coverage,
                       "silhouette": w.w_silhouette,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
-                      "aniso": w.w_aniso}
+                      "aniso": w.w_aniso, "orient": w.w_orient}
         # a term weighted 0 over the whole phase is not computed at all
         self.on = {t: v != 0 for t, v in self.const.items()}
         self.on["lab"] = w.w_lab_start != 0 or w.w_lab_end != 0
@@ -283,8 +293,12 @@ class Stylize(Phase):
         p = run.params
         run.density.track("opacity_logits", p.opacity_logits.detach().clone())  # the regularizer anchors
         run.density.track("log_scales", p.log_scales.detach().clone())
-        if self.fields is None:
+        if self.fields is None:  # once per run: a resumed run has its fields (and its jittered colours) saved
             self.fields = self.make_fields(run)
+            if self.cfg.stroke_jitter > 0:  # per-stroke tone, at the painting's contrast at the views' height
+                h = int(np.median([c.height for c in run.cams]))
+                amp = self.cfg.stroke_jitter * painting_detail(self.tg.style_work, h) ** 0.5
+                jitter_luminance_(p.sh_dc, amp, self.cfg.seed)
         if self.on["detail"] and self.detail_target is None:
             self.detail_target = painting_detail(self.tg.style_work, int(np.median([c.height for c in run.cams])))
 
@@ -306,7 +320,8 @@ class Stylize(Phase):
         return out
 
     def terms(self, run: Run, view: View) -> dict:
-        from ..losses import content_loss, detail_energy, lab_chroma_loss, luminance  # lazy: imports Warp
+        # lazy: imports Warp
+        from ..losses import content_loss, detail_energy, flow_alignment_score_torch, lab_chroma_loss, luminance
 
         tg, on, t, vi = self.tg, self.on, run.timer, view.index
         p, anchors = run.params, run.density.tracked
@@ -347,6 +362,8 @@ class Stylize(Phase):
             terms["scale_reg"] = anchor_norm(p.log_scales, anchors["log_scales"])
         if on["lab"]:
             terms["lab"] = lab_chroma_loss(img, target_stats=tg.lab_stats[vi])
+        if on["orient"]:  # the render's own orientation against the view's stroke field
+            terms["orient"] = 1.0 - flow_alignment_score_torch(img, self.fields[vi][..., :2])
         t.mark("terms")
         if self.render_weights:
             terms["align"], terms["aniso"] = flow_terms(view.gaussians, view.cam, self.fields[vi], view.out.weights)

@@ -1,0 +1,74 @@
+"""The two stroke settings of the Stylize phase:
+- ``stroke_jitter``: one luminance offset per Gaussian, the same on R, G and B (oracle: the DC colour formula
+  c = 0.5 + SH_C0 * dc in float64; chroma = RGB minus luminance must not move), drawn once at the phase's start;
+- ``loss.w_orient``: 1 - the render's own alignment with the stroke field; descending it must raise the
+  alignment that the OpenCV implementation (``flow_alignment_score``, written apart from the torch twin) measures."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from _demo_helpers import demo_stylize_inputs
+from tlvg_warp.losses import flow_alignment_score, flow_alignment_score_torch
+from tlvg_warp.stylize.pipeline import jitter_luminance_
+from tlvg_warp.types import SH_C0
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+LUMA = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
+
+
+def test_jitter_moves_luminance_by_the_offsets_and_keeps_chroma():
+    n, amp = 20000, 0.07
+    dc = torch.randn(n, 1, 3, dtype=torch.float32) * 0.5
+    before = 0.5 + SH_C0 * dc.double()[:, 0]  # [N,3] colours
+    moved = dc.clone()
+    delta = jitter_luminance_(moved, amp, seed=3)  # [N]
+    after = 0.5 + SH_C0 * moved.double()[:, 0]
+    assert torch.allclose((after - before) @ LUMA, delta, atol=1e-6)  # luminance moves by the offset
+    chroma = lambda c: c - (c @ LUMA)[:, None]  # noqa: E731
+    assert torch.allclose(chroma(after), chroma(before), atol=1e-6)  # chroma does not
+    assert abs(float(delta.std()) / amp - 1) < 0.03 and abs(float(delta.mean())) < 3 * amp / n ** 0.5
+    again = dc.clone()
+    assert torch.equal(jitter_luminance_(again, amp, seed=3), delta) and torch.equal(again, moved)  # seeded
+    assert not torch.equal(jitter_luminance_(dc.clone(), amp, seed=4), delta)
+
+
+def test_stylize_jitters_once_at_the_phase_start():
+    """With the colour learning rate at 0, the DC colours a run ends with differ from the same run without jitter by
+    the offsets alone: equal on R, G, B, nonzero for every Gaussian, and absent when the jitter is off."""
+    from tlvg_warp.losses import load_vgg
+    from tlvg_warp.stylize import load_config, run_stylize
+
+    inp = demo_stylize_inputs(3, 48, 36, 4)[1]
+    vgg = load_vgg("random")
+    over = ["device=cpu", "vgg_weights=random", "iterations=2", "phases=[0, 2, 0]", "lr.sh_dc=0",
+            "density.phases=[]", "palette_init=false"]
+    runs = {j: run_stylize(inp, load_config(CONFIGS / "tlvg.yaml", [*over, f"stroke_jitter={j}"]), None,
+                           progress=False, quiet=True, vgg=vgg) for j in (0, 1)}
+    d = (runs[1].gaussians.sh[:, 0] - runs[0].gaussians.sh[:, 0]).double() * SH_C0  # [N,3] colour change
+    assert torch.allclose(d[:, 0], d[:, 1], atol=1e-6) and torch.allclose(d[:, 0], d[:, 2], atol=1e-6)
+    assert (d[:, 0].abs() > 0).all()
+    assert torch.equal(runs[0].gaussians.sh[:, 0], inp.gaussians.sh[:, 0])  # lr 0, no jitter: untouched
+
+
+def test_orient_term_descends_to_the_field():
+    """Gradient descent on 1 - score moves a noise image toward the field's direction (30 degrees) as OpenCV
+    measures it; the torch score of the start equals OpenCV's."""
+    rng = np.random.default_rng(0)
+    img = rng.random((48, 64, 3))
+    theta = np.deg2rad(30.0)
+    field = np.zeros((48, 64, 2), np.float32)
+    field[...] = (np.cos(2 * theta), np.sin(2 * theta))
+    x = torch.tensor(img, dtype=torch.float64, requires_grad=True)
+    t = torch.from_numpy(field).double()
+    start = flow_alignment_score(img.astype(np.float32), field)
+    assert float(flow_alignment_score_torch(x.detach(), t)) == pytest.approx(start, abs=1e-3)
+    opt = torch.optim.Adam([x], lr=0.01)
+    for _ in range(60):
+        opt.zero_grad()
+        loss = 1.0 - flow_alignment_score_torch(x, t)
+        loss.backward()
+        opt.step()
+    end = flow_alignment_score(x.detach().numpy().astype(np.float32), field)
+    assert start < 0.3 and end > 0.6, (start, end)
