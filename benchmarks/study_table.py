@@ -12,7 +12,7 @@ import argparse
 import json
 from pathlib import Path
 
-METRICS = [("flow_alignment", "higher"), ("stroke_scales", "lower"), ("style_gram", "lower"), ("style_nnfm", "lower"),
+METRICS = [("flow_alignment", "higher"), ("flow_energy", "higher"), ("stroke_scales", "lower"), ("style_gram", "lower"), ("style_nnfm", "lower"),
            ("content", "lower"), ("consistency_k1", "lower"), ("detail", "higher"), ("holes_1x", "lower"),
            ("holes_2x", "lower"), ("chroma_noise", "lower")]
 
@@ -51,6 +51,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("study")
     ap.add_argument("--tuning", default="fern:starry_night,fern:shipwreck")
+    ap.add_argument("--run", default="tlvg", help="the run the target table checks (default tlvg)")
     args = ap.parse_args()
     study = Path(args.study)
     data = load(study)
@@ -69,17 +70,18 @@ def main():
             r = rows_of(data[key])
             split = "tuning" if key in tuning else "validation"
             print(f"| {key[0]} x {key[1]} | {split} | " + " | ".join(cell(r.get(c, {}).get(k)) for c in cols) + " |")
-    print("\n### tlvg against abcgs and the un-stylized scene (paired per-view differences, 95% intervals)\n")
-    print("| pair | split | flow vs un-stylized | flow vs abcgs | Gram vs abcgs | NNFM vs abcgs | detail | chroma vs abcgs "
+    me = args.run
+    print(f"\n### {me} against abcgs and the un-stylized scene (paired per-view differences, 95% intervals)\n")
+    print("| pair | split | flow vs un-stylized | flow vs abcgs | flow energy vs un-stylized | Gram vs abcgs | NNFM vs abcgs | detail | chroma vs abcgs "
           "| MV k1 / un-stylized | Gaussians / input |")
-    print("|" + " --- |" * 10)
+    print("|" + " --- |" * 11)
     for key in order:
         res = data[key]
         r = rows_of(res)
-        t, u = r.get("tlvg", {}), r.get("[no stylization]", {})
+        t, u = r.get(me, {}), r.get("[no stylization]", {})
 
         def pd(b, k, sign=1):
-            p = paired(res, b, "tlvg", k)
+            p = paired(res, b, me, k)
             if p is None:
                 return "-"
             m, lo, hi = (sign * p[0], sign * p[1], sign * p[2])
@@ -93,15 +95,15 @@ def main():
         if t.get("consistency_k1") and u.get("consistency_k1"):
             mv = f"{t['consistency_k1']['mean'] / max(u['consistency_k1']['mean'], 1e-12):.2f}"
         g = "-"
-        run_metrics = study / key[0] / key[1] / "tlvg" / "metrics.json"
+        run_metrics = study / key[0] / key[1] / me / "metrics.json"
         for rr in res["runs"]:
-            if rr["name"] == "tlvg" and rr["summary"].get("gaussians"):
+            if rr["name"] == me and rr["summary"].get("gaussians"):
                 g = rr["summary"]["gaussians"]
                 if run_metrics.is_file():  # the ratio to the scene the run started from
                     g = f"{g / json.loads(run_metrics.read_text())['gaussians_input']:.2f}"
         det = t.get("detail", {}).get("mean")
         print(f"| {key[0]} x {key[1]} | {'tuning' if key in tuning else 'validation'} | {flow_u} | "
-              f"{pd('abcgs', 'flow_alignment')} | {pd('abcgs', 'style_gram', -1)} | {pd('abcgs', 'style_nnfm', -1)} | "
+              f"{pd('abcgs', 'flow_alignment')} | {pd('no stylization', 'flow_energy')} | {pd('abcgs', 'style_gram', -1)} | {pd('abcgs', 'style_nnfm', -1)} | "
               f"{'-' if det is None else f'{det:.2f}'} | {pd('abcgs', 'chroma_noise', -1)} | {mv} | {g} |")
 
     cost_table(study, order, tuning)

@@ -211,6 +211,28 @@ def test_flow_alignment_check_catches_mirrored_sampling(monkeypatch):
         check_flow_alignment_orders()
 
 
+def _stripes_amp(h, w, angle, amp, period=6.0):
+    return 0.5 + (_stripes(h, w, angle, angle, period) - 0.5) * (amp / 0.4)
+
+
+def test_flow_energy_weighs_pixels_by_their_contrast():
+    """Strong stripes across the field on the left half, faint stripes (contrast 0.002) along it on the right: by
+    contrast the render runs against the field (flow_energy near -1), while the contrast-blind flow_alignment counts
+    the faint half nearly as much as the strong one (above -0.6; the strong half's smoothed tensor spills over). Closed form on uniform stripes: +1 along the field, -1 across, and a global contrast
+    scale changes nothing."""
+    h, w = 48, 96
+    field = _field(h, w, 0.0, 1.0, 0.0, 1.0)  # horizontal strokes everywhere
+    img = _stripes_amp(h, w, np.pi / 2, 0.4)
+    img[:, w // 2:] = _stripes_amp(h, w, 0.0, 0.002)[:, w // 2:]
+    assert M.flow_energy(img, field) < -0.95 and M.flow_alignment(img, field) > -0.6, \
+        (M.flow_energy(img, field), M.flow_alignment(img, field))
+    along, across = _stripes_amp(h, w, 0.0, 0.4), _stripes_amp(h, w, np.pi / 2, 0.4)
+    assert M.flow_energy(along, field) > 0.95 and M.flow_energy(across, field) < -0.95
+    faint = _stripes_amp(h, w, 0.0, 0.05)
+    assert M.flow_energy(faint, field) == pytest.approx(M.flow_energy(along, field), abs=1e-6)
+    assert math.isnan(M.flow_energy(np.full((h, w, 3), 0.5, np.float32), field))  # flat: no weight, no number
+
+
 def test_common_field_follows_the_unstylized_view(cases):
     """The field is built from the un-stylized render: its coherent directions line up with that render's own
     structure (edges of the still life) far better than with a rotated copy of themselves."""

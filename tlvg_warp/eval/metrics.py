@@ -16,7 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..losses.stroke_field import stroke_field
+from ..losses.stroke_field import stroke_field, structure_tensor
 from .quick import pixel_grid, reproject  # noqa: F401  (re-exported: the reprojection oracle is tested there)
 
 ALPHA_MIN = 0.5  # covered pixel (SPEC §4 holes: alpha >= 0.5)
@@ -59,6 +59,8 @@ class Metric:
 METRICS = {m.key: m for m in (
     Metric("flow_alignment", "Flow alignment with the painting's strokes (common field)",
            "coherence-weighted mean cos 2(φ−φ*), −1…1", True, pretrained=True),
+    Metric("flow_energy", "Flow alignment weighted by the render's own gradient energy (common field)",
+           "Σ e·cos 2(φ−φ*) / Σ e, e = λ1+λ2, −1…1", True, pretrained=True),
     Metric("stroke_scales", "Stroke statistics distance to the painting (oriented energy at 4 scales)",
            "mean 1-D Wasserstein of coherence + ¼ log10 anisotropic energy", False),
     Metric("style_gram", "Style distance, Gram (relu1_2, 2_2, 3_3, 4_3)", "relative Frobenius norm", False,
@@ -90,6 +92,7 @@ ANCHORS = (UNSTYLIZED, STICKER)
 #   holes: no anchor (both are hole-free by construction; holes compare the run with the un-stylized coverage).
 ANCHOR_TO_BEAT = {
     "flow_alignment": UNSTYLIZED,
+    "flow_energy": UNSTYLIZED,
     "stroke_scales": UNSTYLIZED,
     "style_gram": UNSTYLIZED,
     "style_nnfm": UNSTYLIZED,
@@ -138,6 +141,21 @@ def flow_alignment(render, field) -> float:
     t = field_at_pixels(_np(field), *r.shape[:2]).astype(np.float64)  # [H,W,2]
     den = (np.linalg.norm(d, axis=-1) * np.linalg.norm(t, axis=-1)).sum()
     return float((d * t).sum() / den) if den > 1e-12 else math.nan
+
+
+def flow_energy(render, field) -> float:
+    """Σ e·c*·cos 2(φ−φ*)·a / Σ e·c* of one view, where the render's structure tensor has energy e = λ1+λ2 and
+    anisotropy a = (λ1−λ2)/(λ1+λ2): the share of the render's visible gradient energy that runs across the
+    painting's strokes (along them, as strokes do), weighted by the reference field's coherence c*. Unlike
+    ``flow_alignment`` it weighs a pixel by how much contrast it has: faint streaks in a flat passage count as
+    little as they show. NaN when the weights vanish."""
+    r = _np(render)
+    jxx, jxy, jyy = (j.astype(np.float64) for j in structure_tensor(r))
+    t = field_at_pixels(_np(field), *r.shape[:2]).astype(np.float64)  # [H,W,2], length c*
+    # the doubled-angle vector of the stroke direction, times λ1−λ2: −(Jxx−Jyy, 2Jxy) (stroke_field's convention)
+    num = (-(jxx - jyy) * t[..., 0] - 2.0 * jxy * t[..., 1]).sum()
+    den = ((jxx + jyy) * np.linalg.norm(t, axis=-1)).sum()
+    return float(num / den) if den > 1e-12 else math.nan
 
 
 def _stroke_tensors(img: np.ndarray, mask=None):

@@ -211,6 +211,7 @@ def score_views(views: list, alpha2x: list, refs: Refs, net) -> dict:
         per["chroma_noise"].append(M.hf_energy(M.lab_ab(img)) / max(M.hf_energy(M.lab_ab(refs.recolored[i])), 1e-12))
         if measured:
             per["flow_alignment"].append(M.flow_alignment(img, refs.fields[i]))
+            per["flow_energy"].append(M.flow_energy(img, refs.fields[i]))
             per["style_gram"].append(M.style_gram(f["grams"], ps["grams"]))
             per["style_nnfm"].append(M.style_nnfm(f["relu3"], ps["relu3"]))
             per["content"].append(M.content(f["content"], refs.photo_feats[i]))

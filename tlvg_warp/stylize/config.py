@@ -121,6 +121,8 @@ class StylizeConfig:
     stroke_jitter: float = 0.0  # at the start of stylize, every Gaussian's luminance moves by a random amount of this x
     # the painting's stroke contrast (its luminance high-pass std), chroma unchanged: each splat (already shaped along
     # the field) reads as a stroke of its own tone, as a painter varies the paint per stroke; 0: off
+    stroke_jitter_mode: str = "luminance"  # luminance (above) | palette: the offset is this x (a random pixel of the
+    # painting minus its mean colour), so strokes take the painting's colours, as its dabs of yellow in the blue
     keep_colors: bool = False  # keep the scene's own colours: no palette transfer, style on luminance only
     palette_detail: bool = False  # after the palette transfer, raise the recolored photos' luminance detail toward the
     # painting's (losses.match_detail). Off: on the study it raised detail but lowered flow alignment on one tuning pair
@@ -143,7 +145,7 @@ class StylizeConfig:
     lr: LearningRates = field(default_factory=LearningRates)  # learning rates, one Adam across the phases (3DGS)
     density: DensityConfig = field(default_factory=_density)  # adaptive density control, per phase step
 
-    RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
+    RULES = {"stroke_jitter_mode": ("of", "luminance", "palette"), "iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
              "stroke_scale": (">", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),

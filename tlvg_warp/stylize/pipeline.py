@@ -151,6 +151,18 @@ def jitter_luminance_(sh_dc: torch.Tensor, amplitude: float, seed: int) -> torch
     return delta
 
 
+def jitter_palette_(sh_dc: torch.Tensor, painting: torch.Tensor, amount: float, seed: int) -> torch.Tensor:
+    """Moves every Gaussian's DC colour [N,1,3] by ``amount`` x (one random pixel of ``painting`` [H,W,3] minus the
+    painting's mean colour), in place; returns the offsets [N,3] in colour units."""
+    gen = torch.Generator().manual_seed(int(seed))
+    px = painting.detach().reshape(-1, 3).double().cpu()  # [P,3]
+    pick = torch.randint(0, px.shape[0], (sh_dc.shape[0],), generator=gen)
+    delta = amount * (px[pick] - px.mean(0))  # [N,3]
+    with torch.no_grad():
+        sh_dc.add_((delta / SH_C0).to(sh_dc)[:, None, :])
+    return delta
+
+
 def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
     """1/z where something was rendered (depth > 0), 0 elsewhere."""
     return torch.where(depth > 0, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
@@ -295,7 +307,9 @@ class Stylize(Phase):
         run.density.track("log_scales", p.log_scales.detach().clone())
         if self.fields is None:  # once per run: a resumed run has its fields (and its jittered colours) saved
             self.fields = self.make_fields(run)
-            if self.cfg.stroke_jitter > 0:  # per-stroke tone, at the painting's contrast at the views' height
+            if self.cfg.stroke_jitter > 0 and self.cfg.stroke_jitter_mode == "palette":  # the painting's colours
+                jitter_palette_(p.sh_dc, self.tg.style_work, self.cfg.stroke_jitter, self.cfg.seed)
+            elif self.cfg.stroke_jitter > 0:  # per-stroke tone, at the painting's contrast at the views' height
                 h = int(np.median([c.height for c in run.cams]))
                 amp = self.cfg.stroke_jitter * painting_detail(self.tg.style_work, h) ** 0.5
                 jitter_luminance_(p.sh_dc, amp, self.cfg.seed)
