@@ -37,9 +37,6 @@ OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
 D=/tmp/tlvg-data; F=/tmp/tlvg-fits; R=/tmp/tlvg-runs; mkdir -p "$D" "$F" "$R"
 export TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1
 source "$(dirname "${BASH_SOURCE[0]}")/source_view.sh"; export PYTHONPATH=$(source_view .)${PYTHONPATH:+:$PYTHONPATH}  # kernels/ as tlvg_warp.kernels
-# `python3 -m tlvg_warp` puts the working directory first on sys.path, ahead of the view: on this machine's copy of
-# the tree (never installed) kernels/ is linked into the package as well
-[ -e tlvg_warp/kernels ] || ln -s ../kernels tlvg_warp/kernels
 for d in .carry/d1 .carry/d2 .carry/d3; do [ -d "$d" ] && cp -r "$d"/. "$D/"; done
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader; date -u
 

@@ -37,7 +37,7 @@ def row(montage: np.ndarray, variants: list[str], label: str) -> np.ndarray:
     bar = np.zeros((26, img.shape[1], 3), np.uint8)
     x = 0
     for n, s in zip(order, scaled):
-        text = label if n == "painting" else ("tlvg, before the silhouette term" if n == "tlvg_before" else n)
+        text = label if n == "painting" else ("tlvg, previous config" if n == "tlvg_before" else n)
         cv2.putText(bar, text, (x + 6, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
         x += s.shape[1]
     return np.concatenate([bar, img], 0)

@@ -17,8 +17,10 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   stress [many] [4k] [huge]
                      random scenes of 3M-20M Gaussians, 4K frames and huge footprints against gsplat.
                      Reproduces: "Stress cases".
-  stylize            fern (fern.spz, 504x378, The Starry Night) stylized 3000 iterations, RUNS processes (default
-                     2) after a 300-iteration warm-up. Reproduces: "Stylization" (process wall, flow alignment).
+  stylize [--set K=V ...]
+                     fern (fern.spz, 504x378, The Starry Night) stylized 3000 iterations, RUNS processes (default
+                     2) after a 300-iteration warm-up; arguments go to each run. Reproduces: "Stylization" (process
+                     wall, flow alignment).
   startup            fern stylized for 1 iteration, twice (warm caches the second time): process wall against the
                      run's own wall, and where the import time goes (python -X importtime). Reproduces: the
                      1-iteration figure of "Stylization".
@@ -110,7 +112,7 @@ case "$cmd" in
     python3 -m tlvg_warp stylize $FERN --iterations 300 --out "$R/warm" --overwrite --quiet > /dev/null 2>&1
     for i in $(seq 1 "${RUNS:-2}"); do
       /usr/bin/time -f "fern stylize $i 3000 wall %e s" python3 -m tlvg_warp stylize $FERN --iterations 3000 \
-        --out "$R/fern_$i" --overwrite --quiet > "$R/fern_$i.log" 2>&1; tail -n 2 "$R/fern_$i.log"
+        --out "$R/fern_$i" --overwrite --quiet "$@" > "$R/fern_$i.log" 2>&1; tail -n 2 "$R/fern_$i.log"
       metrics "$R/fern_$i/metrics.json" wall_time_s train_time_s training_field_alignment time_per_phase_s
     done;;
   startup)

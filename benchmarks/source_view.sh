@@ -11,5 +11,11 @@ source_view() {
     [ -e "$view/tlvg_warp/${f##*/}" ] || ln -s "$f" "$view/tlvg_warp/"
   done
   [ -e "$view/tlvg_warp/kernels" ] || ln -s "$root/kernels" "$view/tlvg_warp/kernels"
+  # `python3 -m tlvg_warp` puts the working directory ahead of PYTHONPATH, so it imports ROOT's own package: where
+  # that cannot find tlvg_warp.kernels (a copy of the tree that was never installed), kernels/ is linked into it
+  # (ignored by git)
+  if [ ! -e "$root/tlvg_warp/kernels" ] && ! (cd "$root" && python3 -c "import tlvg_warp.kernels" 2>/dev/null); then
+    ln -s ../kernels "$root/tlvg_warp/kernels"
+  fi
   echo "$view"
 }
