@@ -23,7 +23,8 @@ import torch
 HERE = Path(__file__).resolve().parent
 CFG = {"iterations": 24, "phases": [1, 2, 1], "device": "cpu", "vgg_weights": "random", "style_height": 64,
        "log_every": 2, "checkpoint_seconds": 0.2, "density.interval": 3, "orbit_frames": 0,
-       "loss.fast_refresh": 2}  # a view's FAST match reused on its next step: the cache must come back too
+       "loss.fast_refresh": 2,  # a view's FAST match reused on its next step: the cache must come back too
+       "stroke_jitter": 1.0, "loss.w_orient": 1.0}  # the jitter is drawn once, at the stylize start: not again on resume
 STYLIZE_START, STYLIZE_END = 6, 18  # steps of the phases at 24 iterations, [1, 2, 1]
 FLUSH_SLEEP_S = 0.3  # the child sleeps at each log flush so that it is surely killed before its end
 
