@@ -75,8 +75,10 @@ def test_strength_scales_the_style_terms_and_nothing_else(demo):
 
 
 def test_keep_colors_keeps_the_photos_colours(demo):
-    cfg = _cfg(keep_colors=True, **{"loss.luminance_only": False, "loss.w_style_color": 1.0})
+    cfg = _cfg(keep_colors=True, stroke_jitter_mode="palette", **{"loss.luminance_only": False,
+                                                                 "loss.w_style_color": 1.0})
     assert cfg.loss.luminance_only and cfg.loss.w_style_color == 0  # the style may shape luminance only
+    assert cfg.stroke_jitter_mode == "luminance"  # and the jitter tone only, not the painting's colours
     tg = _targets(demo, cfg)
     for rec, photo in zip(tg.recolored, demo.photos):  # pre-process and Lab targets: the photos themselves
         assert torch.equal(rec, photo.to(rec))

@@ -123,6 +123,7 @@ class StylizeConfig:
     # the field) reads as a stroke of its own tone, as a painter varies the paint per stroke; 0: off
     stroke_jitter_mode: str = "luminance"  # luminance (above) | palette: the offset is this x (a random pixel of the
     # painting minus its mean colour), so strokes take the painting's colours, as its dabs of yellow in the blue
+    # (keep_colors sets luminance)
     keep_colors: bool = False  # keep the scene's own colours: no palette transfer, style on luminance only
     palette_detail: bool = False  # after the palette transfer, raise the recolored photos' luminance detail toward the
     # painting's (losses.match_detail). Off: on the study it raised detail but lowered flow alignment on one tuning pair
@@ -187,8 +188,9 @@ class StylizeConfig:
 
     def validate(self) -> "StylizeConfig":
         cfg = config_io.validate(self)
-        if cfg.keep_colors:  # the scene's colours: the style may only shape luminance
-            cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, luminance_only=True, w_style_color=0.0))
+        if cfg.keep_colors:  # the scene's colours: the style may only shape luminance (and the jitter only tone)
+            cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, luminance_only=True, w_style_color=0.0),
+                                      stroke_jitter_mode="luminance")
         return cfg
 
 
