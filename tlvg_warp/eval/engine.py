@@ -34,6 +34,7 @@ from . import CAM_TOL, DEFAULT_EVAL_HEIGHT, MAX_REPORT_VIEWS, MIN_EVAL_HEIGHT
 from .refs import anchor_views, build_references, compare, score_views, stylized_views, summarize
 from .report import fmt
 
+
 def auto_eval_height(cameras) -> int:
     """The style/content evaluation height for views of this size: their own height within
     [MIN_EVAL_HEIGHT, DEFAULT_EVAL_HEIGHT] (enlarging a small render to 256 rows adds VGG work, not detail)."""
@@ -60,8 +61,6 @@ def _read_json(path: Path):
 
 
 def _image(path: Path, shape=None) -> np.ndarray:
-    # lazy: CLI startup
-
     a = read_image(path)[:, :, :3]
     if shape is not None and a.shape[:2] != tuple(shape):
         raise InputError(f"image is {a.shape[1]}x{a.shape[0]}, expected {shape[1]}x{shape[0]}", path)
@@ -77,15 +76,11 @@ def _view_file(folder: Path, name: str, index: int):
 
 
 def _yaml(path: Path) -> dict:
-    # lazy: CLI startup
-
     return read_yaml_mapping(path) if path.is_file() else {}
 
 
 def load_run(run, max_views: int = 0) -> dict:
     """What evaluate reads from a run folder; InputError naming the file when something is wrong."""
-    # lazy: CLI startup
-
     run = Path(run)
     if not run.is_dir():
         raise InputError("run folder not found", run)
@@ -93,8 +88,6 @@ def load_run(run, max_views: int = 0) -> dict:
     ply = run / "stylized.ply"
     if not ply.is_file():
         raise InputError("missing stylized.ply (not a stylization run folder?)", run)
-    # lazy: CLI startup
-
     names, cams = read_inria_cameras(run / "cameras.json")
     n_total = len(cams)
     if max_views > 0:
@@ -121,8 +114,6 @@ def load_run(run, max_views: int = 0) -> dict:
 
 def resolve_scene(run: dict, scene=None):
     """The un-stylized scene of a run (see the module doc)."""
-    # lazy: CLI startup
-
     if scene is not None:
         return load_ply(Path(scene))
     src = run_sources(run["dir"])
@@ -140,8 +131,6 @@ def demo_original(run_dir, cameras, n_total: int | None = None):
     """The built-in demo scene a demo run started from, or None when the cameras are not the demo's orbit. The
     demo samples its surfaces more sparsely at a larger downscale (stylize: spacing = max(1, downscale)), so the
     run's config.yaml downscale picks the same density (e.g. 4,678 Gaussians at downscale 2, not 18,733)."""
-    # lazy: CLI startup
-
     if not cameras:
         return None
     try:
@@ -189,8 +178,6 @@ def winners(names, per_views, anchors: dict | None = None) -> dict:
     """Per metric: the run whose paired difference to every other run favours it (95%) and that also beats the
     anchor the metric exists to beat (metrics.ANCHOR_TO_BEAT; ``anchors``: {anchor name: per-view dict}),
     else absent."""
-    # lazy: CLI startup
-
     out = {}
     anchors = anchors or {}
     for k in M.METRICS:
@@ -214,8 +201,6 @@ def not_discriminating(per_views, anchors: dict) -> dict:
     on this scene the metric does not tell the runs from doing nothing (flow, style, strokes, detail) or from
     pasting the painting (content, multi-view, chroma noise). The other anchor winning is expected (the painting
     has the painting's style; the un-stylized scene is the scene) and is not a verdict."""
-    # lazy: CLI startup
-
     out = {}
     for k, target in M.ANCHOR_TO_BEAT.items():
         pa = anchors.get(target) if target else None
@@ -231,8 +216,6 @@ def evaluate_runs(run_dirs, net, device, *, scene=None, max_views: int = 0, eval
                   cache_dir=None, log=print) -> tuple[dict, list, "object"]:
     """Score every run, and the two anchors, with one set of references. Returns (result dict, loaded runs,
     refs)."""
-    # lazy: CLI startup
-
     log(f"reading {len(run_dirs)} run folder(s)")
     runs = [load_run(d, max_views) for d in run_dirs]
     check_same_setting(runs)
@@ -287,9 +270,6 @@ def unique_names(runs) -> list[str]:
 
 
 def report_html(res: dict, runs: list, refs) -> str:
-    # lazy: CLI startup
-    # lazy: imports Warp
-
     names = res["names"]
     sums = [r["summary"] for r in res["runs"]]
     anchors = res.get("anchors") or []
@@ -333,8 +313,6 @@ def report_html(res: dict, runs: list, refs) -> str:
 
 
 def comparisons_table(comparisons: dict) -> str:
-    # lazy: CLI startup
-
     keys = [k for k in H.M.METRICS if any(k in c for c in comparisons.values())]
     head = "<tr><th class=l>metric</th>" + "".join(f"<th>{H.esc(p)}: a − b [95%]</th>" for p in comparisons) + "</tr>"
     rows = []
@@ -354,8 +332,6 @@ def comparisons_table(comparisons: dict) -> str:
 
 
 def print_table(res: dict) -> None:
-    # lazy: CLI startup
-
     names = res["names"]
     anchors = res.get("anchors") or []
     cols = names + [f"[{a['name']}]" for a in anchors]
