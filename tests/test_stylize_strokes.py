@@ -1,6 +1,6 @@
 """The two stroke settings of the Stylize phase:
 - ``stroke_jitter``: one luminance offset per Gaussian, the same on R, G and B (oracle: the DC colour formula
-  c = 0.5 + SH_C0 * dc in float64; chroma = RGB minus luminance must not move), drawn once at the phase's start;
+  c = 0.5 + SH_C0 * dc in float64; chroma = RGB minus luminance must not move), drawn at the phase's start;
 - ``loss.w_orient``: 1 - the render's own alignment with the stroke field; descending it must raise the
   alignment that the OpenCV implementation (``flow_alignment_score``, written apart from the torch twin) measures."""
 from pathlib import Path
@@ -11,7 +11,7 @@ import torch
 
 from _demo_helpers import demo_stylize_inputs
 from tlvg_warp.losses import flow_alignment_score, flow_alignment_score_torch
-from tlvg_warp.stylize.pipeline import jitter_luminance_
+from tlvg_warp.stylize.pipeline import jitter_luminance_, jitter_palette_
 from tlvg_warp.types import SH_C0
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -34,9 +34,23 @@ def test_jitter_moves_luminance_by_the_offsets_and_keeps_chroma():
     assert not torch.equal(jitter_luminance_(dc.clone(), amp, seed=4), delta)
 
 
-def test_stylize_jitters_once_at_the_phase_start():
+def test_palette_jitter_moves_each_colour_by_a_painting_pixel_minus_its_mean():
+    """Oracle: every offset / amount + the painting's mean colour is one of the painting's pixels (float64), and the
+    colours move by exactly the offsets."""
+    painting = torch.tensor([[[0.1, 0.2, 0.9], [0.9, 0.8, 0.1]], [[0.5, 0.5, 0.5], [0.0, 0.0, 0.0]]])
+    dc = torch.zeros(500, 1, 3)
+    delta = jitter_palette_(dc, painting, 0.5, seed=1)  # [N,3]
+    px = painting.reshape(-1, 3).double()
+    picked = delta / 0.5 + px.mean(0)
+    assert torch.cdist(picked, px).min(1).values.max() < 1e-9  # each a painting pixel
+    assert len({tuple(r) for r in picked.round(decimals=6).tolist()}) == 4  # all four drawn
+    assert torch.allclose(dc.double()[:, 0] * SH_C0, delta, atol=1e-6)
+
+
+def test_stylize_jitters_luminance_at_the_phase_start():
     """With the colour learning rate at 0, the DC colours a run ends with differ from the same run without jitter by
-    the offsets alone: equal on R, G, B, nonzero for every Gaussian, and absent when the jitter is off."""
+    the offsets alone: equal on R, G, B, nonzero for every Gaussian, and absent when the jitter is off. (That it is
+    drawn once, not again on resume: tests/test_loop_resume.py.)"""
     from tlvg_warp.losses import load_vgg
     from tlvg_warp.stylize import load_config, run_stylize
 

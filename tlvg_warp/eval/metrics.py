@@ -60,7 +60,7 @@ METRICS = {m.key: m for m in (
     Metric("flow_alignment", "Flow alignment with the painting's strokes (common field)",
            "coherence-weighted mean cos 2(φ−φ*), −1…1", True, pretrained=True),
     Metric("flow_energy", "Flow alignment weighted by the render's own gradient energy (common field)",
-           "Σ e·cos 2(φ−φ*) / Σ e, e = λ1+λ2, −1…1", True, pretrained=True),
+           "Σ e·c*·a·cos 2(φ−φ*) / Σ e·c*, e = λ1+λ2, a = anisotropy, −1…1", True, pretrained=True),
     Metric("stroke_scales", "Stroke statistics distance to the painting (oriented energy at 4 scales)",
            "mean 1-D Wasserstein of coherence + ¼ log10 anisotropic energy", False),
     Metric("style_gram", "Style distance, Gram (relu1_2, 2_2, 3_3, 4_3)", "relative Frobenius norm", False,

@@ -146,8 +146,9 @@ class StylizeConfig:
     lr: LearningRates = field(default_factory=LearningRates)  # learning rates, one Adam across the phases (3DGS)
     density: DensityConfig = field(default_factory=_density)  # adaptive density control, per phase step
 
-    RULES = {"stroke_jitter_mode": ("of", "luminance", "palette"), "iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
+    RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
              "stroke_scale": (">", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
+             "stroke_jitter_mode": ("of", "luminance", "palette"),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
              "orbit_frames": (">=", 0), "orbit_fps": (">=", 1), "comparison_views": (">=", 0)}

@@ -141,14 +141,19 @@ def painting_detail(style_work: torch.Tensor, height: int) -> float:
     return float(detail_energy(p))
 
 
+def _shift_dc_(sh_dc: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """Adds colour offsets ``delta`` [N,3] (colour units) to the DC band [N,1,3] in place; returns ``delta``."""
+    with torch.no_grad():
+        sh_dc.add_((delta / SH_C0).to(sh_dc)[:, None, :])
+    return delta
+
+
 def jitter_luminance_(sh_dc: torch.Tensor, amplitude: float, seed: int) -> torch.Tensor:
     """Moves every Gaussian's DC colour [N,1,3] by one N(0, amplitude²) offset, the same on R, G and B (so luminance
     moves by it and RGB minus luminance does not), in place; returns the offsets [N] in colour units."""
     gen = torch.Generator().manual_seed(int(seed))
     delta = torch.randn(sh_dc.shape[0], generator=gen, dtype=torch.float64) * amplitude  # [N]
-    with torch.no_grad():
-        sh_dc.add_((delta / SH_C0).to(sh_dc)[:, None, None])
-    return delta
+    return _shift_dc_(sh_dc, delta[:, None].expand(-1, 3))[:, 0]
 
 
 def jitter_palette_(sh_dc: torch.Tensor, painting: torch.Tensor, amount: float, seed: int) -> torch.Tensor:
@@ -157,10 +162,7 @@ def jitter_palette_(sh_dc: torch.Tensor, painting: torch.Tensor, amount: float, 
     gen = torch.Generator().manual_seed(int(seed))
     px = painting.detach().reshape(-1, 3).double().cpu()  # [P,3]
     pick = torch.randint(0, px.shape[0], (sh_dc.shape[0],), generator=gen)
-    delta = amount * (px[pick] - px.mean(0))  # [N,3]
-    with torch.no_grad():
-        sh_dc.add_((delta / SH_C0).to(sh_dc)[:, None, :])
-    return delta
+    return _shift_dc_(sh_dc, amount * (px[pick] - px.mean(0)))
 
 
 def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
@@ -305,16 +307,20 @@ class Stylize(Phase):
         p = run.params
         run.density.track("opacity_logits", p.opacity_logits.detach().clone())  # the regularizer anchors
         run.density.track("log_scales", p.log_scales.detach().clone())
+        view_h = int(np.median([c.height for c in run.cams]))
         if self.fields is None:  # once per run: a resumed run has its fields (and its jittered colours) saved
             self.fields = self.make_fields(run)
-            if self.cfg.stroke_jitter > 0 and self.cfg.stroke_jitter_mode == "palette":  # the painting's colours
-                jitter_palette_(p.sh_dc, self.tg.style_work, self.cfg.stroke_jitter, self.cfg.seed)
-            elif self.cfg.stroke_jitter > 0:  # per-stroke tone, at the painting's contrast at the views' height
-                h = int(np.median([c.height for c in run.cams]))
-                amp = self.cfg.stroke_jitter * painting_detail(self.tg.style_work, h) ** 0.5
-                jitter_luminance_(p.sh_dc, amp, self.cfg.seed)
+            self.jitter(p, view_h)
         if self.on["detail"] and self.detail_target is None:
-            self.detail_target = painting_detail(self.tg.style_work, int(np.median([c.height for c in run.cams])))
+            self.detail_target = painting_detail(self.tg.style_work, view_h)
+
+    def jitter(self, p: GaussianParams, view_h: int) -> None:
+        """stroke_jitter: a tone (or, in palette mode, a colour of the painting) per splat, at the phase's start."""
+        k, seed = self.cfg.stroke_jitter, self.cfg.seed
+        if k > 0 and self.cfg.stroke_jitter_mode == "palette":
+            jitter_palette_(p.sh_dc, self.tg.style_work, k, seed)
+        elif k > 0:  # the painting's stroke contrast at the views' height
+            jitter_luminance_(p.sh_dc, k * painting_detail(self.tg.style_work, view_h) ** 0.5, seed)
 
     @torch.no_grad()
     def make_fields(self, run: Run) -> list:
