@@ -14,7 +14,7 @@ source_view() {
   # `python3 -m tlvg_warp` puts the working directory ahead of PYTHONPATH, so it imports ROOT's own package: where
   # that cannot find tlvg_warp.kernels (a copy of the tree that was never installed), kernels/ is linked into it
   # (ignored by git)
-  if [ ! -e "$root/tlvg_warp/kernels" ] && ! (cd "$root" && python3 -c "import tlvg_warp.kernels" 2>/dev/null); then
+  if [ ! -e "$root/tlvg_warp/kernels" ] && ! (cd "$root" && python3 -c "import importlib.util as u, sys; sys.exit(u.find_spec('tlvg_warp.kernels') is None)" 2>/dev/null); then
     ln -s ../kernels "$root/tlvg_warp/kernels"
   fi
   echo "$view"
