@@ -14,6 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from tlvg_warp.eval.metrics import sticker
+
 TILE_W = 504
 ROW_H = 300
 SHOWN = ("abcgs", "tlvg_before", "tlvg")
@@ -25,12 +27,14 @@ def tiles_of(montage: np.ndarray, variants: list[str]) -> dict:
     out = {n: montage[:, i * TILE_W:(i + 1) * TILE_W] for i, n in enumerate(names)}
     rest = montage[:, len(names) * TILE_W:]
     out["painting"] = rest[:, :np.flatnonzero(rest.reshape(h, -1, 3).max(axis=(0, 2)) > 0).max() + 1]
+    view_h, view_w = out["un-stylized"].shape[:2]
+    out["sticker"] = sticker(out["painting"], view_h, view_w).astype(np.uint8)
     return out
 
 
 def row(montage: np.ndarray, variants: list[str], label: str) -> np.ndarray:
     t = tiles_of(montage, variants)
-    order = ["un-stylized", *[v for v in SHOWN if v in t], "painting"]
+    order = ["un-stylized", "sticker", *[v for v in SHOWN if v in t], "painting"]
     scaled = [cv2.resize(t[n], (round(t[n].shape[1] * ROW_H / t[n].shape[0]), ROW_H), interpolation=cv2.INTER_AREA)
               for n in order]
     img = np.concatenate(scaled, 1)
