@@ -9,6 +9,7 @@ import torch
 from tlvg_warp.losses import (field_at_cells, field_picture, flow_alignment_score, flow_alignment_score_torch,
                               luminance, map_field_canvas, map_field_matched, matched_view_field, render_orientation,
                               stroke_field)
+from tlvg_warp.losses.graphs import GraphedFn
 
 ANGLE_TOL_DEG = 1.0  # Scharr's residual anisotropy bends 30°/60° stripes by ~0.14°; 1° is still tight
 LIC_TOL_DEG = 5.0  # LIC streaks are noise averaged over 31 px: their own orientation is estimated, not exact
@@ -146,3 +147,46 @@ def test_lic_picture_follows_theta():
     assert np.median(c2[inner]) > 0.5
     # a painting of another size is resized under the field
     assert field_picture(np.random.default_rng(0).random((40, 50, 3)), th, np.ones((h, w))).shape == (h, w, 3)
+
+
+def _score_inputs(h, w, gen, dev):
+    img = torch.rand(h, w, 3, device=dev, generator=gen)
+    field = torch.nn.functional.normalize(torch.randn(h, w, 2, device=dev, generator=gen), dim=-1)
+    return img, field
+
+
+def test_graphed_score_runs_eagerly_off_cuda():
+    """On the CPU (and without a gradient) ``GraphedFn`` is the function itself: no graph is captured (a version
+    that tried would fail here, where CUDA graphs do not exist) and the value and gradient are the eager ones."""
+    gen = torch.Generator().manual_seed(0)
+    img, field = _score_inputs(20, 24, gen, "cpu")
+    graphed = GraphedFn(flow_alignment_score_torch)
+    x = img.clone().requires_grad_(True)
+    s = graphed(x, field)
+    s.backward()
+    y = img.clone().requires_grad_(True)
+    flow_alignment_score_torch(y, field).backward()
+    assert torch.equal(s.detach(), flow_alignment_score_torch(img, field)) and torch.equal(x.grad, y.grad)
+    assert not graphed.graphs
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_graphed_score_matches_eager_on_cuda():
+    """The orientation term as replayed CUDA graphs gives the eager score and image gradient for renders AND target
+    fields that change between calls (a graph that kept its first field, or returned a stale gradient, fails), one
+    graph per shape."""
+    dev = torch.device("cuda")
+    gen = torch.Generator(device=dev).manual_seed(0)
+    graphed = GraphedFn(flow_alignment_score_torch)
+    for h, w in ((40, 56), (40, 56), (40, 56), (32, 30)):
+        img, field = _score_inputs(h, w, gen, dev)
+        out = []
+        for fn in (flow_alignment_score_torch, graphed):
+            x = img.clone().requires_grad_(True)
+            s = fn(x, field)
+            (3.0 * s).backward()
+            out.append((s.detach().clone(), x.grad))
+        (s0, g0), (s1, g1) = out
+        assert torch.allclose(s0, s1, rtol=1e-5, atol=1e-6)
+        assert torch.allclose(g0, g1, rtol=1e-4, atol=1e-4 * g0.abs().max())
+    assert len(graphed.graphs) == 2

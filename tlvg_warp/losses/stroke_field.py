@@ -85,7 +85,8 @@ def _kernels(dtype, device):
         g1 = cv2.getGaussianKernel(_ksize(PRE_SIGMA), PRE_SIGMA, cv2.CV_64F).ravel()
         g3 = cv2.getGaussianKernel(_ksize(TENSOR_SIGMA), TENSOR_SIGMA, cv2.CV_64F).ravel()
         t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
-        _kcache[key] = (t(g1), t(g3), t(_SCHARR_X))
+        # made once: a CUDA graph capture of render_orientation may not copy from the host
+        _kcache[key] = (t(g1), t(g3), t(_SCHARR_X), t(LUMA).view(1, 3, 1, 1))
     return _kcache[key]
 
 
@@ -105,9 +106,8 @@ def render_orientation(img: torch.Tensor):
     [B,3,H,W] -> ([B,H,W], [B,H,W], [B,H,W,2])."""
     single = img.dim() == 3
     x = img.permute(2, 0, 1).unsqueeze(0) if single else img  # [B,3,H,W]
-    w = torch.tensor(LUMA, dtype=x.dtype, device=x.device).view(1, 3, 1, 1)
-    y = (x * w).sum(1, keepdim=True)  # [B,1,H,W]
-    g1, g3, sx = _kernels(x.dtype, x.device)
+    g1, g3, sx, luma = _kernels(x.dtype, x.device)
+    y = (x * luma).sum(1, keepdim=True)  # [B,1,H,W]
     y = _pad(_sep_blur(y, g1), 1, 1)
     gx = F.conv2d(y, sx.view(1, 1, 3, 3))
     gy = F.conv2d(y, sx.T.contiguous().view(1, 1, 3, 3))

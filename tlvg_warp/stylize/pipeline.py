@@ -273,7 +273,8 @@ class Stylize(Phase):
 
     def __init__(self, steps: int, cfg: StylizeConfig, tg: Targets, vgg, **kw):
         super().__init__("stylize", steps, **kw)
-        from ..losses import StyleLoss  # lazy: imports Warp
+        from ..losses import StyleLoss, flow_alignment_score_torch  # lazy: imports Warp
+        from ..losses.graphs import GraphedFn
 
         self.cfg, self.tg, self.vgg, w = cfg, tg, vgg, cfg.loss
         self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss, refresh_every=w.fast_refresh,
@@ -296,6 +297,9 @@ class Stylize(Phase):
         self.on["style_color"] = self.color_fn is not None and self.const["style_color"] != 0
         self.vgg_on = self.on["style"] or self.on["content"] or self.on["style_color"] or self.on["style_gram"]
         self.render_weights = self.on["align"] or self.on["aniso"]
+        # the orientation score is ~60 small torch ops forward and backward: on CUDA one graph replay each way
+        self.orient_score = (GraphedFn(flow_alignment_score_torch) if cfg.orient_cuda_graphs
+                             else flow_alignment_score_torch)
 
     def weights(self, k: int) -> dict:
         return dict(self.const, lab=self.cfg.loss.lab_weight(k, self.steps))
@@ -341,7 +345,7 @@ class Stylize(Phase):
 
     def terms(self, run: Run, view: View) -> dict:
         # lazy: imports Warp
-        from ..losses import content_loss, detail_energy, flow_alignment_score_torch, lab_chroma_loss, luminance
+        from ..losses import content_loss, detail_energy, lab_chroma_loss, luminance
 
         tg, on, t, vi = self.tg, self.on, run.timer, view.index
         p, anchors = run.params, run.density.tracked
@@ -383,7 +387,7 @@ class Stylize(Phase):
         if on["lab"]:
             terms["lab"] = lab_chroma_loss(img, target_stats=tg.lab_stats[vi])
         if on["orient"]:  # the render's own orientation against the view's stroke field
-            terms["orient"] = 1.0 - flow_alignment_score_torch(img, self.fields[vi][..., :2])
+            terms["orient"] = 1.0 - self.orient_score(img, self.fields[vi][..., :2])
         t.mark("terms")
         if self.render_weights:
             terms["align"], terms["aniso"] = flow_terms(view.gaussians, view.cam, self.fields[vi], view.out.weights)
