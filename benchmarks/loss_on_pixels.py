@@ -17,7 +17,7 @@ import torch
 
 from tlvg_warp.losses import StyleLoss, color_transfer, content_loss, flatten_feats, load_vgg, luminance, resize_style
 from tlvg_warp.stylize.config import load_config
-from tlvg_warp.stylize.pipeline import chroma_tv_loss
+from tlvg_warp.stylize.pipeline import chroma_tv_loss, content_scale
 
 
 def read_rgb(path: str) -> torch.Tensor:
@@ -29,9 +29,7 @@ def read_rgb(path: str) -> torch.Tensor:
 
 def main(photo_path: str, painting_path: str, out: str, steps: int = 300, height: int = 378, lr: float = 0.05) -> None:
     cfg = load_config("configs/tlvg.yaml")
-    lw = cfg.loss
-    w = dict(style=lw.w_style, color=lw.w_style_color, content=lw.w_content, chroma_tv=lw.w_chroma_tv,
-             vgg_scale=cfg.vgg_scale, stroke_scale=cfg.stroke_scale)
+    w = cfg.loss
     photo = read_rgb(photo_path)
     width = int(round(photo.shape[1] * height / photo.shape[0]))
     photo = torch.from_numpy(cv2.resize(photo.numpy(), (width, height), interpolation=cv2.INTER_AREA))
@@ -39,17 +37,17 @@ def main(photo_path: str, painting_path: str, out: str, steps: int = 300, height
     painting = torch.from_numpy(resize_style(read_rgb(painting_path).numpy(), cfg.style_work_height(height)))
     with torch.no_grad():
         lum_target, rgb_target = flatten_feats(vgg(luminance(painting))), flatten_feats(vgg(painting))
-        photo_feats = vgg.features_of([photo], w["vgg_scale"])[0]
-    content_norm = 1.0 / float((photo_feats.double() ** 2).mean())  # as stylize normalizes the content term
+        photo_feats = vgg.features_of([photo], cfg.vgg_scale)[0]
+    w_content = w.w_content * content_scale(photo_feats, w.content_norm)
     start = color_transfer([photo], painting)[0][0]
-    style_lum, style_rgb = StyleLoss(lum_target, kind="nnfm"), StyleLoss(rgb_target, kind="nnfm")
+    style_lum, style_rgb = StyleLoss(lum_target, kind=w.style_loss), StyleLoss(rgb_target, kind=w.style_loss)
     logits = torch.logit(start.clamp(0.02, 0.98)).clone().requires_grad_(True)  # pixels stay in (0, 1)
     opt = torch.optim.Adam([logits], lr=lr)
     for k in range(steps):
         img = torch.sigmoid(logits)
-        a_lum, a_rgb = vgg.features_of([luminance(img), img], w["vgg_scale"])
-        loss = (w["style"] * style_lum(a_lum) + w["color"] * style_rgb(a_rgb)
-                + w["content"] * content_norm * content_loss(a_rgb, photo_feats) + w["chroma_tv"] * chroma_tv_loss(img))
+        a_lum, a_rgb = vgg.features_of([luminance(img), img], cfg.vgg_scale)
+        loss = (w.strength * (w.w_style * style_lum(a_lum) + w.w_style_color * style_rgb(a_rgb))
+                + w_content * content_loss(a_rgb, photo_feats) + w.w_chroma_tv * chroma_tv_loss(img))
         opt.zero_grad()
         loss.backward()
         opt.step()
