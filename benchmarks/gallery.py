@@ -1,10 +1,11 @@
 """docs/gallery.jpg from the per-pair montages that `benchmarks/tune.py --montage` writes (one row per pair: the
 un-stylized render, one tile per variant in the order they were given, the painting; tiles 504 px wide).
 
-    python benchmarks/gallery.py OUT.jpg PAIRS_DIR scene_painting:variant,variant,...:label [...]
+    python benchmarks/gallery.py [--show abcgs,tlvg,...] OUT.jpg PAIRS_DIR scene_painting:variant,variant,...:label [...]
 
 Each argument picks a montage (PAIRS_DIR/scene_painting.jpg), the variants it was made with (in order), and the
-row's label; the row shows un-stylized | abcgs | tlvg (and any other variant named) | painting.
+row's label; the row shows un-stylized | sticker | the shown variants (default: abcgs, tlvg_before, tlvg, those
+present) | painting.
 """
 from __future__ import annotations
 
@@ -32,9 +33,9 @@ def tiles_of(montage: np.ndarray, variants: list[str]) -> dict:
     return out
 
 
-def row(montage: np.ndarray, variants: list[str], label: str) -> np.ndarray:
+def row(montage: np.ndarray, variants: list[str], label: str, shown=SHOWN) -> np.ndarray:
     t = tiles_of(montage, variants)
-    order = ["un-stylized", "sticker", *[v for v in SHOWN if v in t], "painting"]
+    order = ["un-stylized", "sticker", *[v for v in shown if v in t], "painting"]
     scaled = [cv2.resize(t[n], (round(t[n].shape[1] * ROW_H / t[n].shape[0]), ROW_H), interpolation=cv2.INTER_AREA)
               for n in order]
     img = np.concatenate(scaled, 1)
@@ -48,6 +49,9 @@ def row(montage: np.ndarray, variants: list[str], label: str) -> np.ndarray:
 
 
 def main(argv: list[str]) -> None:
+    shown = SHOWN
+    if argv and argv[0] == "--show":
+        shown, argv = tuple(argv[1].split(",")), argv[2:]
     out, folder, specs = argv[0], Path(argv[1]), argv[2:]
     rows = []
     for spec in specs:
@@ -55,7 +59,7 @@ def main(argv: list[str]) -> None:
         m = cv2.imread(str(folder / f"{name}.jpg"))
         if m is None:
             raise SystemExit(f"{folder / (name + '.jpg')}: not a readable montage")
-        rows.append(row(m, variants.split(","), label))
+        rows.append(row(m, variants.split(","), label, shown))
     w = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 0), (0, w - r.shape[1]), (0, 0))) for r in rows]
     cv2.imwrite(out, np.concatenate(rows, 0), [cv2.IMWRITE_JPEG_QUALITY, 82])

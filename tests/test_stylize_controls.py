@@ -82,7 +82,7 @@ def test_keep_colors_keeps_the_photos_colours(demo):
     tg = _targets(demo, cfg)
     for rec, photo in zip(tg.recolored, demo.photos):  # pre-process and Lab targets: the photos themselves
         assert torch.equal(rec, photo.to(rec))
-    m, t = tg.palette
+    m, t = tg.palette.m, tg.palette.t
     assert torch.equal(m, torch.eye(3, dtype=m.dtype)) and not t.any()
     run = build_run(demo, cfg, tg, StubFeatures(), torch.device("cpu"), Dist(), None)
     g0 = demo.gaussians.with_sh_degree(0)  # no palette applied to the starting colours either
@@ -90,6 +90,28 @@ def test_keep_colors_keeps_the_photos_colours(demo):
     # without it, the targets are recoloured to the painting's palette
     tg_pal = _targets(demo, _cfg())
     assert max(float((a - b).abs().max()) for a, b in zip(tg_pal.recolored, demo.photos)) > 0.05
+
+
+def test_tone_palette_recolours_the_targets_and_the_gaussians(demo):
+    """palette_map tone: the targets and the starting Gaussians take the tone map (not ARF's), and every view's
+    uncovered background stays the photo's."""
+    from tlvg_warp.losses.palette import TonePalette
+
+    cfg = _cfg(palette_map="tone")
+    tg = _targets(demo, cfg)
+    assert isinstance(tg.palette, TonePalette)
+    covered = 0
+    for rec, photo, cov in zip(tg.recolored, demo.photos, tg.coverage):
+        photo = photo.to(rec)
+        want = cov * tg.palette.apply(photo) + (1 - cov) * photo  # the tone map where covered, the photo elsewhere
+        torch.testing.assert_close(rec, want, atol=1e-5, rtol=0)
+        covered += int((cov > 0.5).sum())
+        assert float((rec - photo).abs()[cov[..., 0] > 0.99].max()) > 0.05  # and the map changes what is covered
+    assert covered > 0
+    run = build_run(demo, cfg, tg, StubFeatures(), torch.device("cpu"), Dist(), None)
+    g0 = demo.gaussians.with_sh_degree(0)
+    want_dc = tg.palette.recolor_sh(g0.sh.to(run.params.sh_dc))[:, 0]
+    torch.testing.assert_close(run.params.sh_dc.detach().reshape(-1, 3), want_dc.reshape(-1, 3))
 
 
 def test_over_background_blends_by_the_unstylized_alpha():

@@ -109,6 +109,9 @@ class StylizeConfig:
     device: str = "auto"  # cuda, cpu or auto (cuda when available)
     downscale: float = 1.0  # render resolution divisor (dataset images are loaded at 1/downscale)
     palette_init: bool = True  # pre-process starts from the Gaussians recolored by the photos' palette map (ours)
+    palette_map: str = "arf"  # how photos and Gaussians take the painting's palette: arf (ARF's mean/covariance
+    # transfer) | tone (ours: luminance matched in mean and spread, chroma = the painting's at the same luminance
+    # rank; a grey photo is not blown up into pastel tints; losses/palette.py)
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
     style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
     style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3); 0: to the height at
@@ -149,7 +152,7 @@ class StylizeConfig:
 
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
              "stroke_scale": (">", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
-             "stroke_jitter_mode": ("of", "luminance", "palette"),
+             "stroke_jitter_mode": ("of", "luminance", "palette"), "palette_map": ("of", "arf", "tone"),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
              "orbit_frames": (">=", 0), "orbit_fps": (">=", 1), "comparison_views": (">=", 0)}

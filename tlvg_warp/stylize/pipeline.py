@@ -200,7 +200,7 @@ class Targets:
     style_doubled_cells: torch.Tensor  # the painting's doubled-angle field at its feature cells
     recolored: list  # per view [H,W,3]: the photos in the painting's palette (pre-process and Lab targets)
     lab_stats: list  # per view: the Lab chroma statistics of ``recolored`` (the Lab term's target, once)
-    palette: tuple  # (mean, transform) of that color transfer
+    palette: object  # that colour map (losses.palette: AffinePalette or TonePalette; its recolor_sh for Gaussians)
     photo_feats: list  # per view [768, Nc]: RGB VGG features of the photo (content)
     inv_depth: list  # per view [H,W]: the un-stylized scene's inverse depth
     originals: list  # per view [H,W,3] (CPU): renders of the un-stylized scene
@@ -211,8 +211,9 @@ class Targets:
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     # lazy: imports Warp
-    from ..losses import (color_transfer, field_at_cells, flatten_feats, lab_chroma_stats, luminance, match_detail,
-                          resize_style, stroke_field)
+    from ..losses import (field_at_cells, flatten_feats, lab_chroma_stats, luminance, match_detail, resize_style,
+                          stroke_field)
+    from ..losses.palette import AffinePalette, palette_transfer
 
     style_np = inp.style.detach().cpu().numpy().astype(np.float32)
     view_h = int(np.median([c.height for c in inp.cameras]))
@@ -225,29 +226,28 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     s_theta, s_coh, s_doubled = stroke_field(style_work.numpy())
     cells = torch.from_numpy(field_at_cells(s_doubled, tuple(sf_lum.shape[-2:]))).to(device)
     photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
-    if cfg.keep_colors:  # the scene's own colours: the photos are the pre-process and Lab targets as they are
-        recolored = photos
-        pal_m, pal_t = torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
-    else:
-        recolored, pal_m, pal_t = color_transfer(photos, style_work.to(device))
-        if cfg.palette_detail:  # the painting's level of luminance detail back into the pre-process targets
-            recolored, _ = match_detail(recolored, inp.style.to(device=device, dtype=torch.float32))
     g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
     inv_depth, photo_feats, originals, coverage = [], [], [], []
     with torch.no_grad():
-        for i, (photo, cam) in enumerate(zip(photos, inp.cameras)):
+        for photo, cam in zip(photos, inp.cameras):
             ro = render(g_in, cam, bg)
             inv_depth.append(inverse_depth(ro.depth))
             originals.append(ro.color.clamp(0, 1).cpu())
             coverage.append(ro.alpha.clamp(0, 1)[..., None].contiguous())
             photo_feats.append(flatten_feats(vgg(photo, scale=cfg.vgg_scale)))  # content: RGB
-            if not cfg.keep_colors:  # the background the scene does not cover stays the photo's (a Blender
-                # scene's white): a recoloured background would make the fit grow splats to paint it
-                recolored[i] = over_background(recolored[i], coverage[i], photo)
+    if cfg.keep_colors:  # the scene's own colours: the photos are the pre-process and Lab targets as they are
+        recolored, palette = photos, AffinePalette.identity()
+    else:
+        recolored, palette = palette_transfer(photos, style_work.to(device), cfg.palette_map, coverage=coverage)
+        if cfg.palette_detail:  # the painting's level of luminance detail back into the pre-process targets
+            recolored, _ = match_detail(recolored, inp.style.to(device=device, dtype=torch.float32))
+        # the background the scene does not cover stays the photo's (a Blender scene's white): a recoloured
+        # background would make the fit grow splats to paint it
+        recolored = [over_background(r, c, p) for r, c, p in zip(recolored, coverage, photos)]
     return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
                    None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
                    flatten_feats(sf_lum).contiguous(), cells, recolored, [lab_chroma_stats(r) for r in recolored],
-                   (pal_m, pal_t), photo_feats, inv_depth, originals, coverage,
+                   palette, photo_feats, inv_depth, originals, coverage,
                    [content_scale(f, cfg.loss.content_norm) for f in photo_feats])
 
 
@@ -451,7 +451,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
               fresh: bool = True) -> Run:
     """Parameters, one Adam, density control and the three phases. ``fresh``: a new run (not a resume, whose
     checkpoint brings its own Gaussians): the scene's coarse splats are refined to the stroke size first."""
-    from ..losses import color_transfer, recolor_sh  # lazy: imports Warp
+    from ..losses import color_transfer  # lazy: imports Warp
 
     cams = list(inp.cameras)
     bg = tuple(float(v) for v in cfg.background)
@@ -459,7 +459,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
     g_in = inp.gaussians.detach().to(device=device, dtype=torch.float32)
     g_work = g_in if cfg.keep_sh else g_in.with_sh_degree(0)
     if cfg.palette_init and not cfg.keep_colors:  # the same colour map the pre-process targets went through, applied in closed form
-        g_work = dataclasses.replace(g_work, sh=recolor_sh(g_work.sh, *tg.palette))
+        g_work = dataclasses.replace(g_work, sh=tg.palette.recolor_sh(g_work.sh))
     extent = scene_extent(cams)
     budget = cfg.density.budget(g_in.num)  # None without a budget
     refined = {}

@@ -1,0 +1,159 @@
+"""The tone palette map (losses/palette.py) against a numpy float64 reference written from its definition, its
+closed-form properties, and the reason it exists: a grey photo's faint tints are not blown up into colour."""
+import glob
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from tlvg_warp.losses.color import color_transfer
+from tlvg_warp.losses.palette import AffinePalette, TonePalette, palette_transfer, tone_palette
+from tlvg_warp.types import SH_C0
+
+DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
+LUMA = np.array([0.299, 0.587, 0.114])
+
+
+def _reference(photos, style, bins):
+    """The tone map by its definition, in numpy float64: luminance by mean and spread, chroma (R-Y, B-Y) of the
+    painting's pixels in equal-count luminance bins, read at the photos' luminance rank (np.interp) of the
+    luminance blurred by 2 px (OpenCV's Gaussian blur, reflected border)."""
+    import cv2
+    y_c = np.concatenate([p.reshape(-1, 3) @ LUMA for p in photos])
+    s = style.reshape(-1, 3).astype(np.float64)
+    y_s = s @ LUMA
+    idx = np.array_split(np.argsort(y_s, kind="stable"), bins)
+    cs = np.stack([s[:, 0] - y_s, s[:, 2] - y_s], 1)
+    table = []
+    for g in idx:
+        m = cs[g].mean(0)
+        boost = np.linalg.norm(cs[g], axis=1).mean() / max(np.linalg.norm(m), 1e-12)
+        table.append(m * min(boost, 2.0))
+    table = np.array(table)
+    knots = np.quantile(y_c, (np.arange(bins) + 0.5) / bins)
+    out = []
+    for p in photos:
+        y = p.reshape(-1, 3) @ LUMA
+        y2 = (y - y_c.mean()) * y_s.std() / y_c.std() + y_s.mean()
+        yb = cv2.GaussianBlur(y.reshape(p.shape[:2]), (13, 13), 2.0, borderType=cv2.BORDER_REFLECT_101).ravel()
+        cr, cb = np.interp(yb, knots, table[:, 0]), np.interp(yb, knots, table[:, 1])
+        r, b = y2 + cr, y2 + cb
+        g = (y2 - LUMA[0] * r - LUMA[2] * b) / LUMA[1]
+        out.append(np.clip(np.stack([r, g, b], 1), 0, 1).reshape(p.shape))
+    return out
+
+
+def _random_images(seed, n=3, h=20, w=24):  # > 12 px: images (blurred chroma lookup), not colour lists
+    rng = np.random.default_rng(seed)
+    return [rng.random((h, w, 3)) for _ in range(n)]
+
+
+def test_tone_map_matches_a_float64_reference():
+    photos = _random_images(0)
+    style = np.random.default_rng(1).random((30, 40, 3)) * np.array([0.4, 0.6, 1.0])  # a bluish painting
+    got, pal = palette_transfer([torch.from_numpy(p) for p in photos], torch.from_numpy(style), "tone")
+    want = _reference(photos, style, 32)
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(g.numpy(), w, atol=1e-6)  # quantiles on ties may differ by a hair
+    assert isinstance(pal, TonePalette)
+
+
+def test_tone_map_gives_the_paintings_luminance_mean_and_spread():
+    photos = [np.clip(p * 0.3 + 0.5, 0, 1) for p in _random_images(2)]  # pale, low-contrast photos
+    style = np.random.default_rng(3).random((30, 40, 3)) ** 2  # darker, higher-contrast painting
+    pal = tone_palette([torch.from_numpy(p) for p in photos], torch.from_numpy(style))
+    y = np.concatenate([p.reshape(-1, 3) @ LUMA for p in photos])
+    y2 = (y - pal.y_mean[0]) * pal.y_scale + pal.y_mean[1]  # the luminance before clamping
+    y_s = style.reshape(-1, 3) @ LUMA
+    assert y2.mean() == pytest.approx(y_s.mean(), abs=1e-9) and y2.std() == pytest.approx(y_s.std(), rel=1e-9)
+
+
+def test_a_grey_photos_tints_are_not_blown_up_into_colour():
+    """A flat grey wall with faint random tints: ARF's whitening scales its near-singular chroma covariance to the
+    painting's (the tints become strong colour noise); the tone map gives each tone one colour."""
+    rng = np.random.default_rng(4)
+    y = np.repeat(np.linspace(0.55, 0.75, 32)[None, :], 24, 0)[..., None]  # a smooth luminance ramp
+    photo = np.clip(y + rng.normal(0, 0.004, (24, 32, 3)), 0, 1)  # +- 1/255 tints
+    style = np.random.default_rng(5).random((40, 40, 3))
+
+    def tint_noise(img):  # the chroma's spread around its per-column (same-tone) mean
+        c = np.stack([img[..., 0] - img @ LUMA, img[..., 2] - img @ LUMA], -1)
+        return float(np.abs(c - c.mean(0, keepdims=True)).mean())
+
+    arf = color_transfer([photo], style)[0][0]
+    tone = palette_transfer([photo], style, "tone")[0][0]
+    tone = tone.numpy() if torch.is_tensor(tone) else tone
+    assert tint_noise(arf) > 5 * tint_noise(photo)  # the failure this map exists for
+    assert tint_noise(tone) < 0.5 * tint_noise(arf)
+
+
+def test_recolor_sh_maps_each_gaussians_base_colour_like_the_images():
+    rng = np.random.default_rng(6)
+    photos = _random_images(7)
+    style = rng.random((30, 40, 3))
+    _, pal = palette_transfer([torch.from_numpy(p) for p in photos], torch.from_numpy(style), "tone")
+    sh = torch.from_numpy(rng.normal(0, 0.5, (50, 4, 3)))  # degree 1
+    out = pal.recolor_sh(sh)
+    colours = (SH_C0 * sh[:, 0] + 0.5).clamp(0, 1)
+    want = pal.apply(colours.numpy())  # the map on the colours as an image of 50 pixels
+    np.testing.assert_allclose((SH_C0 * out[:, 0] + 0.5).numpy(), want, atol=1e-9)
+    band_y = sh[:, 1:].numpy() @ LUMA  # view-dependent bands: their luminance, scaled as luminance is, on grey
+    np.testing.assert_allclose(out[:, 1:].numpy(), np.repeat((band_y * pal.y_scale)[..., None], 3, -1), atol=1e-12)
+
+
+def test_affine_palette_identity_keeps_sh():
+    sh = torch.randn(10, 4, 3, dtype=torch.float64)
+    torch.testing.assert_close(AffinePalette.identity().recolor_sh(sh), sh)
+
+
+def test_unknown_palette_mode_is_refused():
+    with pytest.raises(ValueError, match="arf or tone"):
+        palette_transfer([torch.zeros(2, 2, 3)], torch.zeros(2, 2, 3), "lut")
+
+
+@pytest.mark.skipif(not glob.glob(os.path.join(DATA, "scenes", "beer_colmap", "images", "*")),
+                    reason="../shared/data/scenes/beer_colmap absent")
+def test_beer_photos_in_the_starry_nights_tones_are_blue_with_yellow_lights():
+    """Real photos (beer: a grey floor) and The Starry Night: the tone map's chroma noise (the evaluation's
+    high-frequency Lab a,b energy) is below ARF's, and its lightest tones lean to yellow (B - Y < 0), its
+    darkest to blue (B - Y > 0), as in the painting."""
+    import cv2
+
+    from tlvg_warp.eval.metrics import hf_energy, lab_ab
+
+    files = sorted(glob.glob(os.path.join(DATA, "scenes", "beer_colmap", "images", "*")))[::10][:4]
+    photos = [cv2.resize(cv2.imread(f)[..., ::-1], (180, 320), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+              for f in files]
+    style = cv2.imread(os.path.join(DATA, "styles", "starry_night.jpg"))[..., ::-1].astype(np.float32) / 255
+    style = cv2.resize(style, (320, 254), interpolation=cv2.INTER_AREA)
+    arf = color_transfer(photos, style)[0]
+    tone, pal = palette_transfer(photos, style, "tone")
+    e_arf = np.mean([hf_energy(lab_ab(np.asarray(a))) for a in arf])
+    e_tone = np.mean([hf_energy(lab_ab(np.asarray(t))) for t in tone])
+    assert e_tone < 0.7 * e_arf
+    assert float(pal.chroma[-1, 1]) < 0 < float(pal.chroma[0, 1])
+
+
+def test_tone_statistics_come_from_the_covered_pixels_only():
+    """An object on a white background: with the coverage marking it, the map does not depend on how much
+    background the views show; pooled over every pixel (no coverage) the white pushes the object down the ranks."""
+    rng = np.random.default_rng(8)
+    obj = rng.random((16, 16, 3)) * 0.8 + 0.1
+    style = rng.random((30, 40, 3))
+    maps = []
+    for pad in (4, 24):  # a little and a lot of white around the same object
+        img = np.ones((16 + 2 * pad, 16 + 2 * pad, 3))
+        img[pad:pad + 16, pad:pad + 16] = obj
+        cov = np.zeros(img.shape[:2] + (1,))
+        cov[pad:pad + 16, pad:pad + 16] = 1.0
+        masked = tone_palette([torch.from_numpy(img)], torch.from_numpy(style), coverage=[torch.from_numpy(cov)])
+        pooled = tone_palette([torch.from_numpy(img)], torch.from_numpy(style))
+        maps.append((masked, pooled))
+    (m_small, p_small), (m_big, p_big) = maps
+    torch.testing.assert_close(m_small.knots, m_big.knots)
+    assert m_small.y_mean == pytest.approx(m_big.y_mean) and m_small.y_scale == pytest.approx(m_big.y_scale)
+    q = len(p_big.knots) // 4  # the lower quartile: the object in the small view, the white in the big one
+    assert p_big.knots[q] > p_small.knots[q] + 0.05
+    y_obj = obj.reshape(-1, 3) @ LUMA  # the masked knots are the object's own luminance quantiles
+    np.testing.assert_allclose(m_small.knots.numpy(), np.quantile(y_obj, (np.arange(32) + 0.5) / 32), atol=1e-6)

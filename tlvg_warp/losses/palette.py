@@ -1,0 +1,155 @@
+"""The painting's palette on the photos and on the Gaussians: the two colour maps the pre-process can start from.
+
+- ``arf``: ARF's mean/covariance transfer (:func:`color.color_transfer`), one affine map ``x' = M x + t``.
+- ``tone`` (ours): luminance moved to the painting's mean and spread, chroma read from the painting at the same
+  luminance rank. Why: a photo with little colour (a grey floor, a white wall) has a near-singular chroma
+  covariance, and whitening it blows up its faint tints into pastel green and violet washes that the painting
+  never had (beer x The Starry Night). The tone map instead gives each tone the painting's own colour for that tone
+  (The Starry Night: dark blue shadows, blue mid-tones, yellow lights), and chroma is a smooth function of
+  luminance, so no photo noise is amplified into colour.
+
+Both maps act on a whole dataset at once (one map for every view) and on Gaussians' SH colours
+(:meth:`recolor_sh`), so the pre-process starts from the palette it fits to.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..types import SH_C0
+from .color import LUMA, _as_torch, _blur, color_transfer, recolor_sh
+
+TONE_BINS = 32  # luminance bins of the painting's chroma table (equal pixel counts)
+TONE_MAX_BOOST = 2.0  # a bin's mean chroma is scaled back up to its pixels' mean saturation, by at most this
+TONE_MAX_PIXELS = 4_000_000  # the photos' luminance quantiles are read on at most this many pixels (a stride)
+TONE_CHROMA_SIGMA = 2.0  # px: an image's chroma is looked up at its luminance blurred by this much, so fine
+# luminance detail (tile joints, texture) stays luminance: looked up pixel by pixel, The Starry Night's blue-to-yellow
+# table turned it into colour edges (beer: high-frequency Lab a,b energy 22.4 against ARF's 15.9; blurred 9.7)
+
+
+@dataclass
+class AffinePalette:
+    """``x' = M x + t`` (ARF's transfer; the identity keeps a scene's colours)."""
+
+    m: torch.Tensor  # [3,3] float64
+    t: torch.Tensor  # [3] float64
+
+    @classmethod
+    def identity(cls) -> "AffinePalette":
+        return cls(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+
+    def recolor_sh(self, sh: torch.Tensor) -> torch.Tensor:
+        """SH colours [N,K,3] under the map: exact for renders wherever nothing clamps (:func:`color.recolor_sh`)."""
+        return recolor_sh(sh, self.m, self.t)
+
+
+def _chroma(rgb: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(R - Y, B - Y) [...,2]: the two colour-difference axes of BT.601, linear and exactly invertible."""
+    return torch.stack([rgb[..., 0] - y, rgb[..., 2] - y], -1)
+
+
+def _from_luma_chroma(y: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """RGB [...,3] from Y [...] and (R - Y, B - Y) [...,2] (the inverse of :func:`_chroma`)."""
+    r, b = y + c[..., 0], y + c[..., 1]
+    g = (y - LUMA[0] * r - LUMA[2] * b) / LUMA[1]
+    return torch.stack([r, g, b], -1)
+
+
+def _luma64(img: torch.Tensor) -> torch.Tensor:
+    return img.double() @ torch.tensor(LUMA, dtype=torch.float64, device=img.device)  # [...]
+
+
+def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+    """np.interp on the last axis of ``fp`` [K,D] at ``x`` [...] -> [...,D] (constant beyond the ends)."""
+    i = torch.searchsorted(xp, x.contiguous()).clamp(1, len(xp) - 1)
+    x0, x1 = xp[i - 1], xp[i]
+    w = ((x - x0) / (x1 - x0).clamp_min(1e-12)).clamp(0.0, 1.0)[..., None]
+    return fp[i - 1] * (1 - w) + fp[i] * w
+
+
+@dataclass
+class TonePalette:
+    """Luminance ``y' = (y - mu_c) * sd_s / sd_c + mu_s``; chroma = the painting's at the photos' rank of ``y``."""
+
+    y_mean: tuple  # (mu_c, mu_s): the photos' and the painting's mean luminance
+    y_scale: float  # sd_s / sd_c
+    knots: torch.Tensor  # [K] float64: the photos' luminance at the bins' centre ranks (increasing)
+    chroma: torch.Tensor  # [K,2] float64: the painting's (R - Y, B - Y) in the bin of the same rank
+
+    def apply(self, img):
+        """An image [H,W,3] (or colours [...,3]) in [0,1], numpy or torch, under the map, clamped to [0,1]; type and
+        dtype kept. An image's chroma follows its luminance blurred by TONE_CHROMA_SIGMA px; colours' their own."""
+        x = _as_torch(img)
+        y = _luma64(x)
+        y2 = (y - self.y_mean[0]) * self.y_scale + self.y_mean[1]
+        is_image = x.dim() == 3 and min(x.shape[:2]) > 6 * TONE_CHROMA_SIGMA
+        y_look = _blur(y[None, None], TONE_CHROMA_SIGMA)[0, 0] if is_image else y
+        c = _interp(y_look, self.knots.to(y.device), self.chroma.to(y.device))
+        out = _from_luma_chroma(y2, c).clamp(0.0, 1.0).to(x.dtype)
+        return out.numpy() if isinstance(img, np.ndarray) else out
+
+    def recolor_sh(self, sh: torch.Tensor) -> torch.Tensor:
+        """SH colours [N,K,3]: each Gaussian's base colour (the DC term) through :meth:`apply`; the view-dependent
+        bands keep only their luminance, scaled as luminance is (the map is not affine, so unlike ARF's this is
+        the start of the pre-process fit, not an exact image of the renders)."""
+        base = (SH_C0 * sh[:, 0].double() + 0.5).clamp(0.0, 1.0)  # [N,3]
+        out = sh.double().clone()
+        out[:, 0] = (self.apply(base).double() - 0.5) / SH_C0
+        if sh.shape[1] > 1:
+            out[:, 1:] = (_luma64(sh[:, 1:]) * self.y_scale)[..., None].expand(-1, -1, 3)
+        return out.to(sh.dtype)
+
+
+COVERED = 0.5  # a pixel belongs to the scene where the un-stylized render's alpha is above this
+
+
+def _pooled_luma(items, coverage=None) -> torch.Tensor:
+    """The photos' luminance, pooled over the pixels the scene covers (all pixels without ``coverage``, or where
+    it covers none): a Blender object on a white background must take the painting's tones from its own range,
+    not sit in the darkest ranks below the white (lego x The Starry Night turned into a dark grey mass)."""
+    ys = [_luma64(_as_torch(im).detach()).reshape(-1).cpu() for im in items]
+    if coverage is not None:
+        keep = [(_as_torch(c).detach().reshape(-1) > COVERED).cpu() for c in coverage]
+        if any(bool(k.any()) for k in keep):
+            ys = [y[k] for y, k in zip(ys, keep)]
+    y = torch.cat(ys)
+    step = max(1, -(-y.numel() // TONE_MAX_PIXELS))
+    return y[::step]
+
+
+def tone_palette(images, style, bins: int = TONE_BINS, coverage=None) -> TonePalette:
+    """The tone map from the photos ``images`` (list of [H,W,3] in [0,1]) to the painting ``style`` [h,w,3];
+    the photos' statistics over the pixels ``coverage`` (per view [H,W,1], the un-stylized scene's alpha) marks."""
+    y_c = _pooled_luma(images, coverage)
+    s = _as_torch(style).detach().cpu().double().reshape(-1, 3)  # [P,3]
+    y_s = _luma64(s)
+    order = torch.argsort(y_s)
+    groups = torch.tensor_split(order, bins)
+    c_s = _chroma(s, y_s)  # [P,2]
+    chroma = []
+    for g in groups:  # K small bins: a loop over bins, not pixels
+        c = c_s[g]
+        mean = c.mean(0)
+        boost = float(c.norm(dim=1).mean() / mean.norm().clamp_min(1e-12))
+        chroma.append(mean * min(boost, TONE_MAX_BOOST))  # averaging opposite hues must not leave grey
+    q = (torch.arange(bins, dtype=torch.float64) + 0.5) / bins
+    knots = torch.quantile(y_c, q)
+    knots = knots + torch.arange(bins, dtype=torch.float64) * 1e-9  # strictly increasing where photos are flat
+    sd_c = float(y_c.std(unbiased=False))
+    return TonePalette((float(y_c.mean()), float(y_s.mean())), float(y_s.std(unbiased=False)) / max(sd_c, 1e-6),
+                       knots, torch.stack(chroma))
+
+
+def palette_transfer(images, style, mode: str, coverage=None):
+    """``(recolored, palette)``: the photos (list of [H,W,3]) in the painting's palette by ``mode`` (arf | tone),
+    and the map, whose ``recolor_sh`` gives the Gaussians the same palette. ``coverage`` (per view [H,W,1]) limits
+    the tone map's photo statistics to the scene; ARF pools every pixel, as released (the baseline uses it)."""
+    if mode == "arf":
+        out, m, t = color_transfer(list(images), style)
+        return out, AffinePalette(m, t)
+    if mode == "tone":
+        pal = tone_palette(images, style, coverage=coverage)
+        return [pal.apply(im) for im in images], pal
+    raise ValueError(f"palette mode must be arf or tone, got {mode!r}")
