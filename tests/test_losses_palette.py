@@ -157,3 +157,45 @@ def test_tone_statistics_come_from_the_covered_pixels_only():
     assert p_big.knots[q] > p_small.knots[q] + 0.05
     y_obj = obj.reshape(-1, 3) @ LUMA  # the masked knots are the object's own luminance quantiles
     np.testing.assert_allclose(m_small.knots.numpy(), np.quantile(y_obj, (np.arange(32) + 0.5) / 32), atol=1e-6)
+
+
+def _arf_reference(photos, style, floor):
+    """ARF's transfer with a variance floor, in numpy float64: M = S^1/2 (C + floor I)^-1/2, t = mu_s - M mu_c."""
+    def sym_pow(c, p):
+        e, u = np.linalg.eigh(c)
+        return u @ np.diag(np.clip(e, 1e-8, 1e8) ** p) @ u.T
+    x = np.concatenate([p.reshape(-1, 3) for p in photos])
+    s = style.reshape(-1, 3)
+    m = sym_pow(np.cov(s.T, bias=True), 0.5) @ sym_pow(np.cov(x.T, bias=True) + floor * np.eye(3), -0.5)
+    t = s.mean(0) - m @ x.mean(0)
+    return [np.clip(p @ m.T + t, 0, 1) for p in photos], m
+
+
+@pytest.mark.parametrize("floor", [0.0, 0.004])
+def test_arf_with_a_variance_floor_matches_a_float64_reference(floor):
+    photos = _random_images(9)
+    style = np.random.default_rng(10).random((30, 40, 3)) * np.array([0.4, 0.6, 1.0])
+    got, pal = palette_transfer([torch.from_numpy(p) for p in photos], torch.from_numpy(style), "arf", floor=floor)
+    want, m = _arf_reference(photos, style, floor)
+    np.testing.assert_allclose(pal.m.numpy(), m, atol=1e-9)
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(g.numpy(), w, atol=1e-9)
+
+
+def test_the_floor_tames_a_grey_photos_tints_and_spares_a_colourful_one():
+    rng = np.random.default_rng(11)
+    y = np.repeat(np.linspace(0.55, 0.75, 32)[None, :], 24, 0)[..., None]
+    grey = np.clip(y + rng.normal(0, 0.004, (24, 32, 3)), 0, 1)  # +- 1/255 tints on a luminance ramp
+    style = np.random.default_rng(12).random((40, 40, 3))
+
+    def tint_noise(img):
+        c = np.stack([img[..., 0] - img @ LUMA, img[..., 2] - img @ LUMA], -1)
+        return float(np.abs(c - c.mean(0, keepdims=True)).mean())
+
+    plain = color_transfer([grey], style)[0][0]
+    floored = color_transfer([grey], style, 0.004)[0][0]
+    assert tint_noise(floored) < tint_noise(plain) / 3
+    colourful = rng.random((24, 32, 3))  # variance 1/12 per channel, far above the floor
+    m0 = color_transfer([colourful], style)[1]
+    m1 = color_transfer([colourful], style, 0.004)[1]
+    assert float((m1 - m0).norm() / m0.norm()) < 0.05

@@ -114,6 +114,18 @@ def test_tone_palette_recolours_the_targets_and_the_gaussians(demo):
     torch.testing.assert_close(run.params.sh_dc.detach().reshape(-1, 3), want_dc.reshape(-1, 3))
 
 
+def test_palette_floor_reaches_the_transfer(demo):
+    """palette_floor: the targets' ARF map is the one color_transfer makes with that floor, not the plain one."""
+    from tlvg_warp.losses.color import color_transfer
+
+    tg = _targets(demo, _cfg(palette_floor=0.004))
+    photos = [p.to(torch.float32) for p in demo.photos]
+    want = color_transfer(photos, tg.style_work, 0.004)[1]
+    plain = color_transfer(photos, tg.style_work)[1]
+    torch.testing.assert_close(tg.palette.m, want)
+    assert float((want - plain).abs().max()) > 1e-4  # the floor changes the demo's map
+
+
 def test_over_background_blends_by_the_unstylized_alpha():
     torch.manual_seed(0)
     img = torch.rand(5, 7, 3, dtype=torch.float64)

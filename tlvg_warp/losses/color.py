@@ -40,10 +40,14 @@ def _moments(items):
     return mu, s2 / n - torch.outer(mu, mu)
 
 
-def color_transfer(images, style):
+def color_transfer(images, style, floor: float = 0.0):
     """Recolor ``images`` (a list of [H,W,3] or an array [B,H,W,3], floats in [0,1], numpy or torch) to the
     palette of ``style`` [h,w,3]: pool all pixels, whiten with the content covariance, color with the
     style covariance (symmetric square roots, as ARF), shift means, clamp to [0,1].
+
+    ``floor`` (ours; 0 = ARF): a variance added to the content covariance before whitening, so a colour direction
+    the photos barely vary along (a grey floor's faint tints, JPEG blocks) is stretched by at most
+    sqrt(painting variance / floor) instead of up to 1/sqrt(1e-8).
 
     Returns ``(recolored, M, t)`` with recolored in the input's container/type and ``x' = M x + t``
     (M [3,3], t [3], float64 torch) so the same map can be reapplied (:func:`apply_color_transform`).
@@ -52,7 +56,8 @@ def color_transfer(images, style):
     items = list(images) if is_list else [images]
     mu_c, cov_c = _moments(items)
     mu_s, cov_s = _moments([style])
-    m = _sym_pow(cov_s, 0.5) @ _sym_pow(cov_c, -0.5)  # [3,3]
+    eye = torch.eye(3, dtype=torch.float64)
+    m = _sym_pow(cov_s, 0.5) @ _sym_pow(cov_c + floor * eye, -0.5)  # [3,3]
     t = mu_s - m @ mu_c  # [3]
     out = [apply_color_transform(im, m, t) for im in items]
     return (out if is_list else out[0]), m, t

@@ -142,12 +142,13 @@ def tone_palette(images, style, bins: int = TONE_BINS, coverage=None) -> TonePal
                        knots, torch.stack(chroma))
 
 
-def palette_transfer(images, style, mode: str, coverage=None):
+def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0):
     """``(recolored, palette)``: the photos (list of [H,W,3]) in the painting's palette by ``mode`` (arf | tone),
     and the map, whose ``recolor_sh`` gives the Gaussians the same palette. ``coverage`` (per view [H,W,1]) limits
-    the tone map's photo statistics to the scene; ARF pools every pixel, as released (the baseline uses it)."""
+    the tone map's photo statistics to the scene; ARF pools every pixel, as released (the baseline uses it).
+    ``floor``: ARF's variance floor (:func:`color.color_transfer`)."""
     if mode == "arf":
-        out, m, t = color_transfer(list(images), style)
+        out, m, t = color_transfer(list(images), style, floor)
         return out, AffinePalette(m, t)
     if mode == "tone":
         pal = tone_palette(images, style, coverage=coverage)

@@ -112,6 +112,8 @@ class StylizeConfig:
     palette_map: str = "arf"  # how photos and Gaussians take the painting's palette: arf (ARF's mean/covariance
     # transfer) | tone (ours: luminance matched in mean and spread, chroma = the painting's at the same luminance
     # rank; a grey photo is not blown up into pastel tints; losses/palette.py)
+    palette_floor: float = 0.0  # arf: a colour variance added to the photos' covariance before whitening (ours; 0 =
+    # ARF): a direction the photos barely vary along is stretched by at most sqrt(painting's variance / this)
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
     style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
     style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3); 0: to the height at
@@ -153,6 +155,7 @@ class StylizeConfig:
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
              "stroke_scale": (">", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
              "stroke_jitter_mode": ("of", "luminance", "palette"), "palette_map": ("of", "arf", "tone"),
+             "palette_floor": (">=", 0),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
              "orbit_frames": (">=", 0), "orbit_fps": (">=", 1), "comparison_views": (">=", 0)}

@@ -238,7 +238,8 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     if cfg.keep_colors:  # the scene's own colours: the photos are the pre-process and Lab targets as they are
         recolored, palette = photos, AffinePalette.identity()
     else:
-        recolored, palette = palette_transfer(photos, style_work.to(device), cfg.palette_map, coverage=coverage)
+        recolored, palette = palette_transfer(photos, style_work.to(device), cfg.palette_map, coverage=coverage,
+                                              floor=cfg.palette_floor)
         if cfg.palette_detail:  # the painting's level of luminance detail back into the pre-process targets
             recolored, _ = match_detail(recolored, inp.style.to(device=device, dtype=torch.float32))
         # the background the scene does not cover stays the photo's (a Blender scene's white): a recoloured
@@ -480,7 +481,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
             rs = [render(g, cam, bg).color.clamp(0, 1) for cam in cams]
         if cfg.keep_colors:
             return rs
-        rec = color_transfer(rs, tg.style_work.to(device))[0]
+        rec = color_transfer(rs, tg.style_work.to(device), cfg.palette_floor)[0]
         return [over_background(r, c, x) for r, c, x in zip(rec, tg.coverage, rs)]
 
     dens = set(cfg.density.phases)
