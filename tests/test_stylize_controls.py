@@ -100,6 +100,13 @@ def test_tone_palette_recolours_the_targets_and_the_gaussians(demo):
     cfg = _cfg(palette_map="tone")
     tg = _targets(demo, cfg)
     assert isinstance(tg.palette, TonePalette)
+    # the map's photo statistics come from the covered pixels: it is the one tone_palette makes with the coverage
+    from tlvg_warp.losses.palette import tone_palette
+
+    photos = [p.to(torch.float32) for p in demo.photos]
+    masked = tone_palette(photos, tg.style_work, coverage=tg.coverage)
+    torch.testing.assert_close(tg.palette.knots, masked.knots)
+    assert not torch.allclose(tone_palette(photos, tg.style_work).knots, masked.knots)  # the demo's background counts
     covered = 0
     for rec, photo, cov in zip(tg.recolored, demo.photos, tg.coverage):
         photo = photo.to(rec)

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ..types import SH_C0
-from .color import LUMA, _as_torch, _blur, color_transfer, recolor_sh
+from .color import LUMA, _as_torch, _blur, _luma, color_transfer, recolor_sh
 
 TONE_BINS = 32  # luminance bins of the painting's chroma table (equal pixel counts)
 TONE_MAX_BOOST = 2.0  # a bin's mean chroma is scaled back up to its pixels' mean saturation, by at most this
@@ -58,7 +58,7 @@ def _from_luma_chroma(y: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
 
 
 def _luma64(img: torch.Tensor) -> torch.Tensor:
-    return img.double() @ torch.tensor(LUMA, dtype=torch.float64, device=img.device)  # [...]
+    return img.double() @ _luma(torch.float64, img.device)  # [...]: the weights built once per device
 
 
 def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
