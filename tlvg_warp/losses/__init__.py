@@ -5,7 +5,8 @@ from .color import (apply_color_transform, color_transfer, detail_energy, lab_ch
 from .ssim import fit_loss, psnr, ssim
 from .stroke_field import (field_at_cells, field_from_doubled, field_picture, flow_alignment_score,
                            flow_alignment_score_torch, map_field_canvas, map_field_matched, matched_view_field,
-                           render_orientation, stroke_field, structure_tensor)
+                           painting_stroke_energies, render_orientation, stroke_energies, stroke_field, stroke_hinge,
+                           structure_tensor)
 from .style import (StyleFeatures, StyleLoss, content_loss, fast_loss, fast_projection, fast_target, gram_loss,
                     match_style_cells, nnfm_loss)
 from .vgg import VGG16Features, flatten_feats, how_to_get_weights, load_vgg, resize_style
@@ -16,7 +17,8 @@ __all__ = [
     "rgb_to_lab",
     "fit_loss", "psnr", "ssim",
     "field_at_cells", "field_from_doubled", "field_picture", "flow_alignment_score", "flow_alignment_score_torch",
-    "map_field_canvas", "map_field_matched", "matched_view_field", "render_orientation", "stroke_field", "structure_tensor",
+    "map_field_canvas", "map_field_matched", "matched_view_field", "painting_stroke_energies", "render_orientation",
+    "stroke_energies", "stroke_field", "stroke_hinge", "structure_tensor",
     "StyleFeatures", "StyleLoss", "content_loss", "fast_loss", "fast_projection", "fast_target", "gram_loss",
     "match_style_cells", "nnfm_loss",
     "VGG16Features", "flatten_feats", "how_to_get_weights", "load_vgg", "resize_style",

@@ -7,6 +7,9 @@ eigenvalue (along the brushstroke). Coherence c = ((λ1−λ2)/(λ1+λ2+ε))². 
 c·(cos 2θ, sin 2θ), so θ and θ+π agree and fields can be averaged and resized.
 Two implementations with the same kernels and borders (reflect-101, OpenCV's default): numpy/OpenCV
 (:func:`stroke_field`) and differentiable torch (:func:`render_orientation`).
+The stroke hinge (loss.w_stroke) reads the same pre-blurred Scharr gradients across and along a target field:
+:func:`stroke_energies` (torch), :func:`painting_stroke_energies` (the painting's targets, numpy/OpenCV float64),
+:func:`stroke_hinge`.
 """
 from __future__ import annotations
 
@@ -19,7 +22,7 @@ import torch.nn.functional as F
 
 from .color import luminance
 from .style import match_style_cells
-from .vgg import flatten_feats
+from .vgg import flatten_feats, resize_style
 
 PRE_SIGMA = 1.0
 TENSOR_SIGMA = 3.0
@@ -101,17 +104,22 @@ def _sep_blur(x, g):  # x [B,C,H,W], g [k]
     return F.conv2d(_pad(x, r, 0), g.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
 
 
+def _luma_gradients(x):
+    """Scharr gradients (gx, gy) [B,1,H,W] of the luminance of x [B,3,H,W], pre-blurred σ PRE_SIGMA (the kernels and
+    borders of :func:`structure_tensor`)."""
+    g1, _, sx, luma = _kernels(x.dtype, x.device)
+    y = (x * luma).sum(1, keepdim=True)  # [B,1,H,W]
+    y = _pad(_sep_blur(y, g1), 1, 1)
+    return F.conv2d(y, sx.view(1, 1, 3, 3)), F.conv2d(y, sx.T.contiguous().view(1, 1, 3, 3))
+
+
 def render_orientation(img: torch.Tensor):
     """Differentiable torch twin of :func:`stroke_field`. img [H,W,3] -> (θ [H,W], c [H,W], doubled [H,W,2]);
     [B,3,H,W] -> ([B,H,W], [B,H,W], [B,H,W,2])."""
     single = img.dim() == 3
     x = img.permute(2, 0, 1).unsqueeze(0) if single else img  # [B,3,H,W]
-    g1, g3, sx, luma = _kernels(x.dtype, x.device)
-    y = (x * luma).sum(1, keepdim=True)  # [B,1,H,W]
-    y = _pad(_sep_blur(y, g1), 1, 1)
-    gx = F.conv2d(y, sx.view(1, 1, 3, 3))
-    gy = F.conv2d(y, sx.T.contiguous().view(1, 1, 3, 3))
-    j = _sep_blur(torch.cat([gx * gx, gx * gy, gy * gy], 1), g3)  # [B,3,H,W]
+    gx, gy = _luma_gradients(x)
+    j = _sep_blur(torch.cat([gx * gx, gx * gy, gy * gy], 1), _kernels(x.dtype, x.device)[1])  # [B,3,H,W]
     jxx, jxy, jyy = j[:, 0], j[:, 1], j[:, 2]
     dx, dy = jxx - jyy, 2.0 * jxy
     r = torch.sqrt(dx * dx + dy * dy + 1e-30)  # tiny keeps sqrt's gradient finite at r = 0
@@ -202,6 +210,63 @@ def flow_alignment_score_torch(render: torch.Tensor, target_doubled: torch.Tenso
     t = target_doubled.to(d)
     den = (d.norm(dim=-1) * t.norm(dim=-1)).sum()
     return ((d * t).sum() / den.clamp_min(1e-12)).clamp(-1.0, 1.0)
+
+
+# ---------------------------------------------------------------- directional detail (the stroke hinge)
+def _directional(gx, gy, u0, u1):
+    """(across², along²): the squared luminance derivative across and along the unit stroke direction whose doubled
+    angle is (u0, u1) = (cos 2θ, sin 2θ). (g·v)² = ½|g|² + ½(gx²−gy²)·cos 2θ + gx·gy·sin 2θ for v = (cos θ, sin θ),
+    and the two add up to |g|²."""
+    g2 = gx * gx + gy * gy
+    along = 0.5 * g2 + 0.5 * (gx * gx - gy * gy) * u0 + gx * gy * u1
+    return g2 - along, along
+
+
+def stroke_energies(img: torch.Tensor, doubled: torch.Tensor, weight: torch.Tensor | None = None):
+    """(E_across, E_along), 0-dim tensors in the image's dtype, differentiable w.r.t. ``img`` [H,W,3]: the weighted
+    means of the luminance's squared derivative across and along the stroke field ``doubled`` [H,W,2]
+    (c·(cos 2θ, sin 2θ)). Gradients as :func:`render_orientation` takes them (σ PRE_SIGMA pre-blur, Scharr,
+    reflected border); weights c · ``weight`` [H,W,1] (the view's coverage; all ones when None), so a pixel without
+    a stroke direction (c = 0) counts for nothing. Stripes that run along the strokes raise E_across only."""
+    gx, gy = _luma_gradients(img.permute(2, 0, 1).unsqueeze(0))
+    gx, gy = gx[0, 0], gy[0, 0]  # [H,W]
+    d = doubled.to(img)
+    n2 = (d * d).sum(-1)
+    inv = torch.where(n2 > 0, n2.clamp_min(1e-30).rsqrt(), torch.zeros_like(n2))  # 1/|d|, 0 where d = 0
+    across, along = _directional(gx, gy, d[..., 0] * inv, d[..., 1] * inv)
+    w = n2 * inv  # c = |d|, with a finite gradient at d = 0
+    if weight is not None:
+        w = w * weight[..., 0].to(img)
+    sw = w.sum().clamp_min(1e-12)
+    return (w * across).sum() / sw, (w * along).sum() / sw
+
+
+def painting_stroke_energies(style_img, view_h: int) -> tuple[float, float]:
+    """(T_across, T_along) of a painting [h,w,3] float in [0,1] at ``view_h`` rows (``resize_style``, as the detail
+    hinge's target): its own stroke field (:func:`stroke_field`), its luminance gradients by OpenCV in float64
+    (the kernels and border of :func:`structure_tensor`), the same weighted means as :func:`stroke_energies`
+    with weight c. The stroke hinge's targets."""
+    p = resize_style(np.asarray(_np(style_img), np.float32), view_h)  # [view_h,w',3] float32
+    _, c, d = stroke_field(p)
+    y = p.astype(np.float64) @ np.array(LUMA, np.float64)
+    k1, b = _ksize(PRE_SIGMA), cv2.BORDER_REFLECT_101
+    y = cv2.GaussianBlur(y, (k1, k1), PRE_SIGMA, borderType=b)
+    gx = cv2.Scharr(y, cv2.CV_64F, 1, 0, borderType=b)
+    gy = cv2.Scharr(y, cv2.CV_64F, 0, 1, borderType=b)
+    d = d.astype(np.float64)
+    n = np.linalg.norm(d, axis=-1, keepdims=True)
+    u = np.divide(d, n, out=np.zeros_like(d), where=n > 0)
+    across, along = _directional(gx, gy, u[..., 0], u[..., 1])
+    w = c.astype(np.float64)
+    sw = max(float(w.sum()), 1e-12)
+    return float((w * across).sum() / sw), float((w * along).sum() / sw)
+
+
+def stroke_hinge(e_across: torch.Tensor, e_along: torch.Tensor, t_across: float, t_along: float) -> torch.Tensor:
+    """relu(1 − E_across/T_across)² + relu(E_along/T_along − 1)²: contrast across the strokes is asked for up to the
+    painting's level, contrast along them is allowed up to the painting's level; 0 when both hold. ``t_*`` floats."""
+    return (torch.relu(1.0 - e_across / max(t_across, 1e-12)) ** 2
+            + torch.relu(e_along / max(t_along, 1e-12) - 1.0) ** 2)
 
 
 # ---------------------------------------------------------------- picture of the field
