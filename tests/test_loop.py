@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from tlvg_warp import render
 from _demo_helpers import demo_stylize_inputs
 from tlvg_warp.stylize.config import config_from_dict as stylize_config
-from tlvg_warp.losses import flow_alignment_score, resize_style
+from tlvg_warp.losses import flow_alignment_score, painting_stroke_energies, resize_style
 from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, over_background, prepare
 from tlvg_warp.train.density import DensityStrategy
 from tlvg_warp.train.loop import Fit, LoopSettings, Phase, Run, View, train
@@ -82,7 +82,7 @@ def test_stylize_terms_against_closed_forms(demo):
     run, cfg, tg = _stylize_run(demo, net, **{"loss.w_style_color": 0.5, "loss.w_chroma_tv": 0.3,
                                               "loss.w_style_gram": 0.7, "loss.w_coverage": 0.9,
                                               "loss.w_silhouette": 0.6, "loss.w_detail": 0.4,
-                                              "loss.w_orient": 0.5})
+                                              "loss.w_orient": 0.5, "loss.w_stroke": 0.8})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -101,6 +101,19 @@ def test_stylize_terms_against_closed_forms(demo):
     shown = over_background(view.out.color.detach().double(), cov2, run.background).numpy()
     e_oracle = hp_energy(shown @ np.array([0.299, 0.587, 0.114]), cov2[..., 0].numpy())
     setup_target = sty.detail_target
+    setup_stroke = sty.stroke_target
+    # the stroke hinge's oracle: OpenCV's σ 1 blur and Scharr (float64, reflected border), the gradient projected on
+    # the view's field direction and its normal, weighted by the field's coherence x the coverage
+    fld = sty.fields[2][..., :2].double().numpy()
+    th, c_f = 0.5 * np.arctan2(fld[..., 1], fld[..., 0]), np.linalg.norm(fld, axis=-1)
+    lum = cv2.GaussianBlur(shown @ np.array([0.299, 0.587, 0.114]), (9, 9), 1.0, borderType=cv2.BORDER_REFLECT_101)
+    gx = cv2.Scharr(lum, cv2.CV_64F, 1, 0, borderType=cv2.BORDER_REFLECT_101)
+    gy = cv2.Scharr(lum, cv2.CV_64F, 0, 1, borderType=cv2.BORDER_REFLECT_101)
+    wf = c_f * cov2[..., 0].numpy()
+    e_across = float((wf * (gy * np.cos(th) - gx * np.sin(th)) ** 2).sum() / wf.sum())
+    e_along = float((wf * (gx * np.cos(th) + gy * np.sin(th)) ** 2).sum() / wf.sum())
+    sty.stroke_target = (3.0 * e_across, 0.5 * e_along)  # both halves active
+    stroke = (1 - 1 / 3.0) ** 2 + (2.0 - 1) ** 2
     # the demo's painting at 64 rows has less detail than the render (the hinge would be 0): a target of 2.5x the
     # OpenCV energy makes it active, and the term then equals (1 - E/(2.5 E_opencv))^2 only if its E is OpenCV's
     sty.detail_target = 2.5 * e_oracle
@@ -137,13 +150,14 @@ def test_stylize_terms_against_closed_forms(demo):
     paint = resize_style(tg.style_work.numpy(), int(np.median([c.height for c in run.cams]))).astype(np.float64)
     e_star = hp_energy(paint @ np.array([0.299, 0.587, 0.114]))
     assert setup_target == pytest.approx(e_star, rel=1e-6)
+    assert setup_stroke == pytest.approx(painting_stroke_energies(tg.style_work.numpy(), paint.shape[0]), rel=1e-12)
     e = hp_energy(y.numpy(), cov[..., 0].numpy())  # the test's own composite of the render
     detail = max(0.0, 1.0 - e / (2.5 * e_oracle)) ** 2
     assert detail > 0.1  # active
     opac = torch.full((run.params.num,), 0.25 ** 2, dtype=torch.float64)
     opac[::2] = (0.25 - 3.0) ** 2
     want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "style_gram": gram,
-            "detail": detail, "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
+            "detail": detail, "stroke": stroke, "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k
     # the orientation term: 1 - the alignment OpenCV's structure tensor (float32) measures against the view's field

@@ -42,6 +42,10 @@ class StyleLoss:
     w_detail: float = 0.0  # hinge (1 - E/E_painting)^2 on the render's luminance detail energy E (what a σ 2 px blur
     # removes, where the scene was) below the painting's at the view's height: nearest-neighbour matching lets a smooth
     # render match the painting's smooth passages, this asks for the painting's level of detail (ours; 0: off)
+    w_stroke: float = 0.0  # directional detail hinge: (1 - E_across/T_across)^2 below the painting's luminance contrast
+    # across the stroke field, plus (E_along/T_along - 1)^2 above its contrast along it (Scharr gradients weighted by
+    # the field's coherence, where the scene was; targets: the painting's own, at the view's height). w_detail asks for
+    # contrast in every direction; this asks for stripes that run along the strokes (ours; 0: off)
     w_orient: float = 0.0  # 1 - the render's own structure-tensor alignment with the stroke field (the flow energy
     # of eq. 1 read off the image instead of the footprints): the texture the style terms paint, not only the splats'
     # axes, follows the painter's directions (ours; 0: off)
@@ -60,7 +64,7 @@ class StyleLoss:
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0),
              **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_coverage",
-                                       "w_silhouette", "w_detail", "w_orient",
+                                       "w_silhouette", "w_detail", "w_stroke", "w_orient",
                                        "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}

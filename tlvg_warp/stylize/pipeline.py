@@ -55,8 +55,8 @@ from ..types import SH_C0, Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "detail", "coverage",
-                 "silhouette", "opacity_reg", "scale_reg", "lab", "orient", "align", "aniso")
+STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "detail", "stroke",
+                 "coverage", "silhouette", "opacity_reg", "scale_reg", "lab", "orient", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
 REFINE_UNCAPPED = 2.0  # the refinement's Gaussian count limit (x the input) when density control has no budget
@@ -139,6 +139,14 @@ def painting_detail(style_work: torch.Tensor, height: int) -> float:
 
     p = torch.from_numpy(resize_style(style_work.detach().cpu().numpy(), height)).double()
     return float(detail_energy(p))
+
+
+def painting_stroke(style_work: torch.Tensor, height: int) -> tuple[float, float]:
+    """The painting's luminance contrast (across, along) its own stroke field at ``height`` rows (the views' height),
+    the stroke hinge's targets."""
+    from ..losses import painting_stroke_energies  # lazy: imports Warp
+
+    return painting_stroke_energies(style_work.detach().cpu().numpy(), height)
 
 
 def _shift_dc_(sh_dc: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
@@ -285,10 +293,12 @@ class Stylize(Phase):
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         self.fields = None  # per view [H,W,3] on the device
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
+        self.stroke_target = None  # the painting's (E_across, E_along) at the views' height (the stroke hinge's)
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
                       "style_gram": w.w_style_gram * w.strength,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
-                      "chroma_tv": w.w_chroma_tv, "detail": w.w_detail * w.strength, "coverage": w.w_coverage,
+                      "chroma_tv": w.w_chroma_tv, "detail": w.w_detail * w.strength,
+                      "stroke": w.w_stroke * w.strength, "coverage": w.w_coverage,
                       "silhouette": w.w_silhouette,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
                       "aniso": w.w_aniso, "orient": w.w_orient}
@@ -318,6 +328,8 @@ class Stylize(Phase):
             self.jitter(p, view_h)
         if self.on["detail"] and self.detail_target is None:
             self.detail_target = painting_detail(self.tg.style_work, view_h)
+        if self.on["stroke"] and self.stroke_target is None:
+            self.stroke_target = painting_stroke(self.tg.style_work, view_h)
 
     def jitter(self, p: GaussianParams, view_h: int) -> None:
         """stroke_jitter: a tone (or, in palette mode, a colour of the painting) per splat, at the phase's start."""
@@ -346,7 +358,7 @@ class Stylize(Phase):
 
     def terms(self, run: Run, view: View) -> dict:
         # lazy: imports Warp
-        from ..losses import content_loss, detail_energy, lab_chroma_loss, luminance
+        from ..losses import content_loss, detail_energy, lab_chroma_loss, luminance, stroke_energies, stroke_hinge
 
         tg, on, t, vi = self.tg, self.on, run.timer, view.index
         p, anchors = run.params, run.density.tracked
@@ -377,6 +389,9 @@ class Stylize(Phase):
             terms["chroma_tv"] = chroma_tv_loss(img)
         if on["detail"]:
             terms["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
+        if on["stroke"]:  # contrast across the view's stroke field up to the painting's, along it no more than it
+            terms["stroke"] = stroke_hinge(*stroke_energies(img, self.fields[vi][..., :2], tg.coverage[vi]),
+                                           *self.stroke_target)
         if on["coverage"]:
             terms["coverage"] = coverage_loss(view.out.alpha, tg.coverage[vi])
         if on["silhouette"]:
