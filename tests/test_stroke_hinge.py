@@ -1,0 +1,290 @@
+"""The stroke hinge (loss.w_stroke): luminance contrast across the target stroke field asked for up to the painting's,
+contrast along it held to the painting's.
+- a sinusoidal grating: the energies against a float64 OpenCV oracle written here (its own blur, Scharr and
+  projection on (cos θ, sin θ), not the doubled-angle formula) and against the grating's closed form; rotating the
+  field by 90° swaps them;
+- the torch energies against the numpy/OpenCV painting target on a real painting (../shared/data's Starry Night,
+  else the packaged one), at its own height and resized;
+- gradcheck in float64, the hinge's zero region, and gradient steps on an image raising across over along;
+- the Stylize phase: computed and logged when weighted, never called at weight 0."""
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from _demo_helpers import demo_stylize_inputs
+from _io_helpers import data_root
+from tlvg_warp.losses import painting_stroke_energies, resize_style, stroke_energies, stroke_field, stroke_hinge
+
+LUMA = np.array([0.299, 0.587, 0.114])
+ORACLE_TOL = 1e-4  # relative: the same float64 arithmetic in another order (measured ~1e-12)
+GRATING = dict(h=96, w=96, period=12.0, deg=30.0, amp=0.2)
+BORDER = 8  # the grating ends at the image edge; reflect-101 padding bends the gradients within ~5 px of it
+ASSETS = Path(__file__).resolve().parents[1] / "tlvg_warp" / "assets"
+
+
+def grating(h, w, period, deg, amp):
+    """Grey [h,w,3] float64: Y = 0.5 + amp·sin(2π(x cos α + y sin α)/period); its stripes run along α + 90°."""
+    a = math.radians(deg)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    y = 0.5 + amp * np.sin(2 * np.pi * (xx * math.cos(a) + yy * math.sin(a)) / period)
+    return np.repeat(y[..., None], 3, -1)
+
+
+def const_field(h, w, theta, c=1.0):
+    return torch.tensor([c * math.cos(2 * theta), c * math.sin(2 * theta)], dtype=torch.float64).expand(h, w, 2)
+
+
+def interior(h, w):
+    m = np.zeros((h, w, 1))
+    m[BORDER:-BORDER, BORDER:-BORDER] = 1
+    return m
+
+
+def oracle(img, theta, weight):
+    """(E_across, E_along) by OpenCV in float64: σ 1 blur (9 taps) and Scharr, reflect-101, the gradient projected
+    on v = (cos θ, sin θ) and on its normal, weighted means with ``weight`` [H,W]."""
+    y = cv2.GaussianBlur(img @ LUMA, (9, 9), 1.0, borderType=cv2.BORDER_REFLECT_101)
+    gx = cv2.Scharr(y, cv2.CV_64F, 1, 0, borderType=cv2.BORDER_REFLECT_101)
+    gy = cv2.Scharr(y, cv2.CV_64F, 0, 1, borderType=cv2.BORDER_REFLECT_101)
+    along = (gx * math.cos(theta) + gy * math.sin(theta)) ** 2
+    across = (-gx * math.sin(theta) + gy * math.cos(theta)) ** 2
+    return (weight * across).sum() / weight.sum(), (weight * along).sum() / weight.sum()
+
+
+def grating_energy(h, w, period, deg, amp):
+    """The grating's mean squared gradient in closed form: a plane wave through the discrete σ 1 Gaussian
+    (response Ĝ(kx)Ĝ(ky)) and Scharr (2 sin kx (10 + 6 cos ky) on x, its transpose on y), averaged over a phase (½)."""
+    a = math.radians(deg)
+    kx, ky = 2 * math.pi / period * math.cos(a), 2 * math.pi / period * math.sin(a)
+    g, j = cv2.getGaussianKernel(9, 1.0, cv2.CV_64F).ravel(), np.arange(-4, 5)
+    gain = (g * np.cos(kx * j)).sum() * (g * np.cos(ky * j)).sum()
+    sx = 2 * math.sin(kx) * (10 + 6 * math.cos(ky))
+    sy = 2 * math.sin(ky) * (10 + 6 * math.cos(kx))
+    return 0.5 * (amp * gain) ** 2 * (sx * sx + sy * sy)
+
+
+# --- 1. closed form ------------------------------------------------------------------------------------------------
+def test_grating_contrast_is_across_a_field_along_its_stripes():
+    h, w, deg = GRATING["h"], GRATING["w"], GRATING["deg"]
+    img = grating(**GRATING)
+    t = torch.from_numpy(img)
+    along_stripes = math.radians(deg + 90.0)
+    for weight in (None, interior(h, w)):
+        wt = None if weight is None else torch.from_numpy(weight)
+        ea, el = stroke_energies(t, const_field(h, w, along_stripes), wt)
+        oa, ol = oracle(img, along_stripes, np.ones((h, w)) if weight is None else weight[..., 0])
+        assert float(ea) == pytest.approx(oa, rel=ORACLE_TOL)
+        assert float(el) == pytest.approx(ol, rel=ORACLE_TOL, abs=1e-12)
+        # the whole image: the padding bends the stripes near the edges (~1% of the energy measured)
+        assert float(el) < (0.02 if weight is None else 1e-4) * float(ea)
+        # the field rotated by 90° (across the stripes): the two swap
+        ra, rl = stroke_energies(t, const_field(h, w, math.radians(deg)), wt)
+        assert (float(ra), float(rl)) == pytest.approx((float(el), float(ea)), rel=1e-9, abs=1e-12)
+    # away from the border, the energy is the plane wave's (the window holds a non-whole number of periods: 1e-2)
+    assert float(ea) == pytest.approx(grating_energy(**GRATING), rel=1e-2)
+
+
+def test_weight_is_coherence_times_coverage():
+    """A half-coherent field counts half: two halves of the image with different stripe directions and c = 1 / c = 0
+    give the first half's energies alone; the coverage mask multiplies in the same way."""
+    h, w = 48, 64
+    rng = np.random.default_rng(3)
+    img = torch.from_numpy(rng.random((h, w, 3)))
+    th = rng.uniform(-math.pi / 2, math.pi / 2, (h, w))
+    c = np.where(np.arange(w)[None, :] < w // 2, 1.0, 0.0) * np.ones((h, 1))
+    d = torch.from_numpy(np.stack([c * np.cos(2 * th), c * np.sin(2 * th)], -1))
+    cov = torch.from_numpy(np.where(np.arange(h)[:, None, None] < h // 3, 0.0, 1.0) * np.ones((1, w, 1)))
+    ea, el = stroke_energies(img, d, cov)
+    wts = c * cov[..., 0].numpy()
+    y = cv2.GaussianBlur(img.numpy() @ LUMA, (9, 9), 1.0, borderType=cv2.BORDER_REFLECT_101)
+    gx = cv2.Scharr(y, cv2.CV_64F, 1, 0, borderType=cv2.BORDER_REFLECT_101)
+    gy = cv2.Scharr(y, cv2.CV_64F, 0, 1, borderType=cv2.BORDER_REFLECT_101)
+    along = (gx * np.cos(th) + gy * np.sin(th)) ** 2
+    across = gx * gx + gy * gy - along
+    oa, ol = (wts * across).sum() / wts.sum(), (wts * along).sum() / wts.sum()
+    assert (float(ea), float(el)) == pytest.approx((oa, ol), rel=ORACLE_TOL)
+    # zero coverage everywhere: no pixel counts, finite zeros (no NaN)
+    za, zl = stroke_energies(img, d, torch.zeros(h, w, 1, dtype=torch.float64))
+    assert float(za) == 0.0 and float(zl) == 0.0
+
+
+# --- 2. torch against the painting's numpy/OpenCV target -------------------------------------------------------------
+def _painting():
+    root = data_root()
+    path = root / "styles" / "starry_night.jpg" if root is not None else None
+    if path is None or not path.is_file():
+        path = ASSETS / "starry_night.jpg"  # the packaged copy (256 rows) when ../shared/data is not there
+    im = cv2.imread(str(path), cv2.IMREAD_COLOR)[:, :, ::-1].astype(np.float32) / 255
+    return resize_style(im, 256)  # [256,w,3]: the working size
+
+
+@pytest.mark.parametrize("view_h", [256, 128, 378])
+def test_painting_targets_equal_the_torch_energies_on_the_same_field(view_h):
+    p = _painting()
+    t_across, t_along = painting_stroke_energies(p, view_h)
+    q = resize_style(p, view_h)  # what the target measures: the painting at the views' height
+    assert q.shape[0] == view_h
+    _, c, d = stroke_field(q)
+    for dtype, tol in ((torch.float64, ORACLE_TOL), (torch.float32, ORACLE_TOL)):
+        ea, el = stroke_energies(torch.from_numpy(q).to(dtype), torch.from_numpy(d), None)
+        assert ea.dtype == dtype
+        assert (float(ea), float(el)) == pytest.approx((t_across, t_along), rel=tol), dtype
+    # the premise the term rests on: a painting's contrast runs across its strokes
+    assert t_across > 3 * t_along > 0
+
+
+# --- 3. gradients ---------------------------------------------------------------------------------------------------
+def _random_case(seed, h=12, w=12):
+    g = torch.Generator().manual_seed(seed)
+    img = torch.rand(h, w, 3, generator=g, dtype=torch.float64)
+    th = (torch.rand(h, w, generator=g, dtype=torch.float64) - 0.5) * math.pi
+    c = torch.rand(h, w, generator=g, dtype=torch.float64)
+    c[0, :3] = 0.0  # pixels with no stroke direction: the safe 1/|d|
+    d = torch.stack([c * torch.cos(2 * th), c * torch.sin(2 * th)], -1)
+    cov = torch.rand(h, w, 1, generator=g, dtype=torch.float64)
+    return img, d, cov
+
+
+def test_gradcheck_of_the_hinge_through_the_energies():
+    img, d, cov = _random_case(0)
+    ea, el = (float(v) for v in stroke_energies(img, d, cov))
+    targets = (2.0 * ea, 0.5 * el)  # both halves of the hinge active
+    assert float(stroke_hinge(*stroke_energies(img, d, cov), *targets)) == pytest.approx(0.25 + 1.0, rel=1e-12)
+    x = img.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda im: stroke_hinge(*stroke_energies(im, d, cov), *targets), (x,))
+    assert torch.autograd.gradcheck(lambda im: torch.stack(stroke_energies(im, d, cov)), (x,))
+    assert torch.autograd.gradcheck(lambda im: torch.stack(stroke_energies(im, d, None)), (x,))
+
+
+def test_hinge_is_zero_where_across_and_along_meet_their_targets():
+    img, d, cov = _random_case(1)
+    ea, el = stroke_energies(img, d, cov)
+    x = img.clone().requires_grad_()
+    for targets in ((0.5 * float(ea), 2.0 * float(el)), (float(ea), float(el))):  # inside, and on the edge
+        x.grad = None
+        h = stroke_hinge(*stroke_energies(x, d, cov), *targets)
+        h.backward()
+        assert float(h.detach()) == 0.0 and torch.count_nonzero(x.grad) == 0, targets
+    # each half alone: across short of its target, along over its target
+    assert float(stroke_hinge(ea, el, 2.0 * float(ea), 2.0 * float(el))) == pytest.approx(0.25, rel=1e-12)
+    assert float(stroke_hinge(ea, el, 0.5 * float(ea), 0.5 * float(el))) == pytest.approx(1.0, rel=1e-12)
+
+
+# --- 4. the gradient's direction -------------------------------------------------------------------------------------
+def test_descent_raises_contrast_across_over_along():
+    """From a flat grey with a little noise (as much contrast along a 120° field as across it), descending the hinge
+    puts stripes along the field: E_across/E_along rises and the hinge falls, at the first step and after a few."""
+    h = w = 32
+    d = const_field(h, w, math.radians(120.0))
+    g = torch.Generator().manual_seed(0)
+    x = (0.5 + 0.02 * torch.randn(h, w, 1, generator=g, dtype=torch.float64)).expand(h, w, 3).clone()
+    ea, el = (float(v) for v in stroke_energies(x, d))
+    assert 0.5 < ea / el < 2.0  # the premise: no direction yet
+    targets = (10.0 * ea, el)  # ten times the contrast across, no more along: the along half starts at its edge
+
+    def state(im):
+        a, b = stroke_energies(im, d)
+        return float(stroke_hinge(a, b, *targets)), float(a / b)
+
+    h0, r0 = state(x)
+    # one plain gradient step
+    xg = x.clone().requires_grad_()
+    stroke_hinge(*stroke_energies(xg, d), *targets).backward()
+    h1, r1 = state(x - 1e-3 * xg.grad / xg.grad.abs().max())
+    assert h1 < h0 and r1 > r0
+    # a few Adam steps
+    xs = x.clone().requires_grad_()
+    opt = torch.optim.Adam([xs], lr=5e-3)
+    for _ in range(10):
+        opt.zero_grad()
+        stroke_hinge(*stroke_energies(xs, d), *targets).backward()
+        opt.step()
+    hn, rn = state(xs.detach())
+    assert hn < 0.1 * h0 and rn > 5 * r0
+
+
+# --- 5. the Stylize phase --------------------------------------------------------------------------------------------
+W, H, VIEWS, SUBSAMPLE = 32, 24, 4, 8
+
+
+class StubFeatures(torch.nn.Module):
+    """4x4 average pooling as the feature network (as tests/test_loop.py's)."""
+
+    is_random, source = True, "stub"
+
+    def forward(self, img, scale=1.0):
+        x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img
+        return F.avg_pool2d(x.float(), 4)
+
+    def features_of(self, images, scale=1.0):
+        f = self(torch.stack([im.permute(2, 0, 1) for im in images]), scale)
+        return [fi.reshape(3, -1) for fi in f]
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return demo_stylize_inputs(VIEWS, W, H, SUBSAMPLE)[1]
+
+
+def _stylize_run(inp, **over):
+    from tlvg_warp.distributed import Dist
+    from tlvg_warp.stylize.config import config_from_dict
+    from tlvg_warp.stylize.pipeline import build_run, prepare
+
+    net = StubFeatures()
+    cfg = config_from_dict({"iterations": 8, "device": "cpu", "style_height": 64, "vgg_scale": 1.0, "log_every": 1,
+                            "background": list(inp.background), **over}).validate()
+    tg = prepare(inp, cfg, net, torch.device("cpu"), inp.background)
+    return build_run(inp, cfg, tg, net, torch.device("cpu"), Dist(), None), cfg, tg
+
+
+def _counting(monkeypatch):
+    import tlvg_warp.losses as L
+
+    calls, real = [], L.stroke_energies
+
+    def counted(*a, **k):
+        calls.append(a[0].shape)
+        return real(*a, **k)
+    monkeypatch.setattr(L, "stroke_energies", counted)
+    return calls
+
+
+def test_stylize_logs_the_stroke_term_when_weighted(demo, monkeypatch):
+    from tlvg_warp.train.loop import train
+
+    calls = _counting(monkeypatch)
+    run, cfg, tg = _stylize_run(demo, **{"loss.w_stroke": 0.5, "loss.strength": 2.0})
+    sty = run.phase("stylize")
+    assert sty.weights(0)["stroke"] == 1.0  # w_stroke x strength, as the detail hinge
+    view_h = int(np.median([c.height for c in run.cams]))
+    # a target across far above any render keeps the hinge active (~1), the along half at 0
+    sty.stroke_target = (1e3, 1e3)
+    train(run, progress=False)
+    rows = [r for r in run.log if r["phase"] == "stylize"]
+    assert len(rows) == sty.steps > 0 and len(calls) == sty.steps
+    assert all(0.5 < r["stroke"] <= 1.0 for r in rows)  # logged, and active: (1 - E_across/1e3)^2
+    assert all(r["stroke"] == 0 for r in run.log if r["phase"] != "stylize")
+    # the target setup computes: the painting's own energies at the views' height
+    run2, _, tg2 = _stylize_run(demo, **{"loss.w_stroke": 0.5})
+    sty2 = run2.phase("stylize")
+    sty2.setup(run2)
+    assert sty2.stroke_target == pytest.approx(painting_stroke_energies(tg2.style_work.numpy(), view_h), rel=1e-12)
+    assert all(isinstance(v, float) for v in sty2.stroke_target)
+
+
+def test_stylize_never_computes_the_stroke_term_at_weight_zero(demo, monkeypatch):
+    from tlvg_warp.train.loop import train
+
+    calls = _counting(monkeypatch)
+    run, cfg, _ = _stylize_run(demo)
+    assert cfg.loss.w_stroke == 0.0  # off by default
+    sty = run.phase("stylize")
+    train(run, progress=False)
+    assert not sty.on["stroke"] and sty.stroke_target is None and calls == []
+    assert all(r["stroke"] == 0 for r in run.log)
