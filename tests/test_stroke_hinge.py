@@ -175,6 +175,25 @@ def test_hinge_is_zero_where_across_and_along_meet_their_targets():
     assert float(stroke_hinge(ea, el, 0.5 * float(ea), 0.5 * float(el))) == pytest.approx(1.0, rel=1e-12)
 
 
+def test_bounded_along_half_stays_below_one_where_the_ratio_grows():
+    """along="bounded": (1 - T_along/E_along)^2 while E_along is above T_along, in [0, 1) however far it goes (the
+    ratio form grows as (E_along/T_along - 1)^2); the across half and the zero region are the ratio form's."""
+    img, d, cov = _random_case(2)
+    ea, el = stroke_energies(img, d, cov)
+    for k, ratio, bounded in ((0.5, 1.0, 0.25), (0.01, 99.0 ** 2, 0.99 ** 2)):  # E_along = T_along / k
+        t = (0.5 * float(ea), k * float(el))  # the across half inactive
+        assert float(stroke_hinge(ea, el, *t)) == pytest.approx(ratio, rel=1e-9)
+        assert float(stroke_hinge(ea, el, *t, along="bounded")) == pytest.approx(bounded, rel=1e-9)
+    assert float(stroke_hinge(ea, el, 0.5 * float(ea), 2.0 * float(el), along="bounded")) == 0.0
+    assert float(stroke_hinge(ea, el, 2.0 * float(ea), 2.0 * float(el), along="bounded")) == pytest.approx(0.25, rel=1e-12)
+    x = img.clone().requires_grad_()
+    targets = (2.0 * float(ea), 0.5 * float(el))  # both halves active
+    assert torch.autograd.gradcheck(lambda im: stroke_hinge(*stroke_energies(im, d, cov), *targets, along="bounded"),
+                                    (x,))
+    with pytest.raises(ValueError, match="along"):
+        stroke_hinge(ea, el, *targets, along="linear")
+
+
 # --- 4. the gradient's direction -------------------------------------------------------------------------------------
 def test_descent_raises_contrast_across_over_along():
     """From a flat grey with a little noise (as much contrast along a 120° field as across it), descending the hinge
@@ -276,6 +295,22 @@ def test_stylize_logs_the_stroke_term_when_weighted(demo, monkeypatch):
     sty2.setup(run2)
     assert sty2.stroke_target == pytest.approx(painting_stroke_energies(tg2.style_work.numpy(), view_h), rel=1e-12)
     assert all(isinstance(v, float) for v in sty2.stroke_target)
+
+
+def test_stylize_passes_the_along_form_to_the_hinge(demo, monkeypatch):
+    """loss.stroke_along reaches the hinge: with the targets far below the render's energies the along half is
+    (E_along/T_along - 1)^2 >> 1 in the ratio form and under 1 in the bounded form; the across half is 0."""
+    from tlvg_warp.train.loop import train
+
+    logged = {}
+    for form in ("ratio", "bounded"):
+        run, cfg, _ = _stylize_run(demo, **{"loss.w_stroke": 0.5, "loss.stroke_along": form})
+        assert cfg.loss.stroke_along == form
+        run.phase("stylize").stroke_target = (1e-9, 1e-6)
+        train(run, progress=False)
+        logged[form] = [r["stroke"] for r in run.log if r["phase"] == "stylize"]
+    assert all(v > 10.0 for v in logged["ratio"])
+    assert all(0.5 < v < 1.0 for v in logged["bounded"])
 
 
 def test_stylize_never_computes_the_stroke_term_at_weight_zero(demo, monkeypatch):

@@ -46,6 +46,9 @@ class StyleLoss:
     # across the stroke field, plus (E_along/T_along - 1)^2 above its contrast along it (Scharr gradients weighted by
     # the field's coherence, where the scene was; targets: the painting's own, at the view's height). w_detail asks for
     # contrast in every direction; this asks for stripes that run along the strokes (ours; 0: off)
+    stroke_along: str = "ratio"  # the hinge's second half: ratio (E_along/T_along - 1)^2, unbounded, or bounded
+    # (1 - T_along/E_along)^2 in [0, 1). A scene with more contrast along the field than the painting (lego's bricks)
+    # makes the ratio dominate the loss and smooths its edges; bounded was measured on the CPU only (docs/study.md)
     w_orient: float = 0.0  # 1 - the render's own structure-tensor alignment with the stroke field (the flow energy
     # of eq. 1 read off the image instead of the footprints): the texture the style terms paint, not only the splats'
     # axes, follows the painter's directions (ours; 0: off)
@@ -61,6 +64,7 @@ class StyleLoss:
     fast_cache: str = "projection"  # what fast_refresh reuses: projection (the top-k cells and the solve) | match (cells only)
 
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
+             "stroke_along": ("of", "ratio", "bounded"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0),
              **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_coverage",

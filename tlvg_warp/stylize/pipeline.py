@@ -391,7 +391,7 @@ class Stylize(Phase):
             terms["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
         if on["stroke"]:  # contrast across the view's stroke field up to the painting's, along it no more than it
             terms["stroke"] = stroke_hinge(*stroke_energies(img, self.fields[vi][..., :2], tg.coverage[vi]),
-                                           *self.stroke_target)
+                                           *self.stroke_target, along=self.cfg.loss.stroke_along)
         if on["coverage"]:
             terms["coverage"] = coverage_loss(view.out.alpha, tg.coverage[vi])
         if on["silhouette"]:
