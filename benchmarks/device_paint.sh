@@ -118,6 +118,8 @@ EOF
     deadline=$((SECONDS + ${WAIT:-500}))
     while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/pairs/queue_validation.done" ] ||
       [ ! -f "$R/seeds/pairs/queue_seeds.done" ]; }; do sleep 5; done
+    # the fits ran in the background (PART=fit FIT_LIMIT=1 returns at once): their held-out PSNR and size, here
+    for s in $SCENES; do echo "fit $s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" 2>/dev/null | tail -n 2 | tr '\n' ' ')"; done
     grep -h "^done\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log "$R"/seeds/pairs/queue_*.log 2>/dev/null | tail -n 60
     (cd "$R" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d {pairs,seeds/pairs}/*/*/evaluation/evaluation.json {pairs,seeds/pairs}/*/*/*/metrics.json pairs/*.jpg 2>/dev/null))
     ;;
