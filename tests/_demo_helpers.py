@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 
 def demo_stylize_inputs(views: int, width: int, height: int, every: int = 1, **demo_kw):
@@ -15,3 +16,23 @@ def demo_stylize_inputs(views: int, width: int, height: int, every: int = 1, **d
     inp = StylizeInputs(g, list(ds.cameras), list(ds.names), [ds.image(i) for i in range(views)],
                         builtin_painting(), tuple(ds.background))
     return ds, inp
+
+
+class StubFeatures(torch.nn.Module):
+    """A feature network with closed-form features, for tests whose property does not depend on what VGG computes:
+    4x4 average pooling of the image (3 'channels'). ``calls`` keeps the images it saw."""
+
+    is_random, source = True, "stub"
+
+    def __init__(self):
+        super().__init__()
+        self.calls = []
+
+    def forward(self, img, scale=1.0):
+        x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img
+        self.calls.append(x.detach())
+        return F.avg_pool2d(x.float(), 4)
+
+    def features_of(self, images, scale=1.0):  # one batched pass, as VGG16Features.features_of
+        f = self(torch.stack([im.permute(2, 0, 1) for im in images]), scale)
+        return [fi.reshape(3, -1) for fi in f]

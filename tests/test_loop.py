@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from tlvg_warp import render
-from _demo_helpers import demo_stylize_inputs
+from _demo_helpers import StubFeatures, demo_stylize_inputs
 from tlvg_warp.stylize.config import config_from_dict as stylize_config
 from tlvg_warp.losses import flow_alignment_score, painting_stroke_energies, resize_style
 from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, over_background, prepare
@@ -35,25 +35,6 @@ from tlvg_warp.train.reconstruct import fit_scene
 W, H, VIEWS, SUBSAMPLE = 32, 24, 4, 8
 TERM_TOL = 1e-5  # float32 terms against float64 oracles of the same quantities
 BATCH_TOL = 2e-5  # 2 ranks x 1 view vs 1 rank x 2 views: the same sums in another order (float32)
-
-
-class StubFeatures(torch.nn.Module):
-    """A feature network with closed-form features: 4x4 average pooling of the image (3 'channels')."""
-
-    is_random, source = True, "stub"
-
-    def __init__(self):
-        super().__init__()
-        self.calls = []  # the images it saw
-
-    def forward(self, img, scale=1.0):
-        x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img
-        self.calls.append(x.detach())
-        return F.avg_pool2d(x.float(), 4)
-
-    def features_of(self, images, scale=1.0):  # one batched pass, as VGG16Features.features_of
-        f = self(torch.stack([im.permute(2, 0, 1) for im in images]), scale)
-        return [fi.reshape(3, -1) for fi in f]
 
 
 @pytest.fixture(scope="module")

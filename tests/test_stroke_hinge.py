@@ -14,9 +14,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
-from _demo_helpers import demo_stylize_inputs
+from _demo_helpers import StubFeatures, demo_stylize_inputs
 from _io_helpers import data_root
 from tlvg_warp.losses import painting_stroke_energies, resize_style, stroke_energies, stroke_field, stroke_hinge
 
@@ -229,20 +228,6 @@ def test_descent_raises_contrast_across_over_along():
 
 # --- 5. the Stylize phase --------------------------------------------------------------------------------------------
 W, H, VIEWS, SUBSAMPLE = 32, 24, 4, 8
-
-
-class StubFeatures(torch.nn.Module):
-    """4x4 average pooling as the feature network (as tests/test_loop.py's)."""
-
-    is_random, source = True, "stub"
-
-    def forward(self, img, scale=1.0):
-        x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img
-        return F.avg_pool2d(x.float(), 4)
-
-    def features_of(self, images, scale=1.0):
-        f = self(torch.stack([im.permute(2, 0, 1) for im in images]), scale)
-        return [fi.reshape(3, -1) for fi in f]
 
 
 @pytest.fixture(scope="module")

@@ -7,29 +7,14 @@ import math
 
 import pytest
 import torch
-import torch.nn.functional as F
 import yaml
 
-from _demo_helpers import demo_stylize_inputs
+from _demo_helpers import StubFeatures, demo_stylize_inputs
 from tlvg_warp.distributed import Dist
 from tlvg_warp.stylize.config import config_from_dict
 from tlvg_warp.stylize.pipeline import build_run, over_background, prepare
 
 W, H, VIEWS = 32, 24, 3
-
-
-class StubFeatures(torch.nn.Module):
-    """Closed-form 'features' (4x4 average pooling): the controls do not depend on what VGG computes."""
-
-    is_random, source = True, "stub"
-
-    def forward(self, img, scale=1.0):
-        x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img
-        return F.avg_pool2d(x.float(), 4)
-
-    def features_of(self, images, scale=1.0):
-        f = self(torch.stack([im.permute(2, 0, 1) for im in images]), scale)
-        return [fi.reshape(3, -1) for fi in f]
 
 
 @pytest.fixture(scope="module")
