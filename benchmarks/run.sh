@@ -30,7 +30,8 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      Reproduces: "The demo".
   scaling [JOB ...]  one GPU against two of one host (benchmarks/scaling.sh: fit stylize nccl study table).
                      Reproduces: "Many GPUs".
-  cuda-tests         the CUDA tests (rasterizer against the float64 reference, graphed VGG and orientation term).
+  cuda-tests         the CUDA tests (rasterizer against the float64 reference; the graphed VGG, orientation and
+                     stroke terms).
   host-profile [SCENE_SPEC] [fwd|fwd_bwd]
                      host against GPU timeline of one render (benchmarks/profile_host.py): where the GPU waits.
   cost-curves        time and peak memory of a stylize step and a fit step against Gaussians (0.1M-10M) and pixels (0.1-4 MP) on
@@ -135,7 +136,8 @@ case "$cmd" in
       python3 -m tlvg_warp stylize --out "$R/demo" --overwrite
     rm -rf "$tmp";;
   scaling) exec bash benchmarks/scaling.sh "$@";;
-  cuda-tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py tests/test_losses_vgg.py tests/test_losses_stroke.py;;
+  cuda-tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py tests/test_losses_vgg.py tests/test_losses_stroke.py \
+    tests/test_stroke_hinge.py;;
   host-profile) exec python3 benchmarks/profile_host.py "$@";;
   cost-curves) gpu; exec python3 benchmarks/cost_curves.py --out "$OUT/cost_curves" "$@";;
   step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet;;

@@ -94,6 +94,7 @@ def test_stylize_terms_against_closed_forms(demo):
     e_across = float((wf * (gy * np.cos(th) - gx * np.sin(th)) ** 2).sum() / wf.sum())
     e_along = float((wf * (gx * np.cos(th) + gy * np.sin(th)) ** 2).sum() / wf.sum())
     sty.stroke_target = (3.0 * e_across, 0.5 * e_along)  # both halves active
+    sty.field_terms = sty.make_field_terms()  # setup baked the painting's targets into the call
     stroke = (1 - 1 / 3.0) ** 2 + (2.0 - 1) ** 2
     # the demo's painting at 64 rows has less detail than the render (the hinge would be 0): a target of 2.5x the
     # OpenCV energy makes it active, and the term then equals (1 - E/(2.5 E_opencv))^2 only if its E is OpenCV's

@@ -6,6 +6,9 @@ contrast along it held to the painting's.
 - the torch energies against the numpy/OpenCV painting target on a real painting (../shared/data's Starry Night,
   else the packaged one), at its own height and resized;
 - gradcheck in float64, the hinge's zero region, and gradient steps on an image raising across over along;
+- field_terms (the orientation and stroke terms from one gradient pass, the call the phase graphs on CUDA): its
+  values and gradient those of the two separate functions, an entry 0 where its term is off; on CUDA the replayed
+  graph the eager call's for renders, fields and weights that change between calls;
 - the Stylize phase: computed and logged when weighted, never called at weight 0."""
 import math
 from pathlib import Path
@@ -17,7 +20,9 @@ import torch
 
 from _demo_helpers import StubFeatures, demo_stylize_inputs
 from _io_helpers import data_root
-from tlvg_warp.losses import painting_stroke_energies, resize_style, stroke_energies, stroke_field, stroke_hinge
+from tlvg_warp.losses import (field_terms, flow_alignment_score_torch, painting_stroke_energies, resize_style,
+                              stroke_energies, stroke_field, stroke_hinge)
+from tlvg_warp.losses.graphs import GraphedFn
 
 LUMA = np.array([0.299, 0.587, 0.114])
 ORACLE_TOL = 1e-4  # relative: the same float64 arithmetic in another order (measured ~1e-12)
@@ -193,6 +198,55 @@ def test_bounded_along_half_stays_below_one_where_the_ratio_grows():
         stroke_hinge(ea, el, *targets, along="linear")
 
 
+# --- 3b. the two field terms from one gradient pass --------------------------------------------------------------
+def test_field_terms_are_the_separate_terms_from_one_pass():
+    """[1 - flow alignment score, stroke hinge]: each entry, and the gradient of any mix of them, equal to the
+    separate functions' (a version that blurred twice, swapped the entries, or dropped the coverage weight fails);
+    an entry is exactly 0 (and adds no gradient) where its term is off."""
+    img, d, cov = _random_case(3, 14, 17)
+    ea, el = stroke_energies(img, d, cov)
+    targets = (2.0 * float(ea), 0.5 * float(el))  # both halves active
+    for along in ("ratio", "bounded"):
+        x = img.clone().requires_grad_()
+        v = field_terms(x, d, cov, stroke_target=targets, along=along)
+        (0.7 * v[0] + 1.3 * v[1]).backward()
+        y = img.clone().requires_grad_()
+        o = 1.0 - flow_alignment_score_torch(y, d)
+        h = stroke_hinge(*stroke_energies(y, d, cov), *targets, along=along)
+        (0.7 * o + 1.3 * h).backward()
+        assert v.shape == (2,) and float(v[0]) == pytest.approx(float(o), rel=1e-12)
+        assert float(v[1]) == pytest.approx(float(h), rel=1e-12) and float(h) > 0.1
+        assert torch.allclose(x.grad, y.grad, rtol=1e-10, atol=1e-14)
+    x = img.clone().requires_grad_()
+    only_stroke = field_terms(x, d, cov, orient=False, stroke_target=targets)
+    only_stroke[0].backward()
+    assert float(only_stroke[0]) == 0.0 and not x.grad.any()
+    assert float(field_terms(img, d, cov)[1]) == 0.0  # no target: the stroke entry is off
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_field_terms_as_a_cuda_graph_match_eager():
+    """The phase's call replayed as CUDA graphs gives the eager values and image gradient for renders, fields and
+    coverage that change between calls (a graph that kept its first field or coverage fails), one graph per shape."""
+    from functools import partial
+
+    dev = torch.device("cuda")
+    fn = partial(field_terms, stroke_target=(0.05, 0.01), along="ratio")
+    graphed = GraphedFn(fn)
+    for k, (h, w) in enumerate(((40, 56), (40, 56), (40, 56), (32, 30))):
+        img, d, cov = (t.float().to(dev) for t in _random_case(10 + k, h, w))
+        out = []
+        for f in (fn, graphed):
+            x = img.clone().requires_grad_(True)
+            v = f(x, d, cov)
+            (0.5 * v[0] + 2.0 * v[1]).backward()
+            out.append((v.detach().clone(), x.grad))
+        (v0, g0), (v1, g1) = out
+        assert float(v0[1]) > 0 and torch.allclose(v0, v1, rtol=1e-5, atol=1e-6)
+        assert torch.allclose(g0, g1, rtol=1e-4, atol=1e-4 * g0.abs().max())
+    assert len(graphed.graphs) == 2
+
+
 # --- 4. the gradient's direction -------------------------------------------------------------------------------------
 def test_descent_raises_contrast_across_over_along():
     """From a flat grey with a little noise (as much contrast along a 120° field as across it), descending the hinge
@@ -250,12 +304,13 @@ def _stylize_run(inp, **over):
 def _counting(monkeypatch):
     import tlvg_warp.losses as L
 
-    calls, real = [], L.stroke_energies
+    calls, real = [], L.field_terms
 
-    def counted(*a, **k):
-        calls.append(a[0].shape)
+    def counted(*a, **k):  # the calls that compute the stroke hinge
+        if k.get("stroke_target") is not None:
+            calls.append(a[0].shape)
         return real(*a, **k)
-    monkeypatch.setattr(L, "stroke_energies", counted)
+    monkeypatch.setattr(L, "field_terms", counted)
     return calls
 
 

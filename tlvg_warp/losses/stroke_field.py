@@ -118,8 +118,15 @@ def render_orientation(img: torch.Tensor):
     [B,3,H,W] -> ([B,H,W], [B,H,W], [B,H,W,2])."""
     single = img.dim() == 3
     x = img.permute(2, 0, 1).unsqueeze(0) if single else img  # [B,3,H,W]
-    gx, gy = _luma_gradients(x)
-    j = _sep_blur(torch.cat([gx * gx, gx * gy, gy * gy], 1), _kernels(x.dtype, x.device)[1])  # [B,3,H,W]
+    theta, c, doubled = _orientation(*_luma_gradients(x))
+    if single:
+        return theta[0], c[0], doubled[0]
+    return theta, c, doubled
+
+
+def _orientation(gx, gy):
+    """(θ, c, doubled) [B,H,W], [B,H,W], [B,H,W,2] from luminance gradients gx, gy [B,1,H,W]."""
+    j = _sep_blur(torch.cat([gx * gx, gx * gy, gy * gy], 1), _kernels(gx.dtype, gx.device)[1])  # [B,3,H,W]
     jxx, jxy, jyy = j[:, 0], j[:, 1], j[:, 2]
     dx, dy = jxx - jyy, 2.0 * jxy
     r = torch.sqrt(dx * dx + dy * dy + 1e-30)  # tiny keeps sqrt's gradient finite at r = 0
@@ -127,8 +134,6 @@ def render_orientation(img: torch.Tensor):
     c = (r / tr) ** 2
     doubled = torch.stack([-dx, -dy], -1) * (r / tr ** 2).unsqueeze(-1)  # c·(cos2θ, sin2θ) = −(dx,dy)·c/r
     theta = 0.5 * torch.atan2(-dy, -dx)
-    if single:
-        return theta[0], c[0], doubled[0]
     return theta, c, doubled
 
 
@@ -207,6 +212,10 @@ def flow_alignment_score(render, target_doubled) -> float:
 def flow_alignment_score_torch(render: torch.Tensor, target_doubled: torch.Tensor) -> torch.Tensor:
     """Same score from :func:`render_orientation` (stays on the device, differentiable); a 0-dim tensor."""
     _, _, d = render_orientation(render)
+    return _alignment(d, target_doubled)
+
+
+def _alignment(d: torch.Tensor, target_doubled: torch.Tensor) -> torch.Tensor:
     t = target_doubled.to(d)
     den = (d.norm(dim=-1) * t.norm(dim=-1)).sum()
     return ((d * t).sum() / den.clamp_min(1e-12)).clamp(-1.0, 1.0)
@@ -229,14 +238,17 @@ def stroke_energies(img: torch.Tensor, doubled: torch.Tensor, weight: torch.Tens
     reflected border); weights c · ``weight`` [H,W,1] (the view's coverage; all ones when None), so a pixel without
     a stroke direction (c = 0) counts for nothing. Stripes that run along the strokes raise E_across only."""
     gx, gy = _luma_gradients(img.permute(2, 0, 1).unsqueeze(0))
-    gx, gy = gx[0, 0], gy[0, 0]  # [H,W]
-    d = doubled.to(img)
+    return _energies(gx[0, 0], gy[0, 0], doubled, weight)
+
+
+def _energies(gx, gy, doubled, weight):  # gx, gy [H,W]
+    d = doubled.to(gx)
     n2 = (d * d).sum(-1)
     inv = torch.where(n2 > 0, n2.clamp_min(1e-30).rsqrt(), torch.zeros_like(n2))  # 1/|d|, 0 where d = 0
     across, along = _directional(gx, gy, d[..., 0] * inv, d[..., 1] * inv)
     w = n2 * inv  # c = |d|, with a finite gradient at d = 0
     if weight is not None:
-        w = w * weight[..., 0].to(img)
+        w = w * weight[..., 0].to(gx)
     sw = w.sum().clamp_min(1e-12)
     return (w * across).sum() / sw, (w * along).sum() / sw
 
@@ -274,6 +286,20 @@ def stroke_hinge(e_across: torch.Tensor, e_along: torch.Tensor, t_across: float,
     if along != "ratio":
         raise ValueError(f"along must be 'ratio' or 'bounded', got {along!r}")
     return across + torch.relu(e_along / max(t_along, 1e-12) - 1.0) ** 2
+
+
+def field_terms(img: torch.Tensor, doubled: torch.Tensor, weight: torch.Tensor, *, orient: bool = True,
+                stroke_target: tuple[float, float] | None = None, along: str = "ratio") -> torch.Tensor:
+    """The two loss terms read off the render's luminance gradients against the view's stroke field, from ONE
+    gradient pass: [1 − :func:`flow_alignment_score_torch`, :func:`stroke_hinge` of :func:`stroke_energies`] [2],
+    an entry 0 where its term is off (``orient`` False, ``stroke_target`` None). img [H,W,3], doubled [H,W,2],
+    weight [H,W,1] (the stroke hinge's coverage). One tensor out, so that ``GraphedFn`` replays both as one graph."""
+    gx, gy = _luma_gradients(img.permute(2, 0, 1).unsqueeze(0))  # [1,1,H,W] each
+    zero = img.new_zeros(())
+    orient_term = 1.0 - _alignment(_orientation(gx, gy)[2][0], doubled) if orient else zero
+    stroke_term = zero if stroke_target is None else stroke_hinge(
+        *_energies(gx[0, 0], gy[0, 0], doubled, weight), *stroke_target, along=along)
+    return torch.stack([orient_term, stroke_term])
 
 
 # ---------------------------------------------------------------- picture of the field

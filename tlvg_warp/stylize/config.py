@@ -144,7 +144,8 @@ class StylizeConfig:
     vgg_scale: float = 0.5  # the render is resized by this before VGG (SPEC §3: x0.5)
     vgg_channels_last: bool = True  # on CUDA: VGG in NHWC (cuDNN's layout; float32 arithmetic, gradients within 3e-4)
     vgg_cuda_graphs: bool = True  # on CUDA: the loss's VGG pass (forward and backward) replays a captured CUDA graph
-    orient_cuda_graphs: bool = True  # on CUDA: the orientation term (loss.w_orient) replays a captured CUDA graph
+    orient_cuda_graphs: bool = True  # on CUDA: the orientation and stroke terms (loss.w_orient, w_stroke) replay one
+    # captured CUDA graph
     keep_sh: bool = False  # keep view-dependent SH bands in stylized.ply (default: degree 0, ~3.6x smaller)
     background: list[float] | None = None  # render background RGB; None: the dataset's (white for the demo)
     views_per_step: int = 1  # training views per step (per rank under torchrun); the loss is their mean

@@ -38,6 +38,7 @@ import sys
 import time
 import warnings
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import torch
@@ -282,8 +283,7 @@ class Stylize(Phase):
 
     def __init__(self, steps: int, cfg: StylizeConfig, tg: Targets, vgg, **kw):
         super().__init__("stylize", steps, **kw)
-        from ..losses import StyleLoss, flow_alignment_score_torch  # lazy: imports Warp
-        from ..losses.graphs import GraphedFn
+        from ..losses import StyleLoss  # lazy: imports Warp
 
         self.cfg, self.tg, self.vgg, w = cfg, tg, vgg, cfg.loss
         self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss, refresh_every=w.fast_refresh,
@@ -308,9 +308,7 @@ class Stylize(Phase):
         self.on["style_color"] = self.color_fn is not None and self.const["style_color"] != 0
         self.vgg_on = self.on["style"] or self.on["content"] or self.on["style_color"] or self.on["style_gram"]
         self.render_weights = self.on["align"] or self.on["aniso"]
-        # the orientation score is ~60 small torch ops forward and backward: on CUDA one graph replay each way
-        self.orient_score = (GraphedFn(flow_alignment_score_torch) if cfg.orient_cuda_graphs
-                             else flow_alignment_score_torch)
+        self.field_terms = None  # the orientation and stroke terms as one call (made in setup, with the targets)
 
     def weights(self, k: int) -> dict:
         return dict(self.const, lab=self.cfg.loss.lab_weight(k, self.steps))
@@ -330,6 +328,18 @@ class Stylize(Phase):
             self.detail_target = painting_detail(self.tg.style_work, view_h)
         if self.on["stroke"] and self.stroke_target is None:
             self.stroke_target = painting_stroke(self.tg.style_work, view_h)
+        if (self.on["orient"] or self.on["stroke"]) and self.field_terms is None:
+            self.field_terms = self.make_field_terms()
+
+    def make_field_terms(self):
+        """The orientation and stroke terms from one luminance-gradient pass: ~100 small torch ops forward and
+        backward, so on CUDA one graph replay each way (orient_cuda_graphs)."""
+        from ..losses import field_terms  # lazy: imports Warp
+        from ..losses.graphs import GraphedFn
+
+        fn = partial(field_terms, orient=self.on["orient"], along=self.cfg.loss.stroke_along,
+                     stroke_target=self.stroke_target if self.on["stroke"] else None)
+        return GraphedFn(fn) if self.cfg.orient_cuda_graphs else fn
 
     def jitter(self, p: GaussianParams, view_h: int) -> None:
         """stroke_jitter: a tone (or, in palette mode, a colour of the painting) per splat, at the phase's start."""
@@ -358,7 +368,7 @@ class Stylize(Phase):
 
     def terms(self, run: Run, view: View) -> dict:
         # lazy: imports Warp
-        from ..losses import content_loss, detail_energy, lab_chroma_loss, luminance, stroke_energies, stroke_hinge
+        from ..losses import content_loss, detail_energy, lab_chroma_loss, luminance
 
         tg, on, t, vi = self.tg, self.on, run.timer, view.index
         p, anchors = run.params, run.density.tracked
@@ -389,9 +399,13 @@ class Stylize(Phase):
             terms["chroma_tv"] = chroma_tv_loss(img)
         if on["detail"]:
             terms["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
-        if on["stroke"]:  # contrast across the view's stroke field up to the painting's, along it no more than it
-            terms["stroke"] = stroke_hinge(*stroke_energies(img, self.fields[vi][..., :2], tg.coverage[vi]),
-                                           *self.stroke_target, along=self.cfg.loss.stroke_along)
+        if on["orient"] or on["stroke"]:
+            # orient: the render's own orientation against the view's stroke field; stroke: contrast across the
+            # field up to the painting's, along it no more than it. clone: a graph's output is overwritten by the
+            # next view's replay, and the logged terms are read later
+            orient, stroke = self.field_terms(img, self.fields[vi][..., :2], tg.coverage[vi]).clone().unbind()
+            if on["stroke"]:
+                terms["stroke"] = stroke
         if on["coverage"]:
             terms["coverage"] = coverage_loss(view.out.alpha, tg.coverage[vi])
         if on["silhouette"]:
@@ -402,8 +416,8 @@ class Stylize(Phase):
             terms["scale_reg"] = anchor_norm(p.log_scales, anchors["log_scales"])
         if on["lab"]:
             terms["lab"] = lab_chroma_loss(img, target_stats=tg.lab_stats[vi])
-        if on["orient"]:  # the render's own orientation against the view's stroke field
-            terms["orient"] = 1.0 - self.orient_score(img, self.fields[vi][..., :2])
+        if on["orient"]:
+            terms["orient"] = orient  # in STYLIZE_TERMS's place: the sum's order is the logged one
         t.mark("terms")
         if self.render_weights:
             terms["align"], terms["aniso"] = flow_terms(view.gaussians, view.cam, self.fields[vi], view.out.weights)
