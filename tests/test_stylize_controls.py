@@ -238,3 +238,31 @@ def test_alpha_hinges_against_the_unstylized_coverage(name, alpha, loss, grad):
     assert float(out) == pytest.approx(loss)
     out.backward()
     assert a.grad.tolist() == grad
+
+
+@pytest.mark.parametrize("source", ["stylize_start", "unstylized"])
+def test_field_source_picks_the_render_the_field_is_matched_on(demo, monkeypatch, source):
+    """loss.field_source: the painting's field is matched on the un-stylized scene's render of each view (the targets'
+    originals) or on the render of the Gaussians as they are when stylize starts. With the splats darkened before
+    the fields are made, the two differ, and each view's match sees the one asked for (a version that ignored the
+    key, or matched view i on another view's render, fails)."""
+    import tlvg_warp.losses as L
+    from tlvg_warp.renderer import render
+
+    seen = []
+    real = L.matched_view_field
+    monkeypatch.setattr(L, "matched_view_field", lambda vgg, img, *a: seen.append(img.detach().clone()) or real(vgg, img, *a))
+    cfg = _cfg(**{"loss.field_source": source})
+    tg = _targets(demo, cfg)
+    run = build_run(demo, cfg, tg, StubFeatures(), torch.device("cpu"), Dist(), None)
+    with torch.no_grad():
+        run.params.sh_dc.mul_(0.25)
+    fields = run.phase("stylize").make_fields(run)
+    assert len(fields) == len(seen) == VIEWS
+    g = run.params.gaussians()
+    for i, cam in enumerate(run.cams):
+        now = render(g, cam, run.background).color
+        want = tg.originals[i] if source == "unstylized" else now
+        other = now if source == "unstylized" else tg.originals[i]
+        torch.testing.assert_close(seen[i], want.to(seen[i]))
+        assert float((seen[i] - other.to(seen[i])).abs().max()) > 0.05

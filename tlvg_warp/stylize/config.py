@@ -59,11 +59,15 @@ class StyleLoss:
     w_align: float = 2.0  # flow-alignment energy weight (paper eq. 1, ours; configs/tlvg.yaml sets the tuned 8.0)
     w_aniso: float = 0.2  # anisotropy energy weight (across-stroke footprint energy + λmin/λmax, ours)
     field_mapping: str = "matched"  # the flow terms' target: matched (FAST match carries the painting's field) | canvas
+    field_source: str = "stylize_start"  # what "matched" matches against the painting: the render at the start of
+    # stylize (after the pre-process: recoloured, refitted) | unstylized: the un-stylized scene's render, the content
+    # the painting is laid over (as `evaluate`'s common field)
     fast_refresh: int = 4  # recompute a view's FAST projection every N of its steps, reusing it between (ours:
     # fern 3000 iterations 7 s faster on the GPU, every metric within its interval, docs/performance.md; 1: every step, as the paper)
     fast_cache: str = "projection"  # what fast_refresh reuses: projection (the top-k cells and the solve) | match (cells only)
 
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
+             "field_source": ("of", "stylize_start", "unstylized"),
              "stroke_along": ("of", "ratio", "bounded"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0),

@@ -355,14 +355,15 @@ class Stylize(Phase):
         # lazy: imports Warp
         from ..losses import map_field_canvas, matched_view_field
 
-        tg, out = self.tg, []
+        tg, out, w = self.tg, [], self.cfg.loss
         g = run.params.gaussians()
-        for cam in run.cams:
-            if self.cfg.loss.field_mapping == "canvas":
+        for i, cam in enumerate(run.cams):
+            if w.field_mapping == "canvas":
                 _, _, d = map_field_canvas(torch.from_numpy(tg.style_field[2]).to(run.device), cam.height, cam.width)
             else:
-                d = matched_view_field(self.vgg, render(g, cam, run.background).color, tg.match_feats,
-                                       tg.style_doubled_cells, self.cfg.vgg_scale)
+                img = (tg.originals[i].to(run.device) if w.field_source == "unstylized"
+                       else render(g, cam, run.background).color)
+                d = matched_view_field(self.vgg, img, tg.match_feats, tg.style_doubled_cells, self.cfg.vgg_scale)
             out.append(flow_field_tensor(d.to(device=run.device, dtype=torch.float32)))
         return out
 
