@@ -38,6 +38,11 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      random scenes (benchmarks/cost_curves.py; the chart and CSV under $OUT/cost_curves).
   step-profile       is a fern stylize step host-bound? (benchmarks/profile_step.py: wall per step, GPU time
                      per step, top kernels).
+  fit-vs-gsplat [ARGS]
+                     fern (images_4, 7000 iterations) fitted by `reconstruct`'s fit and by a minimal trainer on
+                     gsplat 1.5.3's rasterization and DefaultStrategy, same views, loss and schedule
+                     (benchmarks/gsplat_trainer.py; ARGS go to it, e.g. --set density.max_gaussians=700000).
+                     Reproduces: "Scene fitting", against gsplat.
   ssim               the fused SSIM against its torch twin on CUDA: differences and forward+backward time
                      (benchmarks/ssim_check.py). Reproduces: "Scene fitting", the fused loss.
   paint PART         the paintings study, every (scene, painting) pair with tlvg, abcgs and the anchors
@@ -142,6 +147,8 @@ case "$cmd" in
   cost-curves) gpu; exec python3 benchmarks/cost_curves.py --out "$OUT/cost_curves" "$@";;
   step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet;;
   ssim) exec python3 benchmarks/ssim_check.py;;
+  fit-vs-gsplat) gpu; TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16} exec python3 \
+    benchmarks/gsplat_trainer.py "$D/fern_llff" --images images_4 --iterations 7000 --raster ours,gsplat --out "$OUT" "$@";;
   paint) PART=${1:?paint needs a PART} exec bash benchmarks/device_paint.sh;;
   study-table) exec python3 benchmarks/study_table.py "$@";;
   field-agreement) exec python3 benchmarks/field_agreement.py "$@";;
