@@ -249,9 +249,12 @@ def test_field_source_picks_the_render_the_field_is_matched_on(demo, monkeypatch
     import tlvg_warp.losses as L
     from tlvg_warp.renderer import render
 
-    seen = []
-    real = L.matched_view_field
-    monkeypatch.setattr(L, "matched_view_field", lambda vgg, img, *a: seen.append(img.detach().clone()) or real(vgg, img, *a))
+    seen, real = [], L.matched_view_field
+
+    def recording(vgg, img, *a):
+        seen.append(img.detach().clone())
+        return real(vgg, img, *a)
+    monkeypatch.setattr(L, "matched_view_field", recording)
     cfg = _cfg(**{"loss.field_source": source})
     tg = _targets(demo, cfg)
     run = build_run(demo, cfg, tg, StubFeatures(), torch.device("cpu"), Dist(), None)

@@ -3,7 +3,7 @@ FAST/NNFM/Gram/content losses, the structure-tensor stroke field, its mapping on
 from .color import (apply_color_transform, color_transfer, detail_energy, lab_chroma_loss, lab_chroma_stats,
                     luminance, luminance_detail, match_detail, recolor_sh, rgb_to_lab)
 from .ssim import fit_loss, psnr, ssim
-from .stroke_field import (field_at_cells, field_terms, field_from_doubled, field_picture, flow_alignment_score,
+from .stroke_field import (field_at_cells, field_from_doubled, field_picture, field_terms, flow_alignment_score,
                            flow_alignment_score_torch, map_field_canvas, map_field_matched, matched_view_field,
                            painting_stroke_energies, render_orientation, stroke_energies, stroke_field, stroke_hinge,
                            structure_tensor)
@@ -16,7 +16,8 @@ __all__ = [
     "luminance_detail", "match_detail", "recolor_sh",
     "rgb_to_lab",
     "fit_loss", "psnr", "ssim",
-    "field_at_cells", "field_from_doubled", "field_terms", "field_picture", "flow_alignment_score", "flow_alignment_score_torch",
+    "field_at_cells", "field_from_doubled", "field_picture", "field_terms", "flow_alignment_score",
+    "flow_alignment_score_torch",
     "map_field_canvas", "map_field_matched", "matched_view_field", "painting_stroke_energies", "render_orientation",
     "stroke_energies", "stroke_field", "stroke_hinge", "structure_tensor",
     "StyleFeatures", "StyleLoss", "content_loss", "fast_loss", "fast_projection", "fast_target", "gram_loss",

@@ -48,7 +48,7 @@ class StyleLoss:
     # contrast in every direction; this asks for stripes that run along the strokes (ours; 0: off)
     stroke_along: str = "ratio"  # the hinge's second half: ratio (E_along/T_along - 1)^2, unbounded, or bounded
     # (1 - T_along/E_along)^2 in [0, 1). A scene with more contrast along the field than the painting (lego's bricks)
-    # makes the ratio dominate the loss and smooths its edges; bounded was measured on the CPU only (docs/study.md)
+    # makes the ratio dominate the loss and smooths its edges (configs/tlvg.yaml uses bounded; docs/study.md)
     w_orient: float = 0.0  # 1 - the render's own structure-tensor alignment with the stroke field (the flow energy
     # of eq. 1 read off the image instead of the footprints): the texture the style terms paint, not only the splats'
     # axes, follows the painter's directions (ours; 0: off)
