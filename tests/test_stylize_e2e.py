@@ -13,12 +13,14 @@ import torch
 
 from tlvg_warp import load_ply
 from tlvg_warp.cli import main
+from tlvg_warp.eval.metrics import holes
+from tlvg_warp.renderer import render
 from tlvg_warp.io.demo import builtin_painting, demo_dataset
 from tlvg_warp.io.images import read_image
 from tlvg_warp.losses import flow_alignment_score
 from tlvg_warp.stylize import StylizeInputs, load_checkpoint, load_config, run_stylize, write_outputs
 from tlvg_warp.stylize.config import config_from_dict
-from tlvg_warp.stylize.pipeline import LOG_TERMS
+from tlvg_warp.stylize.pipeline import LOG_TERMS, holes_now
 
 ITERS = 30  # 5 pre / 20 stylize / 5 post
 W, H, VIEWS = 48, 36, 6  # tiny views
@@ -105,6 +107,32 @@ def assert_log_finite(out, iters) -> list:
         for t in LOG_TERMS:
             assert math.isfinite(r[t]), (r["step"], t)
     return rows
+
+
+def test_holes_by_phase_match_the_evaluation_oracle(inputs, run_dir):
+    """metrics' holes after the last phase = eval.metrics.holes (numpy) of the final scene against the input's
+    coverage, every view; the earlier phases are recorded too."""
+    _, res = run_dir
+    by_phase = res.metrics["holes_by_phase"]
+    assert list(by_phase) == ["pre", "stylize", "post"]
+    lost = covered = 0
+    for cam in inputs.cameras:
+        base = render(inputs.gaussians, cam, inputs.background).alpha.detach().numpy()
+        a = render(res.gaussians, cam, inputs.background).alpha.detach().numpy()
+        n = int((base >= 0.5).sum())
+        lost, covered = lost + holes(a, base) * n, covered + n
+    assert by_phase["post"] == pytest.approx(lost / covered, abs=1e-9)
+
+
+def test_holes_now_counts_what_a_removal_uncovers(inputs):
+    """Half the Gaussians removed: holes_now equals the numpy oracle's fraction, and it is not 0."""
+    g, cams = inputs.gaussians, list(inputs.cameras)
+    cov = [render(g, c, inputs.background).alpha.detach()[..., None] for c in cams]
+    half = g.subset(torch.arange(0, g.num, 2))
+    got = holes_now(half, cams, cov, inputs.background)
+    want = [holes(render(half, c, inputs.background).alpha.detach().numpy(), v[..., 0].numpy()) for c, v in zip(cams, cov)]
+    n = [int((v >= 0.5).sum()) for v in cov]
+    assert got > 0.01 and got == pytest.approx(float(np.dot(want, n) / sum(n)), abs=1e-9)
 
 
 def test_every_output_written(run_dir):

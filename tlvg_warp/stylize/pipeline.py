@@ -266,6 +266,22 @@ def content_scale(photo_feats: torch.Tensor, normalized: bool) -> float:
     return 1.0 / max(float((photo_feats.double() ** 2).mean()), 1e-12) if normalized else 1.0
 
 
+HOLE_ALPHA = 0.5  # a pixel is covered at alpha >= 0.5 (SPEC §4 holes)
+
+
+@torch.no_grad()
+def holes_now(g: Gaussians, cams: list, coverage: list, background) -> float:
+    """Fraction of the pixels the un-stylized scene covers (``coverage``: per view [H,W,1]) that ``g`` leaves
+    uncovered, over every view: the evaluation's holes at training size, measured inside the run so that the
+    metrics say which phase opened them."""
+    lost = covered = 0
+    for cam, cov in zip(cams, coverage):
+        was = cov[..., 0] >= HOLE_ALPHA  # [H,W]
+        lost = lost + (was & (render(g, cam, background, depth=False).alpha < HOLE_ALPHA)).sum()
+        covered = covered + was.sum()
+    return float(lost) / max(1, int(covered))  # one host sync per phase
+
+
 def over_background(img: torch.Tensor, coverage: torch.Tensor, background) -> torch.Tensor:
     """``img`` where the un-stylized scene covers the view (alpha ``coverage`` [H,W,1]), ``background`` (an image
     or an RGB triple) where it does not. Real captures are covered everywhere: there it returns ``img``."""
@@ -524,6 +540,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
                   fmt=CHECKPOINT_FORMAT, extra=lambda: {"config": dataclasses.asdict(cfg),
                                                         "names": list(inp.names), "sources": inp.sources})
     run.refined = refined  # what the stroke-size refinement did (metrics.json)
+    run.on_phase_end = lambda r, _phase: {"holes": holes_now(r.params.gaussians(), cams, tg.coverage, bg)}
     return run
 
 
@@ -589,6 +606,7 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
         "gaussians_after_stylize": counts.get("after_stylize", before), "gaussians_final": final.num,
         "gaussian_budget": run.density.budget, "extent": run.opt.extent, "flow_terms": "warp kernel",
         "vgg_random": bool(vgg.is_random), "vgg_source": vgg.source, "refine": run.refined or None,
+        "holes_by_phase": {p: counts[f"holes_after_{p}"] for p in PHASES if f"holes_after_{p}" in counts},
     }
     metrics["setup_time_s"] = round(time.perf_counter() - t_start - metrics["train_time_s"], 3)
     metrics["setup_split_s"] = {k: round(v, 3) for k, v in split.items()}

@@ -200,6 +200,7 @@ class Run:
         self.timer = StageTimer(self.device, (*STAGES[:1], *dict.fromkeys(s for p in self.phases for s in p.STAGES),
                                               *STAGES[1:]), settings.timing_every)
         self.loop_time = 0.0  # this process's seconds in the loop
+        self.on_phase_end = None  # callable(run, phase) -> {name: number}, kept in counts as "<name>_after_<phase>"
         density.views_per_step = settings.views_per_step * self.dist.world
 
     # --- phases and views --------------------------------------------------------------------------------
@@ -422,6 +423,8 @@ class _Loop:
             # together at the next log point, where flush() combines their flags (a rank that flushed alone
             # would enter a collective the others never join)
             stop_now = self.intr.flag and r.dist.world == 1
+            if k + 1 == phase.steps and r.on_phase_end is not None:  # e.g. the holes each phase left (stylize)
+                r.counts.update({f"{name}_after_{phase.name}": v for name, v in r.on_phase_end(r, phase).items()})
             if step % r.settings.log_every == 0 or k + 1 == phase.steps or stop_now or ck_due:
                 self.flush(step, phase, view)
                 if k + 1 == phase.steps or step % (r.settings.log_every * 10) == 0 or ck_due:
