@@ -107,11 +107,12 @@ EOF
     V="beer:beer_colmap:2:starry_night_over_the_rhone.png fern:fern_llff:0:starry_night_over_the_rhone.png beer:beer_colmap:2:monet_san_giorgio.jpg fern:fern_llff:0:monet_san_giorgio.jpg lego:lego_blender:0:starry_night_over_the_rhone.png lego:lego_blender:0:monet_san_giorgio.jpg"
     SV=${STUDY_VARIANTS:-tlvg: abcgs:config=configs/abcgs.yaml}
     SP=${SEEDS_PAIR:-beer:beer_colmap:2:starry_night.jpg}
+    SEEDV=${SEEDS_VARIANTS:-tlvg: seed1:seed=1 seed2:seed=2}  # the seeds' runs (e.g. abcgs's: abcgs:config=... abcgs_s1:config=...;seed=1)
     T=${PAIRS_A:-$T}; V=${PAIRS_B:-$V}  # other pair lists (e.g. an ablation on a few pairs); SEEDS_PAIR=none: no seeds
     [ "$SP" = none ] && touch "$R/seeds/pairs/queue_seeds.done"
     setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue tuning '$SV' $T" > /dev/null 2>&1 &
     setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue validation '$SV' $V;
-      [ '$SP' = none ] || R=$R/seeds queue seeds 'tlvg: seed1:seed=1 seed2:seed=2' $SP" > /dev/null 2>&1 &
+      [ '$SP' = none ] || R=$R/seeds queue seeds '$SEEDV' $SP" > /dev/null 2>&1 &
     echo "study launched"
     ;;
   wait)  # wait up to WAIT seconds for the study's queues, then return what is finished

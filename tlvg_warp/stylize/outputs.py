@@ -100,6 +100,13 @@ def zoom_crop(img: np.ndarray, zoom: int = ZOOM) -> np.ndarray:
     return out
 
 
+def weights_name(source: str) -> str:
+    """The VGG source as a picture caption shows it: the weights' file name, not the folder it sits in on this
+    machine (metrics.json keeps the whole path)."""
+    head, sep, path = source.rpartition(" from ")
+    return f"{head}{sep}{Path(path).name}" if sep else Path(source).name
+
+
 def comparison_grid(rows: list, painting: np.ndarray, caption: str) -> np.ndarray:
     """rows: [(photo, original, stylized)] float [H,W,3]; returns a uint8 RGB grid at the views' own resolution
     with a header and a caption: photo | original render | stylized | stylized, its centre magnified ZOOM times
@@ -369,7 +376,7 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
                    f"lock_xyz={cfg.geometry.lock_xyz}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
                    f"{res.metrics['iterations']} iterations; "
                    f"alignment to its training field {fa:.3f}; "
-                   + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {res.vgg_source}"))
+                   + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {weights_name(res.vgg_source)}"))
         rows = [(ph, org, sty) for (sty, org, ph), _, _ in (d for d in done if d[0] is not None)]
         write_image(out / "comparison.png", comparison_grid(rows, style_np, caption).astype(np.float32) / 255.0)
         split["views_done"] = time.perf_counter() - t0  # every view's files written and scored
