@@ -14,10 +14,10 @@ import torch
 from tlvg_warp import load_ply
 from tlvg_warp.cli import main
 from tlvg_warp.eval.metrics import holes
-from tlvg_warp.renderer import render
 from tlvg_warp.io.demo import builtin_painting, demo_dataset
 from tlvg_warp.io.images import read_image
 from tlvg_warp.losses import flow_alignment_score
+from tlvg_warp.renderer import render
 from tlvg_warp.stylize import StylizeInputs, load_checkpoint, load_config, run_stylize, write_outputs
 from tlvg_warp.stylize.config import config_from_dict
 from tlvg_warp.stylize.pipeline import LOG_TERMS, holes_now
