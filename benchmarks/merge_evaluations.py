@@ -15,8 +15,7 @@ import json
 import shutil
 from pathlib import Path
 
-from tlvg_warp.eval.engine import not_discriminating, winners
-from tlvg_warp.eval.refs import compare
+from tlvg_warp.eval.engine import not_discriminating, pair_comparisons, winners
 
 
 def pairs_of(study: Path) -> dict:
@@ -38,10 +37,7 @@ def merge(a: dict, b: dict, take: dict, rename: dict) -> dict:
     names = [r["name"] for r in runs]
     per = [r["per_view"] for r in runs]
     anchor_per = {x["name"]: x["per_view"] for x in a["anchors"]}
-    pairs = {f"{names[i]} vs {names[j]}": compare(per[i], per[j])
-             for i in range(len(runs)) for j in range(i + 1, len(runs))}
-    pairs |= {f"{n} vs {x}": compare(p, anchor_per[x]) for n, p in zip(names, per) for x in anchor_per}
-    return dict(a, names=names, runs=runs, comparisons=pairs, winners=winners(names, per, anchor_per),
+    return dict(a, names=names, runs=runs, comparisons=pair_comparisons(names, per, anchor_per), winners=winners(names, per, anchor_per),
                 not_discriminating=not_discriminating(per, anchor_per), merged_from_second_study=sorted(take.values()))
 
 

@@ -274,6 +274,26 @@ def test_hooks_and_trainable_groups_per_phase(demo):
     assert [r["phase"] for r in run.log] == ["a"] * 3 + ["b"] * 2 and run.counts["after_a"] == run.params.num
 
 
+def test_phase_end_hook_runs_once_after_each_phases_last_step(demo):
+    """run.on_phase_end: called once per phase, after its last optimizer step (the step counter and the parameters
+    are that step's, as a callback at that step sees them), its values kept in counts as <name>_after_<phase>."""
+    seen = []
+    run = _tiny_run(demo, [_Const("a", 3, seen), _Const("b", 2, seen)], log_every=100)
+    calls, at_step = [], {}
+
+    def on_end(r, phase):
+        calls.append((phase.name, r.step))
+        return {"dc": float(r.params.sh_dc.detach().sum())}
+
+    def cb(step, r):
+        at_step[step] = float(r.params.sh_dc.detach().sum())
+    run.on_phase_end = on_end
+    train(run, progress=False, callback=cb)
+    assert calls == [("a", 3), ("b", 5)]
+    assert run.counts["dc_after_a"] == at_step[3] and run.counts["dc_after_b"] == at_step[5]
+    assert at_step[3] != at_step[2]  # the parameters move each step: a value from another step would differ
+
+
 def test_batched_step_loss_is_the_mean_of_its_views(demo):
     from tlvg_warp.losses import fit_loss
 

@@ -174,6 +174,13 @@ def wall_time(m: dict):
     return None
 
 
+def pair_comparisons(names, per_views, anchors: dict) -> dict:
+    """{"a vs b": compare(a, b)} for every pair of runs, then every run against every anchor (per-view metrics)."""
+    pairs = {f"{names[i]} vs {names[j]}": compare(per_views[i], per_views[j])
+             for i in range(len(names)) for j in range(i + 1, len(names))}
+    return pairs | {f"{n} vs {a}": compare(p, anchors[a]) for n, p in zip(names, per_views) for a in anchors}
+
+
 def winners(names, per_views, anchors: dict | None = None) -> dict:
     """Per metric: the run whose paired difference to every other run favours it (95%) and that also beats the
     anchor the metric exists to beat (metrics.ANCHOR_TO_BEAT; ``anchors``: {anchor name: per-view dict}),
@@ -248,9 +255,7 @@ def evaluate_runs(run_dirs, net, device, *, scene=None, max_views: int = 0, eval
         anchors.append({"name": a, "summary": summarize(pv), "per_view": pv})
         log(f"scored the anchor '{a}' ({time.perf_counter() - t1:.1f}s)")
     names = unique_names(runs)
-    pairs = {f"{names[i]} vs {names[j]}": compare(per[i], per[j])
-             for i in range(len(runs)) for j in range(i + 1, len(runs))}
-    pairs |= {f"{n} vs {a}": compare(p, anchor_per[a]) for n, p in zip(names, per) for a in anchor_per}
+    pairs = pair_comparisons(names, per, anchor_per)
     res = {"vgg": net.source, "vgg_random": bool(net.is_random), "references": refs.key,
            "eval_height": eval_height, "views": runs[0]["names"], "names": names, "runs": results,
            "anchors": anchors, "anchor_to_beat": dict(M.ANCHOR_TO_BEAT),

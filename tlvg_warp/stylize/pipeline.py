@@ -266,7 +266,7 @@ def content_scale(photo_feats: torch.Tensor, normalized: bool) -> float:
     return 1.0 / max(float((photo_feats.double() ** 2).mean()), 1e-12) if normalized else 1.0
 
 
-HOLE_ALPHA = 0.5  # a pixel is covered at alpha >= 0.5 (SPEC §4 holes)
+HOLE_ALPHA = 0.5  # a pixel is covered at alpha >= 0.5 (SPEC §4 holes; eval.metrics.ALPHA_MIN, a layer above)
 
 
 @torch.no_grad()
