@@ -93,14 +93,14 @@ EOF
       local V=(); for v in $vs; do V+=(--variant "$v"); done
       for spec in "$@"; do
         IFS=: read -r s d ds st <<< "$spec"
-        OMP_NUM_THREADS=6 python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
+        OMP_NUM_THREADS=${QUEUE_THREADS:-6} python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
           --styles "$D/styles/$st" --out "$R/pairs/$s" "${V[@]}" --montage "$R/pairs/${s}_${st%.*}.jpg" \
           --view "${VIEW:-0}" --max-views "${MAX_VIEWS:-24}" >> "$R/pairs/queue_$name.log" 2>&1
         echo "done $spec" >> "$R/pairs/queue_$name.log"
       done
       touch "$R/pairs/queue_$name.done"
     }
-    export -f queue; export F D R
+    export -f queue; export F D R QUEUE_THREADS=${QUEUE_THREADS:-6}
     # queue one: the five tuning pairs and lego x The Shipwreck; queue two: the other six validation pairs, then the
     # seeds of one pair (SEEDS_PAIR, in its own folder $R/seeds) to set run-to-run spread against the view intervals
     T="beer:beer_colmap:2:starry_night.jpg beer:beer_colmap:2:shipwreck.jpg fern:fern_llff:0:starry_night.jpg fern:fern_llff:0:shipwreck.jpg lego:lego_blender:0:starry_night.jpg lego:lego_blender:0:shipwreck.jpg"
@@ -110,6 +110,9 @@ EOF
     SEEDV=${SEEDS_VARIANTS:-tlvg: seed1:seed=1 seed2:seed=2}  # the seeds' runs (e.g. abcgs's: abcgs:config=... abcgs_s1:config=...;seed=1)
     T=${PAIRS_A:-$T}; V=${PAIRS_B:-$V}  # other pair lists (e.g. an ablation on a few pairs); SEEDS_PAIR=none: no seeds
     [ "$SP" = none ] && touch "$R/seeds/pairs/queue_seeds.done"
+    if [ -n "${PAIRS_C:-}" ]; then  # a third queue (the GPU has room when each run is host-bound)
+      setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue third '$SV' $PAIRS_C" > /dev/null 2>&1 &
+    else touch "$R/pairs/queue_third.done"; fi
     setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue tuning '$SV' $T" > /dev/null 2>&1 &
     setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue validation '$SV' $V;
       [ '$SP' = none ] || R=$R/seeds queue seeds '$SEEDV' $SP" > /dev/null 2>&1 &
@@ -118,6 +121,7 @@ EOF
   wait)  # wait up to WAIT seconds for the study's queues, then return what is finished
     deadline=$((SECONDS + ${WAIT:-500}))
     while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/pairs/queue_validation.done" ] ||
+      [ ! -f "$R/pairs/queue_third.done" ] ||
       [ ! -f "$R/seeds/pairs/queue_seeds.done" ]; }; do sleep 5; done
     # the fits ran in the background (PART=fit FIT_LIMIT=1 returns at once): their held-out PSNR and size, here
     for s in $SCENES; do echo "fit $s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" 2>/dev/null | tail -n 2 | tr '\n' ' ')"; done
