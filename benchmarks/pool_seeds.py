@@ -1,0 +1,82 @@
+"""Pool the seeds of each config in a study's evaluations: intervals over seeds and views, as the `study` command gives.
+
+    python benchmarks/pool_seeds.py STUDY OUT --pool tlvg=tlvg,tlvg_s1,tlvg_s2 --pool abcgs=abcgs,abcgs_s1,abcgs_s2
+
+For each pair evaluated under STUDY/<scene>/<painting>/evaluation/ (tune.py's layout, every seed a run of its own
+on the same views): the pooled config's per-view scores are the seeds' concatenated (seed, view) in the order
+given, and each anchor's per-view scores are repeated once per seed in the same order, so the paired comparisons
+stay paired item by item (the `study` command's pooling, eval/study.py). A pair where a pooled config lacks a seed
+is refused. The pooled run's metrics.json is its first seed's; ``seed_spread`` in the output lists each seed's mean
+of every metric, so run-to-run spread is read beside the intervals. Writes the layout `study_table.py` reads.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+from tlvg_warp.eval.engine import not_discriminating, pair_comparisons, winners
+from tlvg_warp.eval.refs import summarize
+from tlvg_warp.eval.study import pooled
+
+
+def mean(v):
+    return None if v is None else sum(v) / len(v)
+
+
+def pool(ev: dict, pools: dict) -> dict | None:
+    """The evaluation ``ev`` with each pool's seeds replaced by one pooled run, or None where a seed is missing."""
+    by_name = {r["name"]: r for r in ev["runs"]}
+    if any(s not in by_name for seeds in pools.values() for s in seeds):
+        return None
+    runs, spread = [], {}
+    for name, seeds in pools.items():
+        pv = pooled([by_name[s]["per_view"] for s in seeds])
+        first = by_name[seeds[0]]
+        runs.append(dict(first, name=name, summary=summarize(pv) | {k: first["summary"][k] for k in
+                                                                 ("gaussians", "bytes", "wall_time_s")
+                                                                 if k in first["summary"]},
+                         per_view=pv, seeds=list(seeds)))
+        spread[name] = {s: {k: mean(v) for k, v in by_name[s]["per_view"].items()} for s in seeds}
+    reps = {len(s) for s in pools.values()}
+    if len(reps) != 1:
+        raise SystemExit("every pool needs the same number of seeds (the anchors are repeated once per seed)")
+    n = reps.pop()
+    anchors = [dict(a, per_view=pooled([a["per_view"]] * n)) for a in ev["anchors"]]
+    for a in anchors:
+        a["summary"] = summarize(a["per_view"])
+    names = [r["name"] for r in runs]
+    per = [r["per_view"] for r in runs]
+    anchor_per = {a["name"]: a["per_view"] for a in anchors}
+    return dict(ev, names=names, runs=runs, anchors=anchors, comparisons=pair_comparisons(names, per, anchor_per),
+                winners=winners(names, per, anchor_per), not_discriminating=not_discriminating(per, anchor_per),
+                seed_spread=spread)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("study"), ap.add_argument("out")
+    ap.add_argument("--pool", action="append", required=True, help="NAME=seed_run,seed_run,... (the first is seed 0)")
+    args = ap.parse_args()
+    pools = {k: v.split(",") for k, v in (x.split("=", 1) for x in args.pool)}
+    study, out = Path(args.study), Path(args.out)
+    for f in sorted(study.glob("*/*/evaluation/evaluation.json")):
+        scene, painting = f.parents[2].name, f.parents[1].name
+        res = pool(json.loads(f.read_text()), pools)
+        if res is None:
+            print(f"{scene} x {painting}: not pooled (a seed is missing)")
+            continue
+        dst = out / scene / painting
+        (dst / "evaluation").mkdir(parents=True, exist_ok=True)
+        (dst / "evaluation" / "evaluation.json").write_text(json.dumps(res))
+        for name, seeds in pools.items():
+            src = f.parents[1] / seeds[0] / "metrics.json"
+            if src.is_file():
+                (dst / name).mkdir(exist_ok=True)
+                shutil.copy(src, dst / name / "metrics.json")
+        print(f"{scene} x {painting}: pooled {', '.join(f'{k} ({len(v)} seeds)' for k, v in pools.items())}")
+
+
+if __name__ == "__main__":
+    main()
