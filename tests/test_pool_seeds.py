@@ -1,0 +1,56 @@
+"""benchmarks/pool_seeds.py: a config's seeds pooled into one run of (seed, view) items, the anchors repeated once per
+seed, so the paired comparison of the pooled runs is the mean difference over every item (checked against numpy on
+the concatenated arrays), and a pair with a missing seed is refused. Loaded by path."""
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "pool_seeds.py"
+
+
+@pytest.fixture(scope="module")
+def pool_seeds():
+    spec = importlib.util.spec_from_file_location("pool_seeds_bench", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _evaluation(rng, names, n_views=5):
+    runs = [{"name": n, "run": n, "summary": {"gaussians": 10 + i}, "per_view": {
+        "flow_alignment": rng.uniform(0.5, 0.9, n_views).tolist(), "chroma_noise": rng.uniform(0, 1, n_views).tolist()}}
+        for i, n in enumerate(names)]
+    anchors = [{"name": a, "summary": {}, "per_view": {"flow_alignment": rng.uniform(0.3, 0.8, n_views).tolist(),
+                                                      "chroma_noise": rng.uniform(0, 1, n_views).tolist()}}
+               for a in ("no stylization", "sticker")]
+    return {"names": names, "runs": runs, "anchors": anchors, "views": list(range(n_views)), "comparisons": {}}
+
+
+def test_pooled_items_and_paired_means(pool_seeds):
+    rng = np.random.default_rng(3)
+    ev = _evaluation(rng, ["a", "a1", "a2", "b", "b1", "b2"])
+    out = pool_seeds.pool(ev, {"A": ["a", "a1", "a2"], "B": ["b", "b1", "b2"]})
+    by = {r["name"]: r["per_view"]["flow_alignment"] for r in ev["runs"]}
+    a = np.concatenate([by["a"], by["a1"], by["a2"]])
+    b = np.concatenate([by["b"], by["b1"], by["b2"]])
+    runs = {r["name"]: r for r in out["runs"]}
+    assert out["names"] == ["A", "B"]
+    np.testing.assert_allclose(runs["A"]["per_view"]["flow_alignment"], a)
+    assert runs["A"]["summary"]["flow_alignment"]["mean"] == pytest.approx(a.mean())
+    assert runs["A"]["summary"]["gaussians"] == 10  # the first seed's scalars
+    # the paired difference of the pooled runs is the item-wise mean difference, in evaluate's "A vs B" = A - B
+    assert out["comparisons"]["A vs B"]["flow_alignment"]["mean"] == pytest.approx((a - b).mean())
+    # each anchor repeated once per seed keeps the run-vs-anchor comparison paired item by item
+    un = np.asarray(ev["anchors"][0]["per_view"]["flow_alignment"])
+    un3 = np.tile(un, 3)
+    np.testing.assert_allclose(out["anchors"][0]["per_view"]["flow_alignment"], un3)
+    assert out["comparisons"]["A vs no stylization"]["flow_alignment"]["mean"] == pytest.approx((a - un3).mean())
+    # each seed's own mean is kept beside the pooled interval
+    assert out["seed_spread"]["B"]["b1"]["flow_alignment"] == pytest.approx(np.mean(by["b1"]))
+
+
+def test_missing_seed_refused(pool_seeds):
+    ev = _evaluation(np.random.default_rng(4), ["a", "a1", "b", "b1"])
+    assert pool_seeds.pool(ev, {"A": ["a", "a1", "a2"], "B": ["b", "b1"]}) is None
