@@ -5,8 +5,9 @@
 For each pair evaluated under STUDY/<scene>/<painting>/evaluation/ (tune.py's layout, every seed a run of its own
 on the same views): the pooled config's per-view scores are the seeds' concatenated (seed, view) in the order
 given, and each anchor's per-view scores are repeated once per seed in the same order, so the paired comparisons
-stay paired item by item (the `study` command's pooling, eval/study.py). A pair where a pooled config lacks a seed
-is refused. The pooled run's metrics.json is its first seed's; ``seed_spread`` in the output lists each seed's mean
+stay paired item by item (the `study` command's pooling, eval/study.py). Intervals are a two-stage bootstrap (seeds
+drawn with replacement, then views within each drawn seed; metrics.interval), so they hold the spread between seeds.
+A pair where a pooled config lacks a seed is refused. The pooled run's metrics.json is its first seed's; ``seed_spread`` in the output lists each seed's mean
 of every metric, so run-to-run spread is read beside the intervals. Writes the layout `study_table.py` reads.
 """
 from __future__ import annotations
@@ -31,10 +32,15 @@ def pool(ev: dict, pools: dict) -> dict | None:
     if any(s not in by_name for seeds in pools.values() for s in seeds):
         return None
     runs, spread = [], {}
+    groups = None  # {metric: the seed index of each pooled item}: the intervals draw seeds, then views
     for name, seeds in pools.items():
         pv = pooled([by_name[s]["per_view"] for s in seeds])
+        g = {k: [i for i, s in enumerate(seeds) for _ in (by_name[s]["per_view"][k] or [])] for k in pv}
+        if groups is not None and g != groups:
+            return None  # the pools' items must line up (same views per seed) to be compared
+        groups = g
         first = by_name[seeds[0]]
-        runs.append(dict(first, name=name, summary=summarize(pv) | {k: first["summary"][k] for k in
+        runs.append(dict(first, name=name, summary=summarize(pv, groups) | {k: first["summary"][k] for k in
                                                                  ("gaussians", "bytes", "wall_time_s")
                                                                  if k in first["summary"]},
                          per_view=pv, seeds=list(seeds)))
@@ -45,13 +51,15 @@ def pool(ev: dict, pools: dict) -> dict | None:
     n = reps.pop()
     anchors = [dict(a, per_view=pooled([a["per_view"]] * n)) for a in ev["anchors"]]
     for a in anchors:
-        a["summary"] = summarize(a["per_view"])
+        a["summary"] = summarize(a["per_view"], groups)
     names = [r["name"] for r in runs]
     per = [r["per_view"] for r in runs]
     anchor_per = {a["name"]: a["per_view"] for a in anchors}
-    return dict(ev, names=names, runs=runs, anchors=anchors, comparisons=pair_comparisons(names, per, anchor_per),
-                winners=winners(names, per, anchor_per), not_discriminating=not_discriminating(per, anchor_per),
-                seed_spread=spread)
+    return dict(ev, names=names, runs=runs, anchors=anchors,
+                comparisons=pair_comparisons(names, per, anchor_per, groups),
+                winners=winners(names, per, anchor_per, groups),
+                not_discriminating=not_discriminating(per, anchor_per, groups), seed_spread=spread,
+                intervals="two-stage bootstrap: seeds, then views within each seed")
 
 
 def main() -> None:

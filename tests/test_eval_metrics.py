@@ -251,6 +251,32 @@ def test_interval_covers_mean_and_is_deterministic():
     assert a["hi"] - a["lo"] == pytest.approx(2 * 1.96 * se, rel=0.2)
 
 
+def test_grouped_interval_holds_the_spread_between_groups():
+    """Runs of three seeds whose means are 0, 1 and 2 (tiny spread within each): the two-stage bootstrap draws
+    three seeds with replacement, so its 2.5% / 97.5% points are the all-lowest and all-highest draws (each has
+    probability 1/27 > 2.5%): about 0 and 2. Treating the 60 items as independent gives an interval of about
+    ±1.96 x 0.82 / sqrt(60) = ±0.21 around 1."""
+    rng = np.random.default_rng(5)
+    x = np.concatenate([rng.normal(mu, 1e-3, 20) for mu in (0.0, 1.0, 2.0)])
+    groups = np.repeat([0, 1, 2], 20)
+    g, naive = M.interval(x, groups=groups), M.interval(x)
+    assert g["mean"] == naive["mean"] == pytest.approx(1.0, abs=1e-3)
+    assert g["lo"] == pytest.approx(0.0, abs=0.01) and g["hi"] == pytest.approx(2.0, abs=0.01)
+    assert naive["hi"] - naive["lo"] == pytest.approx(2 * 1.96 * x.std(ddof=1) / math.sqrt(x.size), rel=0.2)
+
+
+def test_grouped_interval_without_spread_between_groups_is_the_plain_one():
+    """Three seeds drawn from one distribution: seeds add no spread, so the two-stage interval has the width of
+    the plain one over all items (the normal-approximation oracle, ±1.96 se)."""
+    x = np.random.default_rng(6).normal(0.5, 0.2, 90)
+    g = M.interval(x, groups=np.repeat([0, 1, 2], 30))
+    se = x.std(ddof=1) / math.sqrt(x.size)
+    assert g["hi"] - g["lo"] == pytest.approx(2 * 1.96 * se, rel=0.3)
+    # NaN items drop out of both the values and their labels
+    y = np.concatenate([x, [np.nan]])
+    assert M.interval(y, groups=np.repeat([0, 1, 2, 2], [30, 30, 30, 1])) == g
+
+
 def test_paired_says_no_difference_when_interval_contains_zero():
     rng = np.random.default_rng(4)
     base = rng.normal(0, 1, 30)

@@ -54,3 +54,20 @@ def test_pooled_items_and_paired_means(pool_seeds):
 def test_missing_seed_refused(pool_seeds):
     ev = _evaluation(np.random.default_rng(4), ["a", "a1", "b", "b1"])
     assert pool_seeds.pool(ev, {"A": ["a", "a1", "a2"], "B": ["b", "b1"]}) is None
+
+
+def test_intervals_draw_seeds_then_views(pool_seeds):
+    """Seeds whose views sit at 0, 1 and 2 (within-seed spread 1e-3): the pooled interval spans the seeds (about
+    [0, 2], the all-lowest and all-highest draws of three seeds), where a bootstrap over the 15 items as if
+    independent would give about 1 ± 0.4."""
+    rng = np.random.default_rng(5)
+    ev = _evaluation(rng, ["a", "a1", "a2", "b", "b1", "b2"])
+    for r, mu in zip(ev["runs"], (0.0, 1.0, 2.0, 0.0, 0.0, 0.0)):
+        r["per_view"]["flow_alignment"] = (mu + rng.normal(0, 1e-3, 5)).tolist()
+    out = pool_seeds.pool(ev, {"A": ["a", "a1", "a2"], "B": ["b", "b1", "b2"]})
+    s = {r["name"]: r["summary"]["flow_alignment"] for r in out["runs"]}["A"]
+    assert s["lo"] == pytest.approx(0.0, abs=0.01) and s["hi"] == pytest.approx(2.0, abs=0.01)
+    # against B (every seed near 0) the paired interval carries the same spread down to about 0: one of A's seeds
+    # is no better than B, so the comparison does not call it (items taken as independent would: A by about 1)
+    c = out["comparisons"]["A vs B"]["flow_alignment"]
+    assert c["lo"] == pytest.approx(0.0, abs=0.01) and c["better"] == "no difference"

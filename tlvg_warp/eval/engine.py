@@ -174,14 +174,15 @@ def wall_time(m: dict):
     return None
 
 
-def pair_comparisons(names, per_views, anchors: dict) -> dict:
-    """{"a vs b": compare(a, b)} for every pair of runs, then every run against every anchor (per-view metrics)."""
-    pairs = {f"{names[i]} vs {names[j]}": compare(per_views[i], per_views[j])
+def pair_comparisons(names, per_views, anchors: dict, groups=None) -> dict:
+    """{"a vs b": compare(a, b)} for every pair of runs, then every run against every anchor (per-view metrics).
+    ``groups``: {metric: one label per view item} (the seed, where runs of several seeds are pooled; refs.compare)."""
+    pairs = {f"{names[i]} vs {names[j]}": compare(per_views[i], per_views[j], groups)
              for i in range(len(names)) for j in range(i + 1, len(names))}
-    return pairs | {f"{n} vs {a}": compare(p, anchors[a]) for n, p in zip(names, per_views) for a in anchors}
+    return pairs | {f"{n} vs {a}": compare(p, anchors[a], groups) for n, p in zip(names, per_views) for a in anchors}
 
 
-def winners(names, per_views, anchors: dict | None = None) -> dict:
+def winners(names, per_views, anchors: dict | None = None, groups=None) -> dict:
     """Per metric: the run whose paired difference to every other run favours it (95%) and that also beats the
     anchor the metric exists to beat (metrics.ANCHOR_TO_BEAT; ``anchors``: {anchor name: per-view dict}),
     else absent."""
@@ -197,13 +198,13 @@ def winners(names, per_views, anchors: dict | None = None) -> dict:
             target = M.ANCHOR_TO_BEAT.get(k)
             if target in anchors and anchors[target].get(k) is not None:
                 rivals.append(anchors[target])
-            if rivals and all(compare({k: per_views[i][k]}, {k: r[k]}).get(k, {}).get("better") == "a"
+            if rivals and all(compare({k: per_views[i][k]}, {k: r[k]}, groups).get(k, {}).get("better") == "a"
                               for r in rivals):
                 out[k] = n
     return out
 
 
-def not_discriminating(per_views, anchors: dict) -> dict:
+def not_discriminating(per_views, anchors: dict, groups=None) -> dict:
     """{metric: the anchor it exists to beat (metrics.ANCHOR_TO_BEAT)} where that anchor beats every run (95%):
     on this scene the metric does not tell the runs from doing nothing (flow, style, strokes, detail) or from
     pasting the painting (content, multi-view, chroma noise). The other anchor winning is expected (the painting
@@ -213,7 +214,7 @@ def not_discriminating(per_views, anchors: dict) -> dict:
         pa = anchors.get(target) if target else None
         if not per_views or pa is None or pa.get(k) is None:
             continue
-        if all(pv.get(k) is not None and compare({k: pa[k]}, {k: pv[k]}).get(k, {}).get("better") == "a"
+        if all(pv.get(k) is not None and compare({k: pa[k]}, {k: pv[k]}, groups).get(k, {}).get("better") == "a"
                for pv in per_views):
             out[k] = target
     return out

@@ -354,25 +354,52 @@ def holes(alpha, base_alpha) -> float:
 
 
 # ---------------------------------------------------------------- statistics
-def interval(values, seed: int = SEED, n: int = BOOTSTRAP) -> dict:
-    """Mean and 95% bootstrap percentile interval over views (NaN views dropped). Deterministic."""
-    x = np.asarray([v for v in values if v is not None and math.isfinite(v)], np.float64)
+def interval(values, seed: int = SEED, n: int = BOOTSTRAP, groups=None) -> dict:
+    """Mean and 95% bootstrap percentile interval over views (NaN views dropped). Deterministic.
+
+    ``groups`` (one label per value, e.g. the seed of a run's views pooled over seeds): a two-stage bootstrap,
+    groups drawn with replacement and then views within each drawn group, so the interval also holds the spread
+    between groups (runs of different seeds) instead of treating every (seed, view) item as independent."""
+    vals = [math.nan if v is None else v for v in values]
+    keep = np.isfinite(np.asarray(vals, np.float64))
+    x = np.asarray(vals, np.float64)[keep]
     if x.size == 0:
         return {"mean": None, "lo": None, "hi": None, "n": 0}
-    means = x[np.random.default_rng(seed).integers(0, x.size, (n, x.size))].mean(1)  # [n]
+    rng = np.random.default_rng(seed)
+    if groups is None:
+        means = x[rng.integers(0, x.size, (n, x.size))].mean(1)  # [n]
+    else:
+        means = _grouped_means(x, np.asarray(groups)[keep], rng, n)
     lo, hi = np.percentile(means, [2.5, 97.5])
     return {"mean": float(x.mean()), "lo": float(lo), "hi": float(hi), "n": int(x.size)}
 
 
-def paired(a, b, metric: Metric) -> dict:
+def _grouped_means(x: np.ndarray, groups: np.ndarray, rng, n: int) -> np.ndarray:
+    """[n] resampled means: G group slots each take a random group, then a resample of that group's values (an
+    independent one per slot); the mean gives each slot its group's weight in the data."""
+    parts = [x[groups == g] for g in np.unique(groups)]  # G small (seeds): loops over groups, not values
+    g_count = len(parts)
+    pick = rng.integers(0, g_count, (n, g_count))  # [n, G] which group each slot takes
+    total = np.zeros(n)
+    weight = np.zeros(n)
+    for slot in range(g_count):
+        for g, xg in enumerate(parts):
+            sel = pick[:, slot] == g
+            inner = xg[rng.integers(0, xg.size, (n, xg.size))].mean(1)  # [n] a resample of group g
+            total += np.where(sel, inner * xg.size, 0.0)
+            weight += np.where(sel, xg.size, 0)
+    return total / weight
+
+
+def paired(a, b, metric: Metric, groups=None) -> dict:
     """A vs B on the same views: the mean paired difference a − b with its 95% bootstrap interval, and the
-    verdict "a", "b" or "no difference" (when the interval contains 0)."""
+    verdict "a", "b" or "no difference" (when the interval contains 0). ``groups``: see :func:`interval`."""
     pa = np.asarray([math.nan if v is None else v for v in a], np.float64)
     pb = np.asarray([math.nan if v is None else v for v in b], np.float64)
     if pa.shape != pb.shape:
         raise ValueError(f"{metric.key}: {pa.size} vs {pb.size} views")
     ok = np.isfinite(pa) & np.isfinite(pb)
-    ci = interval(pa[ok] - pb[ok])
+    ci = interval(pa[ok] - pb[ok], groups=None if groups is None else np.asarray(groups)[ok])
     if ci["n"] == 0:
         return {**ci, "better": None}
     if ci["lo"] <= 0.0 <= ci["hi"]:

@@ -241,13 +241,18 @@ def anchor_views(refs: Refs) -> dict:
     return {M.UNSTYLIZED: (un, list(refs.alpha2x)), M.STICKER: (st, [np.ones_like(a) for a in refs.alpha2x])}
 
 
-def summarize(per: dict) -> dict:
-    return {k: (None if v is None else M.interval(v)) for k, v in per.items()}
+def summarize(per: dict, groups: dict | None = None) -> dict:
+    """Per metric the mean and interval over views. ``groups``: {metric: one label per view item} (the seed of
+    each item where runs of several seeds are pooled: a two-stage bootstrap, metrics.interval)."""
+    g = groups or {}
+    return {k: (None if v is None else M.interval(v, groups=g.get(k))) for k, v in per.items()}
 
 
-def compare(per_a: dict, per_b: dict) -> dict:
-    """Paired comparison of two runs scored on the same references, per metric measured for both."""
-    return {k: M.paired(per_a[k], per_b[k], M.METRICS[k]) for k in per_a
+def compare(per_a: dict, per_b: dict, groups: dict | None = None) -> dict:
+    """Paired comparison of two runs scored on the same references, per metric measured for both (``groups``:
+    as in :func:`summarize`)."""
+    g = groups or {}
+    return {k: M.paired(per_a[k], per_b[k], M.METRICS[k], groups=g.get(k)) for k in per_a
             if per_a[k] is not None and per_b.get(k) is not None}
 
 
