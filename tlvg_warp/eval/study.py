@@ -2,7 +2,8 @@
 runs are skipped, interrupted ones resumed), every (scene, painting) evaluated with one ruler together with its
 anchors (the un-stylized scene and the painting pasted over every view), then the paper's Table 1 per scene (a
 row per config with its wall time, the anchors as reference rows), the ablation table, the speed-quality chart,
-optionally the VLM panel; written as study.json, study.csv and study.html. Intervals are over seeds and views.
+optionally the VLM panel; written as study.json, study.csv and study.html. Intervals are over seeds and views: a two-stage
+bootstrap draws seeds, then views within each (metrics.interval).
 
 STUDY.yaml (paths relative to the YAML file):
     out: runs/study            # study folder
@@ -217,26 +218,40 @@ def pooled(per_lists: list) -> dict:
     return out
 
 
-def config_rows(names, per_views, times, counts, anchors: dict | None = None) -> tuple[list, dict, dict]:
+def seed_groups(per_lists: list, seed_index: list) -> dict:
+    """{metric: the seed of every pooled item}, for per-view dicts pooled in this order (``seed_index``: the seed
+    of each dict): the intervals then draw seeds first, then views within each (metrics.interval)."""
+    out = {}
+    for pv, k in zip(per_lists, seed_index):
+        for m, v in pv.items():
+            if v is not None:
+                out.setdefault(m, []).extend([k] * len(v))
+    return out
+
+
+def config_rows(names, per_views, times, counts, anchors: dict | None = None,
+                groups: dict | None = None) -> tuple[list, dict, dict]:
     """(rows: one per config, then one per anchor with "anchor": True; winners; not-discriminating marks). A
-    config wins a metric only where it also beats the anchor the metric exists to beat (evaluate's rule)."""
-    anchors = anchors or {}
-    rows = []
-    for n, pv, t, c in zip(names, per_views, times, counts):
-        rows.append({"config": n, **{k: (None if v is None else M.interval(v)) for k, v in pv.items()},
-                     "gaussians": c, "wall_time_s": t})
-    for a, pv in anchors.items():
-        rows.append({"config": a, "anchor": True, **{k: (None if v is None else M.interval(v)) for k, v in pv.items()}})
-    return rows, winners(names, per_views, anchors), not_discriminating(per_views, anchors)
+    config wins a metric only where it also beats the anchor the metric exists to beat (evaluate's rule).
+    ``groups``: :func:`seed_groups` of the pooled items (None: one seed, items drawn alike)."""
+    anchors, g = anchors or {}, groups or {}
+
+    def cells(pv):
+        return {k: (None if v is None else M.interval(v, groups=g.get(k))) for k, v in pv.items()}
+
+    rows = [{"config": n, **cells(pv), "gaussians": c, "wall_time_s": t}
+            for n, pv, t, c in zip(names, per_views, times, counts)]
+    rows += [{"config": a, "anchor": True, **cells(pv)} for a, pv in anchors.items()]
+    return rows, winners(names, per_views, anchors, groups), not_discriminating(per_views, anchors, groups)
 
 
-def ablation_rows(st: Study, pooled_all: dict) -> list:
+def ablation_rows(st: Study, pooled_all: dict, groups: dict | None = None) -> list:
     out = []
     if st.ours not in pooled_all:
         return out
     for a in st.ablations:
         if a in pooled_all:
-            out.append({"config": a, **compare(pooled_all[a], pooled_all[st.ours])})
+            out.append({"config": a, **compare(pooled_all[a], pooled_all[st.ours], groups)})
     return out
 
 
@@ -355,7 +370,7 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
         net = load_vgg(st.vgg_weights, device=device)
     configs = list(st.configs)
     seeds = [f"seed_{k}" for k in range(st.seeds)]
-    tables, pooled_all, anchors_all = {}, {}, {}
+    tables, pooled_all, anchors_all, groups_all = {}, {}, {}, []
     for s in st.scenes:
         # a config counts where every (painting, seed) run finished; its views are pooled in the order (painting,
         # seed, view), and each anchor's views are repeated per seed in the same order, so every row stays paired
@@ -367,22 +382,29 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
         names_a = [a for a in M.ANCHORS if all(a in evals.get((s, p), {}).get("__anchors__", {}) for p in st.paintings)]
         anchors = {a: pooled([evals[(s, p)]["__anchors__"][a]["per_view"] for p in st.paintings for _ in seeds])
                    for a in names_a} if have else {}
-        rows, win, nd = config_rows(have, pv, times, counts, anchors)
+        # several seeds: intervals draw seeds, then views (the runs of one seed index stay together across paintings)
+        groups = (seed_groups([r["per_view"] for r in runs_of(have[0])],
+                              [k for _ in st.paintings for k in range(st.seeds)]) if have and st.seeds > 1 else None)
+        rows, win, nd = config_rows(have, pv, times, counts, anchors, groups)
         tables[s] = {"rows": rows, "winners": win, "not_discriminating": nd, "seeds": st.seeds}
+        if groups is not None:
+            groups_all.append(groups)
         for c, v in zip(have, pv):
             pooled_all.setdefault(c, []).append(v)
         for a, v in anchors.items():
             anchors_all.setdefault(a, []).append(v)
     pooled_all = {c: pooled(v) for c, v in pooled_all.items() if len(v) == len(tables)}
     anchors_all = {a: pooled(v) for a, v in anchors_all.items() if len(v) == len(tables)}
-    overall = {c: {k: (None if v is None else M.interval(v)) for k, v in pv.items()} for c, pv in pooled_all.items()}
-    overall_anchors = {a: {k: (None if v is None else M.interval(v)) for k, v in pv.items()}
+    g_all = pooled(groups_all) if groups_all and len(groups_all) == len(tables) else {}  # in the scenes' order
+    overall = {c: {k: (None if v is None else M.interval(v, groups=g_all.get(k))) for k, v in pv.items()}
+               for c, pv in pooled_all.items()}
+    overall_anchors = {a: {k: (None if v is None else M.interval(v, groups=g_all.get(k))) for k, v in pv.items()}
                        for a, pv in anchors_all.items()}
     all_times = {c: _mean([r["wall_time_s"] for t in tables.values() for r in t["rows"] if r["config"] == c])
                  for c in pooled_all}
     result = {"study": str(st.path), "out": str(st.out), "device": str(device), "vgg": net.source,
               "vgg_random": bool(net.is_random), "iterations": st.iterations, "seeds": st.seeds, "status": status,
-              "tables": tables, "ablation": ablation_rows(st, pooled_all), "overall": overall,
+              "tables": tables, "ablation": ablation_rows(st, pooled_all, g_all or None), "overall": overall,
               "overall_anchors": overall_anchors,
               "times": all_times, "ours": st.ours, "baseline": st.baseline,
               "ranks": {"world": dist.world, "stylized_by": {k: ranks[k] for k in keys if k in ranks}}}
