@@ -140,7 +140,7 @@ def bars_chart(names, summaries) -> str:
         mean = np.array([np.nan if v.get("mean") is None else v["mean"] for v in s])
         err = np.array([[m - (v.get("lo") if v.get("lo") is not None else m) for m, v in zip(mean, s)],
                         [(v.get("hi") if v.get("hi") is not None else m) - m for m, v in zip(mean, s)]])
-        err = np.clip(err, 0.0, None)  # a two-stage interval of constant values may sit 1e-17 inside its mean
+        err = np.clip(err, 0.0, None)  # a two-stage interval of a constant metric may miss its mean by rounding
         ax.bar(range(len(names)), mean, yerr=err, capsize=4, color=[f"C{j}" for j in range(len(names))])
         ax.set_xticks(range(len(names)), names, rotation=20, fontsize=8)
         m = M.METRICS[k]

@@ -2,8 +2,8 @@
 runs are skipped, interrupted ones resumed), every (scene, painting) evaluated with one ruler together with its
 anchors (the un-stylized scene and the painting pasted over every view), then the paper's Table 1 per scene (a
 row per config with its wall time, the anchors as reference rows), the ablation table, the speed-quality chart,
-optionally the VLM panel; written as study.json, study.csv and study.html. Intervals are over seeds and views: a two-stage
-bootstrap draws seeds, then views within each (metrics.interval).
+optionally the VLM panel; written as study.json, study.csv and study.html. Intervals are over seeds and views: a
+two-stage bootstrap draws seeds, then views within each (metrics.interval).
 
 STUDY.yaml (paths relative to the YAML file):
     out: runs/study            # study folder
