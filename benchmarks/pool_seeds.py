@@ -7,8 +7,9 @@ on the same views): the pooled config's per-view scores are the seeds' concatena
 given, and each anchor's per-view scores are repeated once per seed in the same order, so the paired comparisons
 stay paired item by item (the `study` command's pooling, eval/study.py). Intervals are a two-stage bootstrap (seeds
 drawn with replacement, then views within each drawn seed; metrics.interval), so they hold the spread between seeds.
-A pair where a pooled config lacks a seed is refused. The pooled run's metrics.json is its first seed's; ``seed_spread`` in the output lists each seed's mean
-of every metric, so run-to-run spread is read beside the intervals. Writes the layout `study_table.py` reads.
+A pair where a pooled config lacks a seed is refused. The pooled run's metrics.json is its first seed's;
+``seed_spread`` in the output lists each seed's mean of every metric, so run-to-run spread is read beside the
+intervals. Writes the layout `study_table.py` reads.
 """
 from __future__ import annotations
 
