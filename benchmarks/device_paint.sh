@@ -33,6 +33,9 @@ for f in glob.glob(sys.argv[1] + "/*/r_*.png"):  # lego at 400x400: the whole sc
 EOF2
   du -sh .carry/*; exit 0
 fi
+case "${PART:-pairs}" in stage1|stage2) ;; *)  # a machine that went back is fresh: say so at once, not after a wait
+  [ -f /tmp/tlvg-gpu/env.sh ] || { echo "this machine is not staged: run PART=stage1, then PART=stage2" >&2; exit 2; };;
+esac
 OUT=${OUT:-/tmp/tlvg-out}; mkdir -p "$OUT"
 D=/tmp/tlvg-data; F=/tmp/tlvg-fits; R=/tmp/tlvg-runs; mkdir -p "$D" "$F" "$R"
 export TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1
