@@ -28,7 +28,8 @@ def mean(v):
 
 
 def pool(ev: dict, pools: dict) -> dict | None:
-    """The evaluation ``ev`` with each pool's seeds replaced by one pooled run, or None where a seed is missing."""
+    """The evaluation ``ev`` with each pool's seeds replaced by one pooled run, or None where a seed is missing or
+    the pools' seeds were scored on different numbers of views (their items would not pair)."""
     by_name = {r["name"]: r for r in ev["runs"]}
     if any(s not in by_name for seeds in pools.values() for s in seeds):
         return None
@@ -74,7 +75,7 @@ def main() -> None:
         scene, painting = f.parents[2].name, f.parents[1].name
         res = pool(json.loads(f.read_text()), pools)
         if res is None:
-            print(f"{scene} x {painting}: not pooled (a seed is missing)")
+            print(f"{scene} x {painting}: not pooled (a seed is missing, or the seeds' views differ)")
             continue
         dst = out / scene / painting
         (dst / "evaluation").mkdir(parents=True, exist_ok=True)

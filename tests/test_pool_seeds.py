@@ -71,3 +71,10 @@ def test_intervals_draw_seeds_then_views(pool_seeds):
     # is no better than B, so the comparison does not call it (items taken as independent would: A by about 1)
     c = out["comparisons"]["A vs B"]["flow_alignment"]
     assert c["lo"] == pytest.approx(0.0, abs=0.01) and c["better"] == "no difference"
+
+
+def test_seeds_on_different_views_refused(pool_seeds):
+    """A config whose seeds were scored on fewer views than the other's: the items would not pair, so no pooling."""
+    ev = _evaluation(np.random.default_rng(6), ["a", "a1", "b", "b1"])
+    ev["runs"][3]["per_view"]["flow_alignment"] = ev["runs"][3]["per_view"]["flow_alignment"][:4]
+    assert pool_seeds.pool(ev, {"A": ["a", "a1"], "B": ["b", "b1"]}) is None
