@@ -1,7 +1,8 @@
 """Cost curves: wall time and peak GPU memory of one stylize step and one fit step against Gaussians and pixels.
 
     python benchmarks/cost_curves.py --out OUT [--gaussians 100000,300000,1000000,3000000,10000000] \
-        [--megapixels 0.1,0.5,1,2,4] [--base-gaussians 1000000] [--base-megapixels 0.76] [--steps 40] [--warm 20]
+        [--megapixels 0.1,0.5,1,2,4] [--base-gaussians 1000000] [--base-megapixels 0.76] [--steps 40] [--warm 20] \
+        [--steps-of stylize,fit,raster] [--raster-peers tlvg_warp,gsplat] [--resume]
 
 Each point is a random scene (bench raster's: uniform in a cube, log-scale -4, SH degree 0) stylized by `stylize`
 with configs/tlvg.yaml in this process, on orbit views of the point's size (4:3): a stylize step with the stylize
@@ -9,8 +10,10 @@ phase alone, a fit step with the pre-process alone (L1 + SSIM against the recolo
 with density control; reconstruct's own step adds only its SfM-free schedule). Steps
 WARM..WARM+STEPS are timed with a synchronize at both ends (the wall per step as the run sees it: host and GPU);
 peak memory is torch.cuda.max_memory_allocated over the run (torch's allocations: VGG, the optimizer, the raster's
-buffers on torch memory). Writes cost_curves.csv and cost_curves.png under OUT. The rasterizer alone against gsplat
-at the same points: `python -m tlvg_warp bench raster --sizes N,... --size WxH --peers tlvg_warp,gsplat`.
+buffers on torch memory). ``raster`` points time the rasterizer alone on the same scene and view size, ours and each
+of ``--raster-peers`` in this process (bench raster's timing: forward+backward, median of ``--raster-repeats`` after
+warm-up, one orbit view; its peak memory). Writes cost_curves.csv and cost_curves.png under OUT after every point;
+``--resume`` keeps the points an earlier call wrote there (a curve can take more than one call).
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ sys.path.append(str(ROOT))  # after an installed package or the GPU scripts' sou
 
 import tlvg_warp.stylize.pipeline as pipeline  # noqa: E402
 from tlvg_warp import cli  # noqa: E402
-from tlvg_warp.eval.bench_raster import random_scene  # noqa: E402
+from tlvg_warp.eval.bench_raster import Case, orbit_cameras, random_scene, run_bench  # noqa: E402
 from tlvg_warp.io.ply import save_ply  # noqa: E402
 from tlvg_warp.io.scene_views import ORBIT_SIZE  # noqa: E402
 
@@ -55,14 +58,36 @@ def _timed_train(orig):
     return train
 
 
+def view_size(megapixels: float) -> tuple[float, int, int]:
+    """The orbit views' downscale (they are ORBIT_SIZE / downscale) that gives ``megapixels``, and its width, height."""
+    downscale = math.sqrt(ORBIT_SIZE[0] * ORBIT_SIZE[1] / (megapixels * 1e6))
+    return downscale, round(ORBIT_SIZE[0] / downscale), round(ORBIT_SIZE[1] / downscale)
+
+
+def raster_points(n: int, megapixels: float, args) -> list[dict]:
+    """The rasterizer alone on the point's random scene at the point's view size: one row per peer (ms =
+    forward+backward, peak MiB of that call; an error where a peer failed, e.g. out of memory)."""
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    _, w, h = view_size(megapixels)
+    g = random_scene(n, -4.0, 0, device)
+    rows = run_bench([Case(f"random {n}", g, orbit_cameras(g, 1, w, h))], device, args.raster_repeats,
+                     peers=tuple(args.raster_peers.split(",")), log=lambda *_: None, profile_reps=1)
+    del g
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+    return [{"step": f"raster {r['peer']}", "gaussians": n, "width": w, "height": h,
+             "megapixels": round(w * h / 1e6, 3), "rc": 0 if "fwd_bwd_ms" in r else r.get("error", "failed"),
+             "ms_per_step": round(r.get("fwd_bwd_ms", float("nan")), 3),
+             "peak_mib": round(r.get("peak_mb", float("nan")), 1)} for r in rows]
+
+
 def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
     """One run of a random scene of ``n`` Gaussians on views of ``megapixels``, ``kind`` stylize or fit steps only:
     ms per step, peak MiB. Scenes and runs go to ``work``."""
     scene = work / f"scene_{n}.ply"
     if not scene.is_file():
         save_ply(random_scene(n, -4.0, 0, "cpu"), scene)
-    # orbit views are ORBIT_SIZE / downscale: pick the downscale that gives the point's pixel count
-    downscale = math.sqrt(ORBIT_SIZE[0] * ORBIT_SIZE[1] / (megapixels * 1e6))
+    downscale, w, h = view_size(megapixels)
     TIMER.update(warm=args.warm, steps=args.steps, ms=float("nan"))
     if torch.cuda.is_available():
         torch.cuda.reset_peak_memory_stats()
@@ -75,7 +100,6 @@ def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
             *(["--device", args.device] if args.device else [])]
     rc = cli.main(argv)
     peak = torch.cuda.max_memory_allocated() / 2 ** 20 if torch.cuda.is_available() else float("nan")
-    w, h = round(ORBIT_SIZE[0] / downscale), round(ORBIT_SIZE[1] / downscale)
     return {"step": kind, "gaussians": n, "width": w, "height": h, "megapixels": round(w * h / 1e6, 3), "rc": rc,
             "ms_per_step": round(TIMER["ms"], 3), "peak_mib": round(peak, 1)}
 
@@ -90,13 +114,17 @@ def chart(rows: list[dict], path: Path, base_n: int, base_mp: float) -> None:
                                             ("megapixels", "megapixels", lambda r: r["gaussians"] == base_n))):
         ax = fig.add_subplot(1, 2, k + 1)
         ax2 = ax.twinx()
-        for kind, color in (("stylize", "tab:blue"), ("fit", "tab:green")):
-            pts = sorted((r for r in rows if keep(r) and r["step"] == kind), key=lambda r: r[key])
-            ax.plot([r[key] for r in pts], [r["ms_per_step"] for r in pts], "o-", color=color, label=f"{kind} ms")
-            ax2.plot([r[key] for r in pts], [r["peak_mib"] for r in pts], "s--", color=color, alpha=0.5,
-                     label=f"{kind} peak MiB")
+        kinds = sorted({r["step"] for r in rows}, key=lambda k: (k.startswith("raster"), k))
+        for kind, color in zip(kinds, ("tab:blue", "tab:green", "tab:orange", "tab:red", "tab:purple")):
+            pts = sorted((r for r in rows if keep(r) and r["step"] == kind and r["rc"] in (0, "0")),
+                         key=lambda r: r[key])
+            label = kind.replace("raster tlvg_warp", "raster ours (fwd+bwd)").replace("raster gsplat",
+                                                                                      "raster gsplat (fwd+bwd)")
+            ax.plot([r[key] for r in pts], [r["ms_per_step"] for r in pts], "o-", color=color, label=f"{label} ms")
+            ax2.plot([r[key] for r in pts], [r["peak_mib"] for r in pts], "s--", color=color, alpha=0.5)
         ax.legend(loc="upper left", fontsize=8)
         ax.set_xscale("log")
+        ax.set_yscale("log")
         ax.set_xlabel(label)
         ax.set_ylabel("ms per step")
         ax2.set_ylabel("peak MiB (dashed)")
@@ -116,24 +144,46 @@ def main() -> None:
     ap.add_argument("--warm", type=int, default=20)
     ap.add_argument("--vgg-weights", default=None)
     ap.add_argument("--device", default=None)
-    ap.add_argument("--steps-of", default="stylize,fit", help="which steps to time: stylize, fit or both")
+    ap.add_argument("--steps-of", default="stylize,fit,raster", help="which to time: stylize, fit, raster")
+    ap.add_argument("--raster-peers", default="tlvg_warp,gsplat", help="the rasterizers of the raster points")
+    ap.add_argument("--raster-repeats", type=int, default=10)
+    ap.add_argument("--resume", action="store_true", help="keep the points already in OUT/cost_curves.csv")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     pipeline.train = _timed_train(pipeline.train)
-    todo = [(int(float(n)), args.base_megapixels) for n in args.gaussians.split(",")]
+    todo = [(int(float(n)), args.base_megapixels) for n in args.gaussians.split(",") if n]
     todo += [(args.base_gaussians, float(m)) for m in args.megapixels.split(",")
-             if (args.base_gaussians, float(m)) not in todo]
-    rows = []
+             if m and (args.base_gaussians, float(m)) not in todo]
+    rows = read(out / "cost_curves.csv") if args.resume else []
+    done = {(r["step"].split()[0], r["gaussians"], r["megapixels_asked"]) for r in rows}
     print("| step | Gaussians | view | ms per step | peak MiB |\n| --- | --- | --- | --- | --- |")
     for kind in args.steps_of.split(","):
         for n, mp in todo:
-            r = point(work, n, mp, kind, args) | {"megapixels_asked": mp}
-            rows.append(r)
-            print(f"| {kind} | {n:,} | {r['width']}x{r['height']} | {r['ms_per_step']} | {r['peak_mib']} |", flush=True)
+            if (kind, n, mp) in done:
+                continue
+            new = raster_points(n, mp, args) if kind == "raster" else [point(work, n, mp, kind, args)]
+            for r in new:
+                rows.append(r | {"megapixels_asked": mp})
+                print(f"| {r['step']} | {n:,} | {r['width']}x{r['height']} | {r['ms_per_step']} | {r['peak_mib']} |"
+                      + ("" if r["rc"] in (0, "0") else f" {r['rc']}"), flush=True)
             write(rows, out, args)  # after every point: a run cut short keeps what it measured
+
+
+def read(path: Path) -> list[dict]:
+    """The rows an earlier call wrote (numbers back as numbers); none where there is no file."""
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        for k in ("gaussians", "width", "height"):
+            r[k] = int(r[k])
+        for k in ("megapixels", "ms_per_step", "peak_mib", "megapixels_asked"):
+            r[k] = float(r[k])
+    return rows
 
 
 def write(rows: list[dict], out: Path, args) -> None:
