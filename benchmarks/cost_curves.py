@@ -118,9 +118,9 @@ def chart(rows: list[dict], path: Path, base_n: int, base_mp: float) -> None:
         for kind, color in zip(kinds, ("tab:blue", "tab:green", "tab:orange", "tab:red", "tab:purple")):
             pts = sorted((r for r in rows if keep(r) and r["step"] == kind and r["rc"] in (0, "0")),
                          key=lambda r: r[key])
-            label = kind.replace("raster tlvg_warp", "raster ours (fwd+bwd)").replace("raster gsplat",
-                                                                                      "raster gsplat (fwd+bwd)")
-            ax.plot([r[key] for r in pts], [r["ms_per_step"] for r in pts], "o-", color=color, label=f"{label} ms")
+            name = kind.replace("raster tlvg_warp", "raster ours (fwd+bwd)").replace("raster gsplat",
+                                                                                     "raster gsplat (fwd+bwd)")
+            ax.plot([r[key] for r in pts], [r["ms_per_step"] for r in pts], "o-", color=color, label=f"{name} ms")
             ax2.plot([r[key] for r in pts], [r["peak_mib"] for r in pts], "s--", color=color, alpha=0.5)
         ax.legend(loc="upper left", fontsize=8)
         ax.set_xscale("log")
