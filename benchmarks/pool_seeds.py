@@ -20,7 +20,7 @@ from pathlib import Path
 
 from tlvg_warp.eval.engine import not_discriminating, pair_comparisons, winners
 from tlvg_warp.eval.refs import summarize
-from tlvg_warp.eval.study import pooled
+from tlvg_warp.eval.study import pooled, seed_groups
 
 
 def mean(v):
@@ -29,7 +29,8 @@ def mean(v):
 
 def pool(ev: dict, pools: dict) -> dict | None:
     """The evaluation ``ev`` with each pool's seeds replaced by one pooled run, or None where a seed is missing or
-    the pools' seeds were scored on different numbers of views (their items would not pair)."""
+    the pools' seeds were scored on different numbers of views (their items would not pair). Every pool has the same
+    number of seeds (main checks it: the anchors are repeated once per seed)."""
     by_name = {r["name"]: r for r in ev["runs"]}
     if any(s not in by_name for seeds in pools.values() for s in seeds):
         return None
@@ -37,7 +38,7 @@ def pool(ev: dict, pools: dict) -> dict | None:
     groups = None  # {metric: the seed index of each pooled item}: the intervals draw seeds, then views
     for name, seeds in pools.items():
         pv = pooled([by_name[s]["per_view"] for s in seeds])
-        g = {k: [i for i, s in enumerate(seeds) for _ in (by_name[s]["per_view"][k] or [])] for k in pv}
+        g = seed_groups([by_name[s]["per_view"] for s in seeds], list(range(len(seeds))))
         if groups is not None and g != groups:
             return None  # the pools' items must line up (same views per seed) to be compared
         groups = g
@@ -47,10 +48,7 @@ def pool(ev: dict, pools: dict) -> dict | None:
                                                                  if k in first["summary"]},
                          per_view=pv, seeds=list(seeds)))
         spread[name] = {s: {k: mean(v) for k, v in by_name[s]["per_view"].items()} for s in seeds}
-    reps = {len(s) for s in pools.values()}
-    if len(reps) != 1:
-        raise SystemExit("every pool needs the same number of seeds (the anchors are repeated once per seed)")
-    n = reps.pop()
+    n = len(next(iter(pools.values())))
     anchors = [dict(a, per_view=pooled([a["per_view"]] * n)) for a in ev["anchors"]]
     for a in anchors:
         a["summary"] = summarize(a["per_view"], groups)
@@ -70,6 +68,8 @@ def main() -> None:
     ap.add_argument("--pool", action="append", required=True, help="NAME=seed_run,seed_run,... (the first is seed 0)")
     args = ap.parse_args()
     pools = {k: v.split(",") for k, v in (x.split("=", 1) for x in args.pool)}
+    if len({len(s) for s in pools.values()}) != 1:
+        raise SystemExit("every pool needs the same number of seeds (the anchors are repeated once per seed)")
     study, out = Path(args.study), Path(args.out)
     for f in sorted(study.glob("*/*/evaluation/evaluation.json")):
         scene, painting = f.parents[2].name, f.parents[1].name

@@ -49,7 +49,7 @@ from . import judge
 from . import metrics as M
 from . import report as H
 from .engine import evaluate_runs, not_discriminating, report_html, winners
-from .refs import compare
+from .refs import compare, summarize
 
 TOP_KEYS = {"out", "device", "iterations", "seeds", "vgg_weights", "eval_height", "max_views", "set", "configs",
             "ours", "baseline", "ablations", "scenes", "paintings", "judge"}
@@ -234,14 +234,10 @@ def config_rows(names, per_views, times, counts, anchors: dict | None = None,
     """(rows: one per config, then one per anchor with "anchor": True; winners; not-discriminating marks). A
     config wins a metric only where it also beats the anchor the metric exists to beat (evaluate's rule).
     ``groups``: :func:`seed_groups` of the pooled items (None: one seed, items drawn alike)."""
-    anchors, g = anchors or {}, groups or {}
-
-    def cells(pv):
-        return {k: (None if v is None else M.interval(v, groups=g.get(k))) for k, v in pv.items()}
-
-    rows = [{"config": n, **cells(pv), "gaussians": c, "wall_time_s": t}
+    anchors = anchors or {}
+    rows = [{"config": n, **summarize(pv, groups), "gaussians": c, "wall_time_s": t}
             for n, pv, t, c in zip(names, per_views, times, counts)]
-    rows += [{"config": a, "anchor": True, **cells(pv)} for a, pv in anchors.items()]
+    rows += [{"config": a, "anchor": True, **summarize(pv, groups)} for a, pv in anchors.items()]
     return rows, winners(names, per_views, anchors, groups), not_discriminating(per_views, anchors, groups)
 
 
@@ -396,10 +392,8 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
     pooled_all = {c: pooled(v) for c, v in pooled_all.items() if len(v) == len(tables)}
     anchors_all = {a: pooled(v) for a, v in anchors_all.items() if len(v) == len(tables)}
     g_all = pooled(groups_all) if groups_all and len(groups_all) == len(tables) else {}  # in the scenes' order
-    overall = {c: {k: (None if v is None else M.interval(v, groups=g_all.get(k))) for k, v in pv.items()}
-               for c, pv in pooled_all.items()}
-    overall_anchors = {a: {k: (None if v is None else M.interval(v, groups=g_all.get(k))) for k, v in pv.items()}
-                       for a, pv in anchors_all.items()}
+    overall = {c: summarize(pv, g_all) for c, pv in pooled_all.items()}
+    overall_anchors = {a: summarize(pv, g_all) for a, pv in anchors_all.items()}
     all_times = {c: _mean([r["wall_time_s"] for t in tables.values() for r in t["rows"] if r["config"] == c])
                  for c in pooled_all}
     result = {"study": str(st.path), "out": str(st.out), "device": str(device), "vgg": net.source,
