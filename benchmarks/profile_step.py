@@ -5,8 +5,12 @@ Runs the command in this process; its training loop gets a callback that (1) tim
 with a synchronize at both ends and nothing in between (the wall per step, as the run sees it), then (2) runs
 torch.profiler (CPU + CUDA) over the next ACTIVE steps: GPU kernel time per step (the sum of kernel durations:
 one stream), host launches per step, the top kernels and host operators. GPU time per step well below the wall
-per step means the host bounds the step."""
+per step means the host bounds the step. Then (3) cProfile over the next CPROF steps: the Python functions that
+take the host's time (self time and cumulative), to see which ones a host-bound step should lose."""
+import cProfile
+import io
 import os
+import pstats
 import sys
 import time
 
@@ -18,6 +22,8 @@ import tlvg_warp.train.reconstruct as reconstruct
 from tlvg_warp.cli import main
 
 WARM, TIMED, ACTIVE = int(os.environ.get("WARM", 300)), int(os.environ.get("TIMED", 600)), 40
+CPROF = int(os.environ.get("CPROF", 200))
+cprof = cProfile.Profile()
 cmd, args = sys.argv[1], sys.argv[sys.argv.index("--") + 1:]
 state = {}
 prof = profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA],
@@ -39,6 +45,11 @@ def callback_(step, run):
             torch.cuda.synchronize()
             prof.stop()
             state["prof"] = False
+            state["cp_end"] = step + CPROF
+            cprof.enable()
+    elif state.get("cp_end") == step:
+        cprof.disable()
+        state["cp_steps"] = CPROF
 
 
 def wrap(mod):
@@ -58,8 +69,9 @@ wrap(reconstruct)
 rc = main([cmd, *args])
 print(f"{cmd} exit {rc}")
 avg = prof.key_averages()
-kernels = [e for e in avg if e.device_type == torch.autograd.DeviceType.CUDA]
-gpu_us = sum(e.self_device_time_total for e in avg if not e.key.startswith("ProfilerStep"))
+# GPU-side events, less the user annotations (ProfilerStep#'s GPU range spans whole steps, idle time included)
+kernels = [e for e in avg if e.device_type == torch.autograd.DeviceType.CUDA and not getattr(e, "is_user_annotation", False)]
+gpu_us = sum(e.self_device_time_total for e in kernels)  # the kernels' own time (a graph's kernels among them)
 launch_names = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx", "cudaMemsetAsync",
                 "cudaMemcpyAsync")
 api = {e.key: e.count for e in avg if e.key in launch_names}
@@ -68,3 +80,10 @@ print(f"GPU kernel time per step (profiler, {ACTIVE} steps): {gpu_us / 1e3 / ACT
       + ", ".join(f"{k} {v / ACTIVE:.0f}" for k, v in api.items()))
 print(avg.table(sort_by="self_device_time_total", row_limit=25, max_name_column_width=60))
 print(avg.table(sort_by="self_cpu_time_total", row_limit=25, max_name_column_width=60))
+if state.get("cp_steps"):
+    for key in ("tottime", "cumulative"):
+        buf = io.StringIO()
+        st = pstats.Stats(cprof, stream=buf)
+        st.sort_stats(key).print_stats(35)
+        print(f"cProfile over {CPROF} steps, by {key} (seconds over the steps; divide by {CPROF} for a step):")
+        print("\n".join(buf.getvalue().splitlines()[4:]))

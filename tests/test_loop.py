@@ -462,6 +462,79 @@ def test_no_host_reads_in_a_step_outside_the_schedule(demo, monkeypatch):
     assert any(r[2] == "densify_and_prune" for r in reads)  # the counter works: densify steps do read
 
 
+def test_no_copy_from_the_host_on_every_step(demo, monkeypatch):
+    """A tensor built from host data inside a step is a copy that waits for the GPU (torch syncs the stream for a
+    copy from pageable memory). Counted: torch.tensor / as_tensor / Tensor.new_tensor called from the loop's own
+    code (train/, stylize/, losses/) while a step runs. A constant made once and kept (the background, a phase's
+    weight table) is allowed on one step per phase; a copy made on every step of a phase is not."""
+    calls, inside = [], {"step": None}
+    own = (*OWN, "tlvg_warp/losses/")
+
+    def counted(orig, label):
+        def wrapped(*a, **k):
+            if inside["step"] is not None:
+                f = sys._getframe(1)
+                if any(o in f.f_code.co_filename.replace("\\", "/") for o in own) and f.f_code.co_name not in HOST_RNG:
+                    calls.append((inside["step"], f.f_code.co_name))
+            return orig(*a, **k)
+        return wrapped
+    monkeypatch.setattr(torch, "tensor", counted(torch.tensor, "tensor"))
+    monkeypatch.setattr(torch, "as_tensor", counted(torch.as_tensor, "as_tensor"))
+    monkeypatch.setattr(torch.Tensor, "new_tensor", counted(torch.Tensor.new_tensor, "new_tensor"))
+    from tlvg_warp.train import loop as L
+
+    real_step = L._Loop.step
+
+    def step(self, phase, k, s):
+        inside["step"] = s
+        try:
+            return real_step(self, phase, k, s)
+        finally:
+            inside["step"] = None
+    monkeypatch.setattr(L._Loop, "step", step)
+    run, _, _ = _stylize_run(demo, StubFeatures(), **{"iterations": 12, "log_every": 4, "density.interval": 2})
+    assert run.phase("stylize").steps >= 6  # enough steps that a per-step copy shows
+    train(run, progress=False)
+    steps_of: dict = {}
+    for s, fn in calls:
+        steps_of.setdefault(fn, set()).add(s)
+    assert calls, "the counter saw nothing (the weight tables are built inside the first step of each phase)"
+    per_step = {fn: sorted(s) for fn, s in steps_of.items() if len(s) > len(run.phases)}
+    assert per_step == {}, per_step
+
+
+class _Scheduled(Phase):
+    TERMS = ("a", "b", "c", "d")
+
+    def weights(self, k):
+        return {"a": 0.5 + k, "c": 0.0, "d": 2.0 if k % 2 else 0.0}  # b: weight 1 by default; c: 0 on every step
+
+
+def test_weight_table_is_the_weighted_sum_in_value_and_gradient():
+    """The loop's Σ weight·term (one dot product against the phase's weights put on the device once) against
+    ``weighted_sum`` (the plain sum, term by term) on every step of a schedule: a weight changing per step, one
+    left at 1, one 0 throughout (no gradient reaches it), one 0 on every other step. Catches a step's row read off
+    by one, terms matched to the wrong weights, a term that is 0 throughout still differentiated."""
+    from tlvg_warp.train.loop import WeightTable, weighted_sum
+
+    phase = _Scheduled("p", 5)
+    table = WeightTable(phase)
+    gen = torch.Generator().manual_seed(3)
+    for k in range(phase.steps):
+        x = torch.randn(4, generator=gen, dtype=torch.float64, requires_grad=True)
+        terms = {n: (x[i] * (i + 1)) ** 2 for i, n in enumerate(phase.TERMS)}
+        got = table.loss(terms, k)
+        (g_got,) = torch.autograd.grad(got, x)
+        want = weighted_sum({n: (x[i] * (i + 1)) ** 2 for i, n in enumerate(phase.TERMS)}, phase.weights(k))
+        (g_want,) = torch.autograd.grad(want, x)
+        assert got.dtype == torch.float64
+        assert abs(float(got.detach()) - float(want.detach())) <= 1e-12 * max(1.0, abs(float(want.detach()))), k
+        assert torch.allclose(g_got, g_want, rtol=1e-12, atol=0), k
+        assert float(g_got[2]) == 0.0
+    live, _ = next(iter(table.tables.values()))
+    assert live == [0, 1, 3]  # c, 0 on every step, is not in the sum
+
+
 def test_stage_timer_spreads_rare_work_over_every_step(monkeypatch):
     """A fake clock: every step spends 1 ms in "a"; steps 100, 111 (a sampled one) and 200 also 50 ms in density
     (rare work). The split must say a = 1 ms and density = 3 x 50 / 200 = 0.75 ms per step. Catches rare work

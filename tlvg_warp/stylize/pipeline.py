@@ -285,8 +285,19 @@ def holes_now(g: Gaussians, cams: list, coverage: list, background) -> float:
 def over_background(img: torch.Tensor, coverage: torch.Tensor, background) -> torch.Tensor:
     """``img`` where the un-stylized scene covers the view (alpha ``coverage`` [H,W,1]), ``background`` (an image
     or an RGB triple) where it does not. Real captures are covered everywhere: there it returns ``img``."""
-    bg = background if torch.is_tensor(background) else img.new_tensor(background)
+    bg = background if torch.is_tensor(background) else _background_tensor(tuple(background), img.dtype, img.device)
     return coverage * img + (1.0 - coverage) * bg
+
+
+_backgrounds: dict = {}  # (rgb, dtype, device) -> tensor: made once, since a copy from the host waits for the GPU
+
+
+def _background_tensor(rgb: tuple, dtype, device) -> torch.Tensor:
+    key = (rgb, dtype, str(device))
+    t = _backgrounds.get(key)
+    if t is None:
+        t = _backgrounds[key] = torch.tensor(rgb, dtype=dtype, device=device)
+    return t
 
 
 # --- the Stylize phase -------------------------------------------------------------------------------------------
