@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tlvg_warp.stylize.outputs import (comparison_grid, curve, font_scale, orbit_path, weights_name, wrap_text,
-                                      zoom_crop)
+from tlvg_warp.stylize.outputs import (CURVE_BGR, PANEL_H, PANEL_W, comparison_grid, curve, font_scale, loss_curves,
+                                      orbit_path, panel_points, weights_name, wrap_text, zoom_crop)
 
 CAPTION = ("config: style=fast, luminance_only=True, lock_xyz=False, w_align=0.1, field=matched; 300 iterations; "
            "flow alignment 0.412; VGG-16 weights: /home/someone/.cache/torch/hub/checkpoints/vgg16-397923af.pth")
@@ -75,6 +75,42 @@ def test_loss_curve_breaks_at_phase_boundaries():
 
     assert segments(*curve(log, "fit")) == [[1, 2, 3], [7, 8, 9]]
     assert segments(*curve(log, "loss")) == [[1, 2, 3], [4, 5, 6], [7, 8, 9]]
+
+
+def test_panel_points_map_data_to_pixels_linearly_or_by_decade():
+    """Closed forms: on a log axis 0.1, 1, 10 land at the bottom, middle and top of the box, and 3x steps are
+    equally spaced; on a linear one the middle value lands mid-box; x spans the box; a NaN starts a new run."""
+    box = (10, 20, 110, 220)  # x0, y0, x1, y1
+    pts, run, span = panel_points(np.array([0.0, 5.0, 10.0]), np.array([0.1, 1.0, 10.0]), box, log_y=True)
+    assert pts.tolist() == [[10, 220], [60, 120], [110, 20]]
+    assert span == pytest.approx((0.1, 10.0))
+    y = 3.0 ** np.arange(5)
+    pts, _, _ = panel_points(np.arange(5.0), y, box, log_y=True)
+    assert np.ptp(np.diff(pts[:, 1])) <= 1  # equal steps in log10, to a pixel of rounding
+    pts, _, _ = panel_points(np.array([1.0, 2.0, 3.0]), np.array([2.0, 4.0, 6.0]), box, log_y=False)
+    assert pts[:, 1].tolist() == [220, 120, 20]
+    _, run, _ = panel_points(np.array([1.0, 2.0, 2.5, 3.0]), np.array([1.0, 2.0, np.nan, 3.0]), box, log_y=False)
+    assert run.tolist() == [0, 0, 1]
+
+
+def test_loss_curves_draw_each_term_in_its_panel(tmp_path):
+    """loss_curves.png read back with OpenCV: one panel per logged term in LOG_TERMS order (3 columns) plus the
+    flow score; a decreasing curve drawn in the curve colour from the top-left to the bottom-right of its plot box;
+    a term that is 0 throughout gets no panel."""
+    log = [{"step": s, "phase": "pre" if s <= 20 else "stylize", "loss": 10.0 / s,
+            "style": (1.0 / s if s > 20 else 0.0), "flow_score": 0.5} for s in range(1, 61)]
+    loss_curves(tmp_path / "c.png", log, False)
+    img = cv2.imread(str(tmp_path / "c.png"))
+    assert img.shape[1] == 3 * PANEL_W and (img.shape[0] - PANEL_H) < PANEL_H  # loss, style, flow_score: one row
+    panel = img[-PANEL_H:, :PANEL_W].astype(int)  # "loss"
+    near = np.abs(panel - np.array(CURVE_BGR)).sum(-1) < 60
+    ys, xs = np.nonzero(near)
+    assert len(xs) > 50
+    left, right = xs < xs.min() + 10, xs > xs.max() - 10
+    assert ys[left].min() < ys[right].min() - 100  # high at the start, low at the end
+    empty = img[-PANEL_H:, 2 * PANEL_W:].astype(int)  # flow_score is a horizontal line at mid-height
+    yy, _ = np.nonzero(np.abs(empty - np.array(CURVE_BGR)).sum(-1) < 60)
+    assert len(yy) and np.ptp(yy) <= 4
 
 
 def test_orbit_is_four_seconds_at_the_run_resolution():

@@ -247,45 +247,79 @@ def curve(log: list, term: str) -> tuple:
     return np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
 
 
+PANEL_W, PANEL_H, PLOT_MARGIN = 360, 200, (58, 10, 24, 22)  # a panel of loss_curves.png; margins left/right/top/bottom
+CURVE_BGR, GRID_BGR, TEXT_BGR = (180, 100, 30), (160, 160, 160), (30, 30, 30)
+
+
+def panel_points(x: np.ndarray, y: np.ndarray, box: tuple, log_y: bool) -> tuple:
+    """Pixel positions of the finite points (x, y) in ``box`` = (x0, y0, x1, y1), the y range spanning the data
+    (log10 of it when ``log_y``): ([K, 2] int32 pixel coordinates, the index of each point's run of finite
+    points (a NaN in ``y`` starts a new run), (y_lo, y_hi) in data units)."""
+    x0, y0, x1, y1 = box
+    ok = np.isfinite(y)
+    run = np.cumsum(~ok)[ok]  # NaN breaks the line
+    v = np.log10(y[ok]) if log_y else y[ok]
+    xs = x[ok]
+    lo, hi = (float(v.min()), float(v.max())) if len(v) else (0.0, 1.0)
+    if hi - lo < 1e-12:
+        lo, hi = lo - 0.5, hi + 0.5
+    xlo, xhi = (float(x.min()), float(x.max())) if len(x) else (0.0, 1.0)
+    xhi = xhi if xhi > xlo else xlo + 1.0
+    px = x0 + (xs - xlo) / (xhi - xlo) * (x1 - x0)
+    py = y1 - (v - lo) / (hi - lo) * (y1 - y0)
+    pts = np.stack([np.rint(px), np.rint(py)], -1).astype(np.int32)
+    span = (10 ** lo, 10 ** hi) if log_y else (lo, hi)
+    return pts, run, span
+
+
+def _panel(log: list, term: str, bounds: list) -> np.ndarray:
+    img = np.full((PANEL_H, PANEL_W, 3), 255, np.uint8)
+    ml, mr, mt, mb = PLOT_MARGIN
+    box = (ml, mt, PANEL_W - mr, PANEL_H - mb)
+    x, y = curve(log, term)
+    finite = y[np.isfinite(y)]
+    log_y = term != "flow_score" and len(finite) > 0 and bool(np.all(finite > 0))
+    cv2.rectangle(img, box[:2], box[2:], GRID_BGR, 1)
+    font, small = cv2.FONT_HERSHEY_SIMPLEX, 0.36
+    cv2.putText(img, term + (" (log)" if log_y else ""), (ml, 15), font, 0.45, TEXT_BGR, 1, cv2.LINE_AA)
+    if len(finite):
+        pts, run, (lo, hi) = panel_points(x, y, box, log_y)
+        xlo, xhi = float(x.min()), float(x.max())
+        for b in bounds:  # phase boundaries, dashed
+            if xlo < b < xhi:
+                bx = round(box[0] + (b - xlo) / (xhi - xlo) * (box[2] - box[0]))
+                for yy in range(box[1], box[3], 6):
+                    cv2.line(img, (bx, yy), (bx, min(yy + 3, box[3])), GRID_BGR, 1)
+        for r in np.unique(run):
+            seg = pts[run == r]
+            if term == "flow_score" or len(seg) == 1:
+                for p in seg:
+                    cv2.circle(img, (int(p[0]), int(p[1])), 1, CURVE_BGR, -1, cv2.LINE_AA)
+            if len(seg) > 1:
+                cv2.polylines(img, [seg.reshape(-1, 1, 2)], False, CURVE_BGR, 1, cv2.LINE_AA)
+        for val, yy in ((hi, box[1] + 8), (lo, box[3])):
+            cv2.putText(img, f"{val:.3g}", (2, yy), font, small, TEXT_BGR, 1, cv2.LINE_AA)
+        for val, xx in ((xlo, box[0]), (xhi, box[2] - 30)):
+            cv2.putText(img, f"{val:.0f}", (xx, PANEL_H - 6), font, small, TEXT_BGR, 1, cv2.LINE_AA)
+    return img
+
+
 def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
-    # lazy: matplotlib is heavy and only the figure needs it
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """loss_curves.png: one panel per logged term (log scale where it stays positive), the phases' boundaries
+    dashed. Drawn with OpenCV: matplotlib's tick layout for a dozen log axes took 1.6 s of Python holding the GIL
+    while the other output threads encode."""
     shown = [t for t in LOG_TERMS if any(r.get(t, 0) != 0 for r in log)]
-    extra = ["flow_score"] if any("flow_score" in r for r in log) else []
-    n = max(1, len(shown) + len(extra))
-    cols = 3
-    rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
+    shown += ["flow_score"] if any("flow_score" in r for r in log) else []
     bounds = [r["step"] for a, r in zip(log, log[1:]) if a["phase"] != r["phase"]]
-    for ax, t in zip(axes.flat, shown + extra):
-        x, y = curve(log, t)
-        if len(x):
-            ax.plot(x, y, lw=0.8, marker="." if t == "flow_score" else None)
-            finite = y[np.isfinite(y)]
-            if t != "flow_score" and np.all(finite > 0):
-                ax.set_yscale("log")
-        for b in bounds:
-            ax.axvline(b, color="gray", ls="--", lw=0.6)
-        ax.set_title(t, fontsize=9)
-        ax.tick_params(labelsize=7)
-    for ax in list(axes.flat)[n:]:
-        ax.axis("off")
-    title = "stylize losses per iteration (phases: pre | stylize | post)"
-    if vgg_random:
-        title += f"\n{RANDOM_VGG_NOTE}"
-    fig.suptitle(title, fontsize=10, color="red" if vgg_random else "black")
-    # margins in inches for the fixed figure size: tight_layout measured every label's text extent, 0.4 s of
-    # Python holding the GIL while the output threads encode (py-spy over a stylize run on the GPU host)
-    height = 2.6 * rows
-    fig.subplots_adjust(left=0.05, right=0.98, bottom=0.35 / height, top=1 - (0.8 if vgg_random else 0.55) / height,
-                        hspace=0.5, wspace=0.22)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
+    cols = 3
+    rows = max(1, math.ceil(len(shown) / cols))
+    grid = np.full((rows * PANEL_H, cols * PANEL_W, 3), 255, np.uint8)
+    for i, t in enumerate(shown):
+        r, c = divmod(i, cols)
+        grid[r * PANEL_H:(r + 1) * PANEL_H, c * PANEL_W:(c + 1) * PANEL_W] = _panel(log, t, bounds)
+    title = ["stylize losses per iteration (phases: pre | stylize | post)"] + ([RANDOM_VGG_NOTE] if vgg_random else [])
+    head = _text_block(title, grid.shape[1], 0.5, (0, 0, 200) if vgg_random else TEXT_BGR)
+    write_image(path, np.ascontiguousarray(np.concatenate([head, grid], 0)[..., ::-1]))  # write_image takes RGB
 
 
 OUTPUT_WORKERS = min(8, os.cpu_count() or 1)  # threads that encode and score the outputs beside the GPU renders
@@ -415,4 +449,4 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
 
 
 __all__ = ["write_outputs", "comparison_grid", "zoom_crop", "wrap_text", "font_scale", "orbit_path", "write_video",
-           "loss_curves", "curve", "RANDOM_VGG_NOTE"]
+           "loss_curves", "curve", "panel_points", "RANDOM_VGG_NOTE"]
