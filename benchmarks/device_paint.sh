@@ -43,13 +43,15 @@ source "$(dirname "${BASH_SOURCE[0]}")/source_view.sh"; export PYTHONPATH=$(sour
 for d in .carry/d1 .carry/d2 .carry/d3; do [ -d "$d" ] && cp -r "$d"/. "$D/"; done
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader; date -u
 
-fit_bg() {  # fit_bg DATASET NAME: reconstruct in the background, then an SH-0 SPZ copy
-  [ -f "$F/$2.spz" ] || [ -f "$R/fit_$2.started" ] && return
-  touch "$R/fit_$2.started"
+fit_bg() {  # fit_bg DATASET NAME: reconstruct in the background, then an SH-0 SPZ copy; a fit already running is left
+  # alone, one that stopped without its SPZ (killed) starts again, so that nothing waits for a file no process makes
+  [ -f "$F/$2.spz" ] && return
+  kill -0 "$(cat "$R/fit_$2.started" 2>/dev/null)" 2>/dev/null && return
   setsid nohup bash -c "python3 -m tlvg_warp reconstruct '$D/scenes/$1' --out '$R/fit_$2' --overwrite --quiet > '$R/fit_$2.log' 2>&1 &&
     python3 -c \"import sys; from tlvg_warp.io.ply import load_ply; from tlvg_warp.io.splat_formats import save_spz
 g = load_ply(sys.argv[1]); save_spz(g.with_sh_degree(0), sys.argv[2]); print('fitted', g.num)\" \
     '$R/fit_$2/point_cloud.ply' '$F/$2.spz' >> '$R/fit_$2.log' 2>&1" > /dev/null 2>&1 &
+  echo $! > "$R/fit_$2.started"
 }
 
 # the scenes to fit (SCENES, default all three) and their datasets; FITS: the fitted files the study waits for
