@@ -22,7 +22,7 @@ from test_malformed_inputs import S, valid  # noqa: F401 (the fixture of small v
 from tlvg_warp.cli import main
 from tlvg_warp.io import load_ply
 
-ITERS = 48  # long enough that a signal sent after the first checkpoint lands inside the loop
+ITERS = 160  # a loop of seconds: a signal sent within 1.5 s of its first checkpoint lands inside it
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -100,7 +100,7 @@ def test_sigkill_then_resume_finishes_and_cleans(valid, tmp_path):
 def test_second_run_on_same_folder_is_refused(valid, tmp_path):
     out = tmp_path / "run"
     # long enough that it still runs when the second process, seconds of imports later, reaches the lock
-    first = _spawn(_argv(valid, out, "--iterations", str(5 * ITERS)))
+    first = _spawn(_argv(valid, out, "--iterations", str(2 * ITERS)))
     _wait_for(out / ".lock", first)
     second = _spawn(_argv(valid, out))
     _, err = second.communicate(timeout=120)
