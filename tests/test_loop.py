@@ -531,8 +531,11 @@ def test_weight_table_is_the_weighted_sum_in_value_and_gradient():
         assert abs(float(got.detach()) - float(want.detach())) <= 1e-12 * max(1.0, abs(float(want.detach()))), k
         assert torch.allclose(g_got, g_want, rtol=1e-12, atol=0), k
         assert float(g_got[2]) == 0.0
-    live, _ = next(iter(table.tables.values()))
-    assert live == [0, 1, 3]  # c, 0 on every step, is not in the sum
+    live, _, alone = next(iter(table.tables.values()))
+    assert live == [0, 1, 3] and not alone  # c, 0 on every step, is not in the sum
+    one = WeightTable(Phase("fit", 3))  # one term of weight 1 throughout: the loss is that term itself
+    t = torch.tensor(2.5, requires_grad=True)
+    assert one.loss({"fit": t}, 1) is t
 
 
 def test_stage_timer_spreads_rare_work_over_every_step(monkeypatch):

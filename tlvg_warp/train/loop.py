@@ -556,10 +556,13 @@ class WeightTable:
             w = [[float(row.get(name, 1.0)) for name in key[0]] for row in rows]
             live = [i for i in range(len(vals)) if any(r[i] != 0 for r in w)]
             table = torch.tensor([[r[i] for i in live] for r in w], dtype=key[1], device=key[2])  # [steps, live]
-            entry = self.tables[key] = (live, table)
-        live, table = entry
+            alone = len(live) == 1 and all(r[live[0]] == 1.0 for r in w)  # e.g. a Fit phase: the term is the loss
+            entry = self.tables[key] = (live, table, alone)
+        live, table, alone = entry
         if not live:
             return vals[0] * 0.0
+        if alone:
+            return vals[live[0]]
         return torch.dot(torch.stack([vals[i].reshape(()) for i in live]), table[k])
 
 
