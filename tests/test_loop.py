@@ -428,6 +428,21 @@ OWN = ("tlvg_warp/train/", "tlvg_warp/stylize/")
 HOST_RNG = ("next_batch", "background")  # the view order and random backgrounds: a CPU generator by design
 
 
+def _mark_steps(monkeypatch, inside: dict) -> None:
+    """While the loop runs a step, ``inside["step"]`` holds its number (None between steps)."""
+    from tlvg_warp.train import loop as L
+
+    real_step = L._Loop.step
+
+    def step(self, phase, k, s):
+        inside["step"] = s
+        try:
+            return real_step(self, phase, k, s)
+        finally:
+            inside["step"] = None
+    monkeypatch.setattr(L._Loop, "step", step)
+
+
 def test_no_host_reads_in_a_step_outside_the_schedule(demo, monkeypatch):
     """Counted: calls of host-reading tensor methods made from the loop's own code (train/, stylize/) while a
     step runs. Allowed: density control's densify steps (its decisions are data-dependent) and nothing else;
@@ -444,17 +459,7 @@ def test_no_host_reads_in_a_step_outside_the_schedule(demo, monkeypatch):
                     reads.append((inside["step"], _name, f.f_code.co_name))
             return _orig(self, *a, **k)
         monkeypatch.setattr(torch.Tensor, name, wrapped)
-    from tlvg_warp.train import loop as L
-
-    real_step = L._Loop.step
-
-    def step(self, phase, k, s):
-        inside["step"] = s
-        try:
-            return real_step(self, phase, k, s)
-        finally:
-            inside["step"] = None
-    monkeypatch.setattr(L._Loop, "step", step)
+    _mark_steps(monkeypatch, inside)
     run, _, _ = _stylize_run(demo, StubFeatures(), **{"iterations": 12, "log_every": 4, "density.interval": 2})
     train(run, progress=False)
     outside = [r for r in reads if r[2] not in ("densify_and_prune", "prune_mask", "_apply", "fit_budget")]
@@ -470,7 +475,7 @@ def test_no_copy_from_the_host_on_every_step(demo, monkeypatch):
     calls, inside = [], {"step": None}
     own = (*OWN, "tlvg_warp/losses/")
 
-    def counted(orig, label):
+    def counted(orig):
         def wrapped(*a, **k):
             if inside["step"] is not None:
                 f = sys._getframe(1)
@@ -478,20 +483,10 @@ def test_no_copy_from_the_host_on_every_step(demo, monkeypatch):
                     calls.append((inside["step"], f.f_code.co_name))
             return orig(*a, **k)
         return wrapped
-    monkeypatch.setattr(torch, "tensor", counted(torch.tensor, "tensor"))
-    monkeypatch.setattr(torch, "as_tensor", counted(torch.as_tensor, "as_tensor"))
-    monkeypatch.setattr(torch.Tensor, "new_tensor", counted(torch.Tensor.new_tensor, "new_tensor"))
-    from tlvg_warp.train import loop as L
-
-    real_step = L._Loop.step
-
-    def step(self, phase, k, s):
-        inside["step"] = s
-        try:
-            return real_step(self, phase, k, s)
-        finally:
-            inside["step"] = None
-    monkeypatch.setattr(L._Loop, "step", step)
+    monkeypatch.setattr(torch, "tensor", counted(torch.tensor))
+    monkeypatch.setattr(torch, "as_tensor", counted(torch.as_tensor))
+    monkeypatch.setattr(torch.Tensor, "new_tensor", counted(torch.Tensor.new_tensor))
+    _mark_steps(monkeypatch, inside)
     run, _, _ = _stylize_run(demo, StubFeatures(), **{"iterations": 12, "log_every": 4, "density.interval": 2})
     assert run.phase("stylize").steps >= 6  # enough steps that a per-step copy shows
     train(run, progress=False)
