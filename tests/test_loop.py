@@ -26,6 +26,7 @@ from tlvg_warp import render
 from _demo_helpers import StubFeatures, demo_stylize_inputs
 from tlvg_warp.stylize.config import config_from_dict as stylize_config
 from tlvg_warp.losses import flow_alignment_score, painting_stroke_energies, resize_style
+from tlvg_warp.losses.palette import painting_colours
 from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, over_background, prepare
 from tlvg_warp.train.density import DensityStrategy
 from tlvg_warp.train.loop import Fit, LoopSettings, Phase, Run, View, train
@@ -63,7 +64,8 @@ def test_stylize_terms_against_closed_forms(demo):
     run, cfg, tg = _stylize_run(demo, net, **{"loss.w_style_color": 0.5, "loss.w_chroma_tv": 0.3,
                                               "loss.w_style_gram": 0.7, "loss.w_coverage": 0.9,
                                               "loss.w_silhouette": 0.6, "loss.w_detail": 0.4,
-                                              "loss.w_orient": 0.5, "loss.w_stroke": 0.8})
+                                              "loss.w_orient": 0.5, "loss.w_stroke": 0.8,
+                                              "loss.w_palette_snap": 0.35})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -121,6 +123,13 @@ def test_stylize_terms_against_closed_forms(demo):
     n = run.params.num
     chroma = img - y[..., None]
     chroma_tv = ((chroma[1:] - chroma[:-1]) ** 2).mean() + ((chroma[:, 1:] - chroma[:, :-1]) ** 2).mean()
+    # the snap term: every pixel against every painting colour, float64, the nearest's chroma distance, by coverage
+    assert torch.equal(tg.colours.cpu(), painting_colours(tg.style_work, cfg.loss.palette_colours, cfg.seed))
+    cols = tg.colours.double().cpu()
+    near = cols[((img[:, :, None, :] - cols) ** 2).sum(-1).argmin(-1)]  # [H,W,3]
+    dchroma = (img - near) - ((img - near) * torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)).sum(-1,
+                                                                                                  keepdim=True)
+    snap = ((dchroma ** 2).sum(-1) * cov[..., 0]).sum() / cov[..., 0].sum()
     a_y = pool(y[..., None].expand(-1, -1, 3))
     s_y = tg.style_feats.double()
     gram = (((a_y @ a_y.T) / a_y.shape[1] - (s_y @ s_y.T) / s_y.shape[1]) ** 2).mean()
@@ -138,7 +147,7 @@ def test_stylize_terms_against_closed_forms(demo):
     assert detail > 0.1  # active
     opac = torch.full((run.params.num,), 0.25 ** 2, dtype=torch.float64)
     opac[::2] = (0.25 - 3.0) ** 2
-    want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "style_gram": gram,
+    want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "palette": snap, "style_gram": gram,
             "detail": detail, "stroke": stroke, "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from tlvg_warp.losses.color import color_transfer
-from tlvg_warp.losses.palette import AffinePalette, TonePalette, palette_transfer, tone_palette
+from tlvg_warp.losses.palette import (AffinePalette, TonePalette, painting_colours, palette_snap_loss, palette_transfer,
+                                       tone_palette)
 from tlvg_warp.types import SH_C0
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data")
@@ -199,3 +200,78 @@ def test_the_floor_tames_a_grey_photos_tints_and_spares_a_colourful_one():
     m0 = color_transfer([colourful], style)[1]
     m1 = color_transfer([colourful], style, 0.004)[1]
     assert float((m1 - m0).norm() / m0.norm()) < 0.05
+
+
+# --- the palette-snap term ---------------------------------------------------------------------------------------
+def _snap_reference(img, colours, weight):
+    """The snap term by its definition, numpy float64: every pixel against every colour (no matmul trick), the
+    nearest in RGB, the squared distance of (RGB - Y) between them, weighted mean."""
+    x = img.reshape(-1, 3).astype(np.float64)
+    c = colours.astype(np.float64)
+    nearest = np.argmin(((x[:, None, :] - c[None]) ** 2).sum(-1), axis=1)
+    d = x - c[nearest]
+    chroma = d - (d @ LUMA)[:, None]
+    w = weight.reshape(-1).astype(np.float64)
+    return float((w * (chroma ** 2).sum(1)).sum() / w.sum())
+
+
+def test_painting_colours_finds_a_flat_paintings_colours():
+    """Three flat blocks of colour (and a fourth with a tenth of the pixels): k-means with k=4 returns exactly them;
+    with k larger than the painting's distinct colours, no more than those."""
+    want = np.array([[0.9, 0.8, 0.1], [0.1, 0.2, 0.7], [0.2, 0.5, 0.3], [0.95, 0.95, 0.9]], np.float32)
+    p = np.zeros((40, 30, 3), np.float32)
+    p[:, :9], p[:, 9:18], p[:, 18:27], p[:, 27:] = want
+    got = painting_colours(p, 4).numpy()
+    order = [int(np.argmin(((got - w) ** 2).sum(1))) for w in want]
+    assert sorted(order) == [0, 1, 2, 3]
+    np.testing.assert_allclose(got[order], want, atol=1e-5)
+    assert painting_colours(p, 16).shape == (4, 3)
+
+
+def test_palette_snap_loss_matches_a_float64_reference_with_its_gradient():
+    rng = np.random.default_rng(3)
+    img = rng.random((9, 11, 3))
+    colours = rng.random((6, 3)).astype(np.float32)
+    weight = rng.random((9, 11, 1))
+    x = torch.tensor(img, dtype=torch.float64, requires_grad=True)
+    loss = palette_snap_loss(x, torch.from_numpy(colours), torch.from_numpy(weight))
+    assert float(loss.detach()) == pytest.approx(_snap_reference(img, colours, weight), rel=1e-12)
+    loss.backward()
+    # central finite differences of the reference (steps small enough that no pixel changes its nearest colour)
+    eps, fd = 1e-6, np.zeros_like(img)
+    for idx in [(0, 0, 0), (4, 5, 1), (8, 10, 2), (3, 7, 0), (6, 2, 2)]:
+        up, dn = img.copy(), img.copy()
+        up[idx] += eps
+        dn[idx] -= eps
+        fd[idx] = (_snap_reference(up, colours, weight) - _snap_reference(dn, colours, weight)) / (2 * eps)
+        assert float(x.grad[idx]) == pytest.approx(fd[idx], rel=1e-5, abs=1e-10)
+    # blind to grey: the gradient's R + G + B is 0 at every pixel, so a step leaves each pixel's mean level alone
+    assert torch.allclose(x.grad.sum(-1), torch.zeros(9, 11, dtype=torch.float64), atol=1e-15)
+    assert float(x.grad.abs().max()) > 1e-4  # and there is a pull at all
+
+
+def test_palette_snap_pulls_a_teal_wash_to_the_paintings_blue_and_yellow():
+    """The reason it exists: a render in one mean tint (teal, between a painting's blue and yellow) whose light
+    strokes should turn yellow and dark ones blue. Gradient descent on the term alone moves each pixel's colour to
+    the painting colour nearest it; the light pixels end closer to yellow than to blue, the dark ones the reverse."""
+    blue, yellow = np.array([0.15, 0.25, 0.65]), np.array([0.9, 0.8, 0.25])
+    y = np.linspace(0.2, 0.8, 64)  # a ramp of tones in one tint
+    teal = np.array([0.35, 0.55, 0.55]) - np.array([0.35, 0.55, 0.55]) @ LUMA
+    img = (y[:, None] + teal[None])[None]  # [1,64,3]
+    x = torch.tensor(img, dtype=torch.float64, requires_grad=True)
+    colours = torch.tensor(np.stack([blue, yellow]), dtype=torch.float32)
+    before = float(palette_snap_loss(x, colours))
+    opt = torch.optim.SGD([x], lr=20.0)
+    for _ in range(200):
+        opt.zero_grad()
+        palette_snap_loss(x, colours).backward()
+        opt.step()
+    assert float(palette_snap_loss(x, colours)) < 0.01 * before
+    out = x.detach().numpy()[0]
+    chroma = out - (out @ LUMA)[:, None]
+    to = lambda c: np.linalg.norm(chroma - (c - c @ LUMA), axis=1)  # noqa: E731
+    # each pixel went to the colour nearest it at the start (brute force): the light end yellow, the dark end blue
+    went_yellow = ((img[0] - yellow) ** 2).sum(1) < ((img[0] - blue) ** 2).sum(1)
+    assert went_yellow[-1] and not went_yellow[0] and 0 < went_yellow.sum() < len(y)
+    assert (to(yellow)[went_yellow] < 1e-3).all() and (to(blue)[~went_yellow] < 1e-3).all()
+    np.testing.assert_allclose(out.mean(1), img[0].mean(1), atol=1e-12)  # no grey moved: each pixel's level stays

@@ -154,3 +154,41 @@ def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0
         pal = tone_palette(images, style, coverage=coverage)
         return [pal.apply(im) for im in images], pal
     raise ValueError(f"palette mode must be arf or tone, got {mode!r}")
+
+
+# --- the painting's colours as a set: the palette-snap term of the Stylize phase (ours) -------------------------
+SNAP_MAX_PIXELS = 200_000  # k-means runs on at most this many of the painting's pixels (a stride)
+
+
+def painting_colours(painting, k: int, seed: int = 0) -> torch.Tensor:
+    """The painting's ``k`` dominant colours [k,3] float32 in [0,1]: OpenCV's k-means (k-means++ seeding, 3 tries)
+    on its RGB pixels ([H,W,3] in [0,1], numpy or torch)."""
+    import cv2  # lazy: cv2 takes a tenth of a second to import
+
+    px = _as_torch(painting).detach().reshape(-1, 3).cpu().numpy().astype(np.float32)
+    px = np.ascontiguousarray(px[:: max(1, -(-len(px) // SNAP_MAX_PIXELS))])
+    k = int(min(k, len(np.unique(px, axis=0))))  # a flat painting has fewer colours than asked for
+    cv2.setRNGSeed(int(seed))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
+    _, _, centres = cv2.kmeans(px, k, None, criteria, 3, cv2.KMEANS_PP_CENTERS)
+    return torch.from_numpy(centres.astype(np.float32))
+
+
+def palette_snap_loss(img: torch.Tensor, colours: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over pixels (weighted by ``weight`` [H,W,1], e.g. the scene's coverage) of the squared chroma distance
+    between each pixel of ``img`` [H,W,3] and the painting colour of ``colours`` [K,3] nearest to it in RGB.
+    Chroma = RGB minus its luminance (BT.601), so the term is blind to grey added to a pixel and its gradient has no
+    grey component (R + G + B stays): the pull is on colour, the level is the style term's, and a stroke's tone
+    picks its colour (The Starry Night: a light stroke goes yellow, a dark one blue) instead of
+    every pixel taking one mean tint. The assignment carries no gradient (the nearest colour is a constant)."""
+    x = img.reshape(-1, 3)  # [P,3]
+    c = colours.to(x)
+    with torch.no_grad():  # ‖x‖² - 2x·c + ‖c‖², without the constant ‖x‖²: one matmul
+        nearest = ((c * c).sum(1)[None] - 2.0 * x @ c.T).argmin(1)  # [P]
+    diff = x - c[nearest]  # [P,3]
+    chroma = diff - (diff @ _luma(diff.dtype, diff.device))[:, None]  # [P,3]: Y of a difference is linear
+    sq = (chroma * chroma).sum(1)  # [P]
+    if weight is None:
+        return sq.mean()
+    w = weight.reshape(-1).to(sq)
+    return (w * sq).sum() / w.sum().clamp_min(1e-12)

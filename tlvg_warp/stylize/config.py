@@ -36,6 +36,10 @@ class StyleLoss:
     w_depth: float = 0.01  # MSE of inverse depth vs the un-stylized scene (reference code)
     w_tv: float = 0.02  # total variation of the render, horizontal + vertical (reference code, corrected)
     w_chroma_tv: float = 0.0  # TV of the render's chroma (RGB minus luminance): clean colour patches (ours; 0: off)
+    w_palette_snap: float = 0.0  # each pixel's chroma pulled to that of the painting colour nearest to it in RGB
+    # (k-means of the painting, palette_colours of them): clean colours of the painting's own palette, a stroke's
+    # tone choosing which (ours; 0: off; no effect with keep_colors)
+    palette_colours: int = 16  # how many colours the snap term's k-means finds in the painting
     w_coverage: float = 0.0  # hinge on the render's alpha below the un-stylized scene's: no holes open (ours; 0: off)
     w_silhouette: float = 0.0  # hinge on the render's alpha above the un-stylized scene's: splats may not grow into an
     # empty background, where the style terms do not look (ours; 0: off; zero on a capture covered everywhere)
@@ -70,8 +74,8 @@ class StyleLoss:
              "field_source": ("of", "stylize_start", "unstylized"),
              "stroke_along": ("of", "ratio", "bounded"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
-             "strength": (">=", 0),
-             **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_coverage",
+             "strength": (">=", 0), "palette_colours": (">=", 1),
+             **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_palette_snap", "w_coverage",
                                        "w_silhouette", "w_detail", "w_stroke", "w_orient",
                                        "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",

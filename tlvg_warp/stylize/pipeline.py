@@ -56,7 +56,7 @@ from ..types import SH_C0, Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "detail", "stroke",
+STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "palette", "detail", "stroke",
                  "coverage", "silhouette", "opacity_reg", "scale_reg", "lab", "orient", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
@@ -216,13 +216,14 @@ class Targets:
     coverage: list = field(default_factory=list)  # per view [H,W,1]: the un-stylized scene's alpha (on the device)
     content_scale: list = field(default_factory=list)  # per view: what the content MSE is multiplied by (1, or
     # 1 / the photo features' mean square with loss.content_norm)
+    colours: torch.Tensor | None = None  # [K,3] on the device: the painting's dominant colours (the snap term's)
 
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     # lazy: imports Warp
     from ..losses import (field_at_cells, flatten_feats, lab_chroma_stats, luminance, match_detail, resize_style,
                           stroke_field)
-    from ..losses.palette import AffinePalette, palette_transfer
+    from ..losses.palette import AffinePalette, painting_colours, palette_transfer
 
     style_np = inp.style.detach().cpu().numpy().astype(np.float32)
     view_h = int(np.median([c.height for c in inp.cameras]))
@@ -258,7 +259,9 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
                    None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
                    flatten_feats(sf_lum).contiguous(), cells, recolored, [lab_chroma_stats(r) for r in recolored],
                    palette, photo_feats, inv_depth, originals, coverage,
-                   [content_scale(f, cfg.loss.content_norm) for f in photo_feats])
+                   [content_scale(f, cfg.loss.content_norm) for f in photo_feats],
+                   painting_colours(style_work, cfg.loss.palette_colours, cfg.seed).to(device)
+                   if cfg.loss.w_palette_snap > 0 and not cfg.keep_colors else None)
 
 
 def content_scale(photo_feats: torch.Tensor, normalized: bool) -> float:
@@ -324,7 +327,8 @@ class Stylize(Phase):
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
                       "style_gram": w.w_style_gram * w.strength,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
-                      "chroma_tv": w.w_chroma_tv, "detail": w.w_detail * w.strength,
+                      "chroma_tv": w.w_chroma_tv, "palette": w.w_palette_snap * (tg.colours is not None),
+                      "detail": w.w_detail * w.strength,
                       "stroke": w.w_stroke * w.strength, "coverage": w.w_coverage,
                       "silhouette": w.w_silhouette,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
@@ -397,6 +401,7 @@ class Stylize(Phase):
     def terms(self, run: Run, view: View) -> dict:
         # lazy: imports Warp
         from ..losses import content_loss, detail_energy, lab_chroma_loss, luminance
+        from ..losses.palette import palette_snap_loss
 
         tg, on, t, vi = self.tg, self.on, run.timer, view.index
         p, anchors = run.params, run.density.tracked
@@ -425,6 +430,8 @@ class Stylize(Phase):
             terms["tv"] = tv_loss(img)
         if on["chroma_tv"]:
             terms["chroma_tv"] = chroma_tv_loss(img)
+        if on["palette"]:
+            terms["palette"] = palette_snap_loss(img, tg.colours, tg.coverage[vi])
         if on["detail"]:
             terms["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
         if on["orient"] or on["stroke"]:
