@@ -38,7 +38,8 @@ class StyleLoss:
     w_chroma_tv: float = 0.0  # TV of the render's chroma (RGB minus luminance): clean colour patches (ours; 0: off)
     w_palette_snap: float = 0.0  # each pixel's chroma pulled to that of the painting colour nearest to it in RGB
     # (k-means of the painting, palette_colours of them): clean colours of the painting's own palette, a stroke's
-    # tone choosing which (ours; 0: off; no effect with keep_colors)
+    # tone choosing which (ours; 0: off; no effect with keep_colors). At 10 and 40 chroma noise rose on every tuning
+    # pair measured and beer's floor kept its one tint (docs/study.md), so configs/tlvg.yaml leaves it off
     palette_colours: int = 16  # how many colours the snap term's k-means finds in the painting
     w_coverage: float = 0.0  # hinge on the render's alpha below the un-stylized scene's: no holes open (ours; 0: off)
     w_silhouette: float = 0.0  # hinge on the render's alpha above the un-stylized scene's: splats may not grow into an
