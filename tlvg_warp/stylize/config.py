@@ -76,8 +76,8 @@ class StyleLoss:
              "stroke_along": ("of", "ratio", "bounded"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "palette_colours": (">=", 1),
-             **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_palette_snap", "w_coverage",
-                                       "w_silhouette", "w_detail", "w_stroke", "w_orient",
+             **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_palette_snap",
+                                       "w_coverage", "w_silhouette", "w_detail", "w_stroke", "w_orient",
                                        "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}
