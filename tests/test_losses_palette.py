@@ -1,5 +1,6 @@
 """The tone palette map (losses/palette.py) against a numpy float64 reference written from its definition, its
-closed-form properties, and the reason it exists: a grey photo's faint tints are not blown up into colour."""
+closed-form properties, and the reason it exists: a grey photo's faint tints are not blown up into colour. The
+palette-snap term against a brute-force float64 reference, finite differences and a toy it exists for."""
 import glob
 import os
 
