@@ -261,13 +261,13 @@ def test_palette_snap_pulls_a_teal_wash_to_the_paintings_blue_and_yellow():
     img = (y[:, None] + teal[None])[None]  # [1,64,3]
     x = torch.tensor(img, dtype=torch.float64, requires_grad=True)
     colours = torch.tensor(np.stack([blue, yellow]), dtype=torch.float32)
-    before = float(palette_snap_loss(x, colours))
+    before = float(palette_snap_loss(x, colours).detach())
     opt = torch.optim.SGD([x], lr=20.0)
     for _ in range(200):
         opt.zero_grad()
         palette_snap_loss(x, colours).backward()
         opt.step()
-    assert float(palette_snap_loss(x, colours)) < 0.01 * before
+    assert float(palette_snap_loss(x, colours).detach()) < 0.01 * before
     out = x.detach().numpy()[0]
     chroma = out - (out @ LUMA)[:, None]
     to = lambda c: np.linalg.norm(chroma - (c - c @ LUMA), axis=1)  # noqa: E731
