@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ..types import SH_C0
-from .color import LUMA, _as_torch, _blur, _luma, color_transfer, recolor_sh
+from .color import LUMA, _as_torch, _blur, _luma, color_transfer, luminance, recolor_sh
 
 TONE_BINS = 32  # luminance bins of the painting's chroma table (equal pixel counts)
 TONE_MAX_BOOST = 2.0  # a bin's mean chroma is scaled back up to its pixels' mean saturation, by at most this
@@ -186,7 +186,7 @@ def palette_snap_loss(img: torch.Tensor, colours: torch.Tensor, weight: torch.Te
     with torch.no_grad():  # ‖x‖² - 2x·c + ‖c‖², without the constant ‖x‖²: one matmul
         nearest = ((c * c).sum(1)[None] - 2.0 * x @ c.T).argmin(1)  # [P]
     diff = x - c[nearest]  # [P,3]
-    chroma = diff - (diff @ _luma(diff.dtype, diff.device))[:, None]  # [P,3]: Y of a difference is linear
+    chroma = diff - luminance(diff)  # [P,3]: Y of a difference is linear, so this is chroma(x) - chroma(colour)
     sq = (chroma * chroma).sum(1)  # [P]
     if weight is None:
         return sq.mean()
