@@ -27,6 +27,7 @@ from _demo_helpers import StubFeatures, demo_stylize_inputs
 from tlvg_warp.stylize.config import config_from_dict as stylize_config
 from tlvg_warp.losses import flow_alignment_score, painting_stroke_energies, resize_style
 from tlvg_warp.losses.palette import painting_colours
+from tlvg_warp.losses.sliced import random_directions
 from tlvg_warp.stylize.pipeline import STYLIZE_TERMS, build_run, over_background, prepare
 from tlvg_warp.train.density import DensityStrategy
 from tlvg_warp.train.loop import Fit, LoopSettings, Phase, Run, View, train
@@ -65,7 +66,8 @@ def test_stylize_terms_against_closed_forms(demo):
                                               "loss.w_style_gram": 0.7, "loss.w_coverage": 0.9,
                                               "loss.w_silhouette": 0.6, "loss.w_detail": 0.4,
                                               "loss.w_orient": 0.5, "loss.w_stroke": 0.8,
-                                              "loss.w_palette_snap": 0.35})
+                                              "loss.w_palette_snap": 0.35, "loss.w_style_swd": 0.45,
+                                              "loss.w_color_swd": 0.55, "loss.swd_projections": 5})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -133,6 +135,21 @@ def test_stylize_terms_against_closed_forms(demo):
     a_y = pool(y[..., None].expand(-1, -1, 3))
     s_y = tg.style_feats.double()
     gram = (((a_y @ a_y.T) / a_y.shape[1] - (s_y @ s_y.T) / s_y.shape[1]) ** 2).mean()
+    # the sliced Wasserstein terms: the covered cells' (4x4 blocks with mean coverage >= 0.5) luminance features and
+    # the covered pixels' colours, each projected on the call's directions, sorted and met at the painting's
+    # mid-rank quantiles, over the painting's mean per-dimension variance (numpy float64)
+    def swd(x, y, seed):
+        d = random_directions(x.shape[1], 5, seed, "cpu").double().numpy()
+        px, py = np.sort(x @ d, axis=0), np.sort(y @ d, axis=0)
+        rows = np.floor((np.arange(len(px)) + 0.5) * len(py) / len(px)).astype(int)
+        return ((px - py[rows]) ** 2).mean() / y.var(axis=0).mean()
+
+    cov_np = cov[..., 0].numpy()
+    cell_cov = cov_np[:H // 4 * 4, :W // 4 * 4].reshape(H // 4, 4, W // 4, 4).mean(axis=(1, 3)).reshape(-1)
+    style_swd = swd(a_y.numpy().T[cell_cov >= 0.5], s_y.numpy().T, cfg.seed * 1_000_003)
+    color_swd = swd(img.numpy().reshape(-1, 3)[cov_np.reshape(-1) >= 0.5],
+                    tg.style_work.double().numpy().reshape(-1, 3), (cfg.seed + 1) * 1_000_003)
+    assert 0 < (cell_cov >= 0.5).sum() < cell_cov.size  # the empty background is left out, something is kept
     hinge = (ro0.alpha.double().clamp(0, 1) - view.out.alpha.detach().double()).clamp_min(0).mean()
     assert float(hinge) > 1e-3
     grown = (view.out.alpha.detach().double() - ro0.alpha.double().clamp(0, 1)).clamp_min(0).mean()
@@ -147,7 +164,7 @@ def test_stylize_terms_against_closed_forms(demo):
     assert detail > 0.1  # active
     opac = torch.full((run.params.num,), 0.25 ** 2, dtype=torch.float64)
     opac[::2] = (0.25 - 3.0) ** 2
-    want = {"content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "palette": snap, "style_gram": gram,
+    want = {"style_swd": style_swd, "color_swd": color_swd, "content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "palette": snap, "style_gram": gram,
             "detail": detail, "stroke": stroke, "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k

@@ -132,14 +132,13 @@ class VGG16Features(nn.Module):
         """[H,W,3] or [B,3,H,W] in [0,1] -> normalized [B,3,h,w], resized by ``scale`` (antialiased when
         shrinking) and upsampled when too small for the poolings."""
         x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img  # [B,3,H,W]
-        x = x.to(self.mean.dtype)
-        if scale != 1.0:
-            x = F.interpolate(x, scale_factor=scale, mode="bilinear", align_corners=False, antialias=scale < 1)
-        if min(x.shape[-2:]) < MIN_SIDE:  # the poolings need room: upsample tiny inputs instead of failing
-            f = MIN_SIDE / min(x.shape[-2:])
-            size = (max(MIN_SIDE, round(x.shape[-2] * f)), max(MIN_SIDE, round(x.shape[-1] * f)))
-            x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
-        return (x - self.mean) / self.std
+        return (_resize_input(x.to(self.mean.dtype), scale) - self.mean) / self.std
+
+    @staticmethod
+    def cell_average(mask: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+        """A per-pixel map [H,W] averaged over each relu3 cell [h,w] of the features ``forward`` gives for an image
+        of that size at ``scale`` (the same resize, then the two 2x2 poolings' 4x4 blocks)."""
+        return F.avg_pool2d(_resize_input(mask[None, None], scale), 4)[0, 0]  # [h,w]
 
     def layers(self, img: torch.Tensor, names, scale: float = 1.0) -> dict[str, torch.Tensor]:
         """The named relu outputs (``LAYERS`` keys) of ``img``, running only as deep as the deepest one."""
@@ -174,6 +173,17 @@ class VGG16Features(nn.Module):
                    and torch.is_grad_enabled() else None)
         f = graphed(x) if graphed is not None else self(x, scale)  # [B,768,h,w]
         return [fi.reshape(fi.shape[0], -1) for fi in f]
+
+
+def _resize_input(x: torch.Tensor, scale: float) -> torch.Tensor:
+    """[B,C,H,W] resized by ``scale`` (antialiased when shrinking), upsampled when too small for the poolings."""
+    if scale != 1.0:
+        x = F.interpolate(x, scale_factor=scale, mode="bilinear", align_corners=False, antialias=scale < 1)
+    if min(x.shape[-2:]) < MIN_SIDE:  # the poolings need room: upsample tiny inputs instead of failing
+        f = MIN_SIDE / min(x.shape[-2:])
+        size = (max(MIN_SIDE, round(x.shape[-2] * f)), max(MIN_SIDE, round(x.shape[-1] * f)))
+        x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+    return x
 
 
 MIN_SIDE = 16  # smallest side fed to VGG: relu3 features are then at least 4x4 cells

@@ -41,6 +41,13 @@ class StyleLoss:
     # tone choosing which (ours; 0: off; no effect with keep_colors). At 10 and 40 chroma noise rose on every tuning
     # pair measured and beer's floor kept its one tint (docs/study.md), so configs/tlvg.yaml leaves it off
     palette_colours: int = 16  # how many colours the snap term's k-means finds in the painting
+    w_style_swd: float = 0.0  # sliced Wasserstein distance between the style term's VGG features of the render and
+    # of the painting: the painting's texture as a distribution, every part of it in its own share of the view, where
+    # nearest-neighbour matching is content with any close cell (ours; 0: off; --strength multiplies it)
+    w_color_swd: float = 0.0  # sliced Wasserstein distance between the render's RGB colours (where the scene was) and
+    # the painting's: its colour distribution (The Starry Night's yellow against its blue), not only its mean and
+    # covariance as the palette transfer gives (ours; 0: off; no effect with keep_colors)
+    swd_projections: int = 128  # random directions per step of each sliced Wasserstein term
     w_coverage: float = 0.0  # hinge on the render's alpha below the un-stylized scene's: no holes open (ours; 0: off)
     w_silhouette: float = 0.0  # hinge on the render's alpha above the un-stylized scene's: splats may not grow into an
     # empty background, where the style terms do not look (ours; 0: off; zero on a capture covered everywhere)
@@ -75,8 +82,9 @@ class StyleLoss:
              "field_source": ("of", "stylize_start", "unstylized"),
              "stroke_along": ("of", "ratio", "bounded"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
-             "strength": (">=", 0), "palette_colours": (">=", 1),
+             "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
              **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_palette_snap",
+                                       "w_style_swd", "w_color_swd",
                                        "w_coverage", "w_silhouette", "w_detail", "w_stroke", "w_orient",
                                        "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
@@ -215,7 +223,8 @@ class StylizeConfig:
     def validate(self) -> "StylizeConfig":
         cfg = config_io.validate(self)
         if cfg.keep_colors:  # the scene's colours: the style may only shape luminance (and the jitter only tone)
-            cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, luminance_only=True, w_style_color=0.0),
+            cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, luminance_only=True, w_style_color=0.0,
+                                                                               w_color_swd=0.0),
                                       stroke_jitter_mode="luminance")
         return cfg
 

@@ -56,7 +56,7 @@ from ..types import SH_C0, Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_gram", "style_color", "content", "depth", "tv", "chroma_tv", "palette", "detail",
+STYLIZE_TERMS = ("style", "style_gram", "style_swd", "style_color", "color_swd", "content", "depth", "tv", "chroma_tv", "palette", "detail",
                  "stroke", "coverage", "silhouette", "opacity_reg", "scale_reg", "lab", "orient", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
@@ -314,6 +314,7 @@ class Stylize(Phase):
     def __init__(self, steps: int, cfg: StylizeConfig, tg: Targets, vgg, **kw):
         super().__init__("stylize", steps, **kw)
         from ..losses import StyleLoss  # lazy: imports Warp
+        from ..losses.sliced import SlicedWasserstein
 
         self.cfg, self.tg, self.vgg, w = cfg, tg, vgg, cfg.loss
         self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss, refresh_every=w.fast_refresh,
@@ -321,11 +322,17 @@ class Stylize(Phase):
         self.gram_fn = StyleLoss(tg.style_feats, kind="gram") if w.w_style_gram else None
         self.color_fn = None if tg.style_feats_rgb is None else StyleLoss(  # prepare makes them when the term is on
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
+        # the sliced Wasserstein terms: the painting's feature cells [Ns,768] and its pixels [M,3]
+        self.swd_fn = SlicedWasserstein(tg.style_feats.T, w.swd_projections, cfg.seed) if w.w_style_swd else None
+        self.color_swd_fn = SlicedWasserstein(tg.style_work.reshape(-1, 3).to(tg.style_feats.device),
+                                              w.swd_projections, cfg.seed + 1) if w.w_color_swd else None
+        self.covered = {}  # (view, rows) -> indices of the cells / pixels the un-stylized scene covers
         self.fields = None  # per view [H,W,3] on the device
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
         self.stroke_target = None  # the painting's (E_across, E_along) at the views' height (the stroke hinge's)
         self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
                       "style_gram": w.w_style_gram * w.strength,
+                      "style_swd": w.w_style_swd * w.strength, "color_swd": w.w_color_swd,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
                       "chroma_tv": w.w_chroma_tv, "palette": w.w_palette_snap * (tg.colours is not None),
                       "detail": w.w_detail * w.strength,
@@ -337,7 +344,8 @@ class Stylize(Phase):
         self.on = {t: v != 0 for t, v in self.const.items()}
         self.on["lab"] = w.w_lab_start != 0 or w.w_lab_end != 0
         self.on["style_color"] = self.color_fn is not None and self.const["style_color"] != 0
-        self.vgg_on = self.on["style"] or self.on["content"] or self.on["style_color"] or self.on["style_gram"]
+        self.vgg_on = (self.on["style"] or self.on["content"] or self.on["style_color"] or self.on["style_gram"]
+                       or self.on["style_swd"])
         self.render_weights = self.on["align"] or self.on["aniso"]
         self.field_terms = None  # the orientation and stroke terms as one call (made in setup, with the targets)
 
@@ -419,8 +427,12 @@ class Stylize(Phase):
                 terms["style"] = self.style_fn(a, key=vi)  # the key: a view's match may be reused (fast_refresh)
             if on["style_gram"]:  # texture statistics over the whole view: strokes where matching finds none
                 terms["style_gram"] = self.gram_fn(a)
+            if on["style_swd"]:
+                terms["style_swd"] = self.swd_fn(self.covered_samples(a, vi, feature_cells=True))
             if on["style_color"]:
                 terms["style_color"] = self.color_fn(a_rgb, key=vi)
+            if on["color_swd"]:
+                terms["color_swd"] = self.color_swd_fn(self.covered_samples(img, vi))
             t.mark("style")
             if on["content"]:
                 terms["content"] = content_loss(a_rgb, tg.photo_feats[vi]) * tg.content_scale[vi]
@@ -459,6 +471,26 @@ class Stylize(Phase):
         t.mark("flow")
         return terms
 
+    def covered_samples(self, x: torch.Tensor, vi: int, feature_cells: bool = False) -> torch.Tensor:
+        """The rows of ``x`` [n,D] (view ``vi``'s pixels [H,W,D] flattened, or with ``feature_cells`` its VGG cells
+        [D,n] transposed) where the un-stylized scene covered the view: a Blender scene's empty background is no
+        part of the painting's distribution. The indices are found once per view (one host read), then reused."""
+        from ..losses import VGG16Features  # lazy: imports Warp
+
+        x = x.T if feature_cells else x.reshape(-1, x.shape[-1])  # [n,D]
+        key = (vi, x.shape[0])
+        idx = self.covered.get(key)
+        if idx is None:
+            cov = self.tg.coverage[vi][..., 0]  # [H,W]
+            if feature_cells:  # the coverage on VGG's cell grid
+                cov = VGG16Features.cell_average(cov, self.cfg.vgg_scale)
+            cov = cov.reshape(-1)
+            idx = torch.nonzero(cov >= HOLE_ALPHA)[:, 0] if cov.numel() == x.shape[0] else None
+            if idx is None or idx.numel() == 0:  # nothing covered (or a grid VGG made otherwise): every row
+                idx = torch.arange(x.shape[0], device=x.device)
+            self.covered[key] = idx
+        return x.index_select(0, idx)
+
     def flush_extra(self, run: Run, view: View) -> dict:
         from ..losses import flow_alignment_score_torch  # lazy: imports Warp
 
@@ -469,7 +501,8 @@ class Stylize(Phase):
     def state_dict(self) -> dict:
         return {"fields": [f.cpu() for f in self.fields] if self.fields is not None else None,
                 "style_cache": self.style_fn.state_dict(),  # the reused FAST matches (loss.fast_refresh > 1)
-                "color_cache": self.color_fn.state_dict() if self.color_fn is not None else None}
+                "color_cache": self.color_fn.state_dict() if self.color_fn is not None else None,
+                "swd_draws": [f.calls if f is not None else 0 for f in (self.swd_fn, self.color_swd_fn)]}
 
     def load_state_dict(self, sd: dict, device=None) -> None:
         if sd.get("fields") is not None:
@@ -478,6 +511,9 @@ class Stylize(Phase):
             self.style_fn.load_state_dict(sd["style_cache"], device)
         if sd.get("color_cache") is not None and self.color_fn is not None:
             self.color_fn.load_state_dict(sd["color_cache"], device)
+        for f, calls in zip((self.swd_fn, self.color_swd_fn), sd.get("swd_draws") or ()):
+            if f is not None:
+                f.calls = int(calls)
 
 
 # --- the run ---------------------------------------------------------------------------------------------------
