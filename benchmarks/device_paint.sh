@@ -5,7 +5,8 @@
 #   PART=stage1  carry .gpu/a and .carry/d1 (VGG-16 conv1-4, fp16): stage warp part one and the weights
 #   PART=stage2  carry .gpu/b and .carry/d2 (styles, beer): `source .gpu/b/setup.sh` first; starts beer's fit
 #   PART=fit     carry .carry/d3 (fern, lego at 400 px): fits fern and lego (7000 iterations), waits for all three
-#   PART=study   launch the study in the background (two queues of pairs: tuning, validation); PART=wait collects it
+#   PART=study   launch the study in the background (two queues of pairs: tuning, validation; PAIRS_A and PAIRS_B
+#                replace them, PAIRS_C, PAIRS_D and PAIRS_E add queues); PART=wait collects it
 #   PART=scene   SCENE=name:dataset:downscale STYLES=a.jpg,b.jpg VARIANTS="name:k=v;k=v ..." (benchmarks/tune.py's
 #                form): the variants of one scene in one process, evaluated with the anchors
 # Later calls on a warm machine: `source /tmp/tlvg-gpu/env.sh && PART=... bash benchmarks/device_paint.sh`.
@@ -115,9 +116,12 @@ EOF
     SEEDV=${SEEDS_VARIANTS:-tlvg: seed1:seed=1 seed2:seed=2}  # the seeds' runs (e.g. abcgs's: abcgs:config=... abcgs_s1:config=...;seed=1)
     T=${PAIRS_A:-$T}; V=${PAIRS_B:-$V}  # other pair lists (e.g. an ablation on a few pairs); SEEDS_PAIR=none: no seeds
     [ "$SP" = none ] && touch "$R/seeds/pairs/queue_seeds.done"
-    if [ -n "${PAIRS_C:-}" ]; then  # a third queue (the GPU has room when each run is host-bound)
-      setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue third '$SV' $PAIRS_C" > /dev/null 2>&1 &
-    else touch "$R/pairs/queue_third.done"; fi
+    for q in C D E; do  # more queues, one per list given (the GPU has room when each run is host-bound)
+      pv=PAIRS_$q
+      if [ -n "${!pv:-}" ]; then
+        setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue q$q '$SV' ${!pv}" > /dev/null 2>&1 &
+      else touch "$R/pairs/queue_q$q.done"; fi
+    done
     setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue tuning '$SV' $T" > /dev/null 2>&1 &
     setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue validation '$SV' $V;
       [ '$SP' = none ] || R=$R/seeds queue seeds '$SEEDV' $SP" > /dev/null 2>&1 &
@@ -126,7 +130,7 @@ EOF
   wait)  # wait up to WAIT seconds for the study's queues, then return what is finished
     deadline=$((SECONDS + ${WAIT:-500}))
     while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/pairs/queue_validation.done" ] ||
-      [ ! -f "$R/pairs/queue_third.done" ] ||
+      [ ! -f "$R/pairs/queue_qC.done" ] || [ ! -f "$R/pairs/queue_qD.done" ] || [ ! -f "$R/pairs/queue_qE.done" ] ||
       [ ! -f "$R/seeds/pairs/queue_seeds.done" ]; }; do sleep 5; done
     # the fits ran in the background (PART=fit FIT_LIMIT=1 returns at once): their held-out PSNR and size, here
     for s in $SCENES; do echo "fit $s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" 2>/dev/null | tail -n 2 | tr '\n' ' ')"; done
