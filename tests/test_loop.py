@@ -67,7 +67,8 @@ def test_stylize_terms_against_closed_forms(demo):
                                               "loss.w_silhouette": 0.6, "loss.w_detail": 0.4,
                                               "loss.w_orient": 0.5, "loss.w_stroke": 0.8,
                                               "loss.w_palette_snap": 0.35, "loss.w_style_swd": 0.45,
-                                              "loss.w_color_swd": 0.55, "loss.swd_projections": 5})
+                                              "loss.w_color_swd": 0.55, "loss.swd_projections": 5,
+                                              "loss.color_swd_projections": 4})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -138,17 +139,17 @@ def test_stylize_terms_against_closed_forms(demo):
     # the sliced Wasserstein terms: the covered cells' (4x4 blocks with mean coverage >= 0.5) luminance features and
     # the covered pixels' colours, each projected on the call's directions, sorted and met at the painting's
     # mid-rank quantiles, over the painting's mean per-dimension variance (numpy float64)
-    def swd(x, y, seed):
-        d = random_directions(x.shape[1], 5, seed, "cpu").double().numpy()
+    def swd(x, y, seed, count):
+        d = random_directions(x.shape[1], count, seed, "cpu").double().numpy()
         px, py = np.sort(x @ d, axis=0), np.sort(y @ d, axis=0)
         rows = np.floor((np.arange(len(px)) + 0.5) * len(py) / len(px)).astype(int)
         return ((px - py[rows]) ** 2).mean() / y.var(axis=0).mean()
 
     cov_np = cov[..., 0].numpy()
     cell_cov = cov_np[:H // 4 * 4, :W // 4 * 4].reshape(H // 4, 4, W // 4, 4).mean(axis=(1, 3)).reshape(-1)
-    style_swd = swd(a_y.numpy().T[cell_cov >= 0.5], s_y.numpy().T, cfg.seed * 1_000_003)
+    style_swd = swd(a_y.numpy().T[cell_cov >= 0.5], s_y.numpy().T, cfg.seed * 1_000_003, 5)
     color_swd = swd(img.numpy().reshape(-1, 3)[cov_np.reshape(-1) >= 0.5],
-                    tg.style_work.double().numpy().reshape(-1, 3), (cfg.seed + 1) * 1_000_003)
+                    tg.style_work.double().numpy().reshape(-1, 3), (cfg.seed + 1) * 1_000_003, 4)
     assert 0 < (cell_cov >= 0.5).sum() < cell_cov.size  # the empty background is left out, something is kept
     hinge = (ro0.alpha.double().clamp(0, 1) - view.out.alpha.detach().double()).clamp_min(0).mean()
     assert float(hinge) > 1e-3

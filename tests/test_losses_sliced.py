@@ -6,6 +6,7 @@
 - zero for any reordering of the painting's own samples, not for a shifted copy;
 - descent on a one-colour blob reaches a two-colour target in the target's proportions (what nearest-neighbour
   matching does not ask for: all samples may sit on the nearer colour);
+- the painting's subsample: rows of the painting, none twice, seeded, its quantiles those of the whole;
 - the draws: seeded, different call to call, and a resumed counter draws what an uninterrupted run would;
 - the cell grid VGG's features have, for the coverage of the feature term.
 """
@@ -17,7 +18,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from tlvg_warp.losses import VGG16Features
-from tlvg_warp.losses.sliced import SlicedWasserstein, quantile_index, random_directions, sliced_wasserstein
+from tlvg_warp.losses.sliced import SlicedWasserstein, quantile_index, random_directions, sliced_wasserstein, subsample
 
 
 def _dirs(d, p, seed=0):
@@ -127,3 +128,15 @@ def test_cell_average_has_the_feature_grid(hw, scale):
     if scale == 1.0 and min(h, w) >= 16:
         blocks = mask.numpy()[:cells.shape[0] * 4, :cells.shape[1] * 4].reshape(cells.shape[0], 4, cells.shape[1], 4)
         assert np.allclose(cells.numpy(), blocks.mean(axis=(1, 3)), atol=1e-12)
+
+
+def test_the_paintings_subsample_keeps_its_distribution():
+    y = torch.from_numpy(np.random.default_rng(8).random((200_000, 3)) ** np.array([1.0, 2.0, 0.5]))
+    assert subsample(y, 300_000, 1) is y  # under the limit: every row
+    a, b = subsample(y, 65536, 1), subsample(y, 65536, 1)
+    assert a.shape == (65536, 3) and torch.equal(a, b) and not torch.equal(a, subsample(y, 65536, 2))
+    rows = {tuple(r) for r in y.numpy()}
+    assert len({tuple(r) for r in a.numpy()}) == 65536 and all(tuple(r) in rows for r in a.numpy()[:2000])
+    q = np.linspace(0.01, 0.99, 99)  # a subset's quantiles are the painting's up to sampling noise (~1/sqrt(n))
+    assert np.abs(np.quantile(a.numpy(), q, axis=0) - np.quantile(y.numpy(), q, axis=0)).max() < 0.01
+    assert SlicedWasserstein(y, 4, seed=5, max_target=65536).target.shape == (65536, 3)

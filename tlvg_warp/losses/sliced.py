@@ -42,13 +42,25 @@ def sliced_wasserstein(x: torch.Tensor, y: torch.Tensor, dirs: torch.Tensor) -> 
     return ((px - py) ** 2).mean()
 
 
+MAX_TARGET = 65536  # the painting's samples kept (a seeded random subset beyond): its quantiles move by sampling
+# noise only, and sorting a painting's every pixel each step cost more than the rest of the step together
+
+
+def subsample(y: torch.Tensor, limit: int, seed: int) -> torch.Tensor:
+    """At most ``limit`` rows of ``y`` [M, D]: all of them, or a seeded random subset (the same for the same seed)."""
+    if y.shape[0] <= limit:
+        return y
+    gen = torch.Generator().manual_seed(int(seed))
+    return y.index_select(0, torch.randperm(y.shape[0], generator=gen)[:limit].to(y.device))
+
+
 class SlicedWasserstein:
     """The painting's side of one sliced Wasserstein term: its samples [M, D], their spread (the loss is divided by
     it, so a weight means the same on features and colours) and the direction draws (``count`` new directions each
     call, from ``seed`` and the call number, so a resumed run draws what an uninterrupted one would)."""
 
-    def __init__(self, target: torch.Tensor, count: int, seed: int = 0):
-        self.target = target.detach()  # [M, D]
+    def __init__(self, target: torch.Tensor, count: int, seed: int = 0, max_target: int = MAX_TARGET):
+        self.target = subsample(target.detach(), max_target, seed)  # [M, D]
         self.count, self.seed, self.calls = int(count), int(seed), 0
         spread = float(self.target.double().var(dim=0, unbiased=False).mean())  # one host read, at the run's start
         self.scale = 1.0 / max(spread, 1e-12)

@@ -47,7 +47,9 @@ class StyleLoss:
     w_color_swd: float = 0.0  # sliced Wasserstein distance between the render's RGB colours (where the scene was) and
     # the painting's: its colour distribution (The Starry Night's yellow against its blue), not only its mean and
     # covariance as the palette transfer gives (ours; 0: off; no effect with keep_colors)
-    swd_projections: int = 128  # random directions per step of each sliced Wasserstein term
+    swd_projections: int = 128  # random directions per step of the feature term (768 dimensions)
+    color_swd_projections: int = 32  # ... and of the colour term (3 dimensions: 32 cover them; each direction costs
+    # a sort of every pixel of the view)
     w_coverage: float = 0.0  # hinge on the render's alpha below the un-stylized scene's: no holes open (ours; 0: off)
     w_silhouette: float = 0.0  # hinge on the render's alpha above the un-stylized scene's: splats may not grow into an
     # empty background, where the style terms do not look (ours; 0: off; zero on a capture covered everywhere)
@@ -83,6 +85,7 @@ class StyleLoss:
              "stroke_along": ("of", "ratio", "bounded"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
+             "color_swd_projections": (">=", 1),
              **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_palette_snap",
                                        "w_style_swd", "w_color_swd",
                                        "w_coverage", "w_silhouette", "w_detail", "w_stroke", "w_orient",

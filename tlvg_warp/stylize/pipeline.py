@@ -325,7 +325,7 @@ class Stylize(Phase):
         # the sliced Wasserstein terms: the painting's feature cells [Ns,768] and its pixels [M,3]
         self.swd_fn = SlicedWasserstein(tg.style_feats.T, w.swd_projections, cfg.seed) if w.w_style_swd else None
         self.color_swd_fn = SlicedWasserstein(tg.style_work.reshape(-1, 3).to(tg.style_feats.device),
-                                              w.swd_projections, cfg.seed + 1) if w.w_color_swd else None
+                                              w.color_swd_projections, cfg.seed + 1) if w.w_color_swd else None
         self.covered = {}  # (view, rows) -> indices of the cells / pixels the un-stylized scene covers
         self.fields = None  # per view [H,W,3] on the device
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
