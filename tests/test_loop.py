@@ -487,7 +487,8 @@ def test_no_host_reads_in_a_step_outside_the_schedule(demo, monkeypatch):
             return _orig(self, *a, **k)
         monkeypatch.setattr(torch.Tensor, name, wrapped)
     _mark_steps(monkeypatch, inside)
-    run, _, _ = _stylize_run(demo, StubFeatures(), **{"iterations": 12, "log_every": 4, "density.interval": 2})
+    run, _, _ = _stylize_run(demo, StubFeatures(), **{"iterations": 12, "log_every": 4, "density.interval": 2,
+                                                      "loss.w_style_swd": 1.0, "loss.w_color_swd": 1.0})
     train(run, progress=False)
     outside = [r for r in reads if r[2] not in ("densify_and_prune", "prune_mask", "_apply", "fit_budget")]
     assert outside == [], outside
@@ -647,3 +648,22 @@ def test_a_new_density_strategy_is_a_class_the_loop_drives(demo):
               background=demo.background)
     train(run, progress=False)
     assert run.params.num == n0
+
+
+def test_a_resumed_stylize_phase_draws_the_directions_an_uninterrupted_one_would(demo):
+    """The sliced Wasserstein terms draw new directions on every call; the phase's state carries how many were
+    drawn, so the first call after a resume equals the uninterrupted run's next call (and not its first)."""
+    over = {"loss.w_style_swd": 1.0, "loss.w_color_swd": 1.0}
+    net = StubFeatures()
+    a, _, _ = _stylize_run(demo, net, **over)
+    sty_a = a.phase("stylize")
+    sty_a.setup(a)
+    first = [float(sty_a.terms(a, _view(a, 1))[k].detach()) for k in ("style_swd", "color_swd")]
+    saved = sty_a.state_dict()
+    nxt = [float(sty_a.terms(a, _view(a, 1))[k].detach()) for k in ("style_swd", "color_swd")]
+    b, _, _ = _stylize_run(demo, net, **over)
+    sty_b = b.phase("stylize")
+    sty_b.load_state_dict(saved)
+    sty_b.setup(b)
+    resumed = [float(sty_b.terms(b, _view(b, 1))[k].detach()) for k in ("style_swd", "color_swd")]
+    assert resumed == pytest.approx(nxt, rel=1e-6) and all(abs(x - y) > 1e-9 for x, y in zip(first, nxt))

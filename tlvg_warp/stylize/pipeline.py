@@ -326,7 +326,7 @@ class Stylize(Phase):
         self.swd_fn = SlicedWasserstein(tg.style_feats.T, w.swd_projections, cfg.seed) if w.w_style_swd else None
         self.color_swd_fn = SlicedWasserstein(tg.style_work.reshape(-1, 3).to(tg.style_feats.device),
                                               w.color_swd_projections, cfg.seed + 1) if w.w_color_swd else None
-        self.covered = {}  # (view, rows) -> indices of the cells / pixels the un-stylized scene covers
+        self.covered = None  # per view: the pixels and VGG cells the un-stylized scene covered (find_covered)
         self.fields = None  # per view [H,W,3] on the device
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
         self.stroke_target = None  # the painting's (E_across, E_along) at the views' height (the stroke hinge's)
@@ -363,6 +363,8 @@ class Stylize(Phase):
         if self.fields is None:  # once per run: a resumed run has its fields (and its jittered colours) saved
             self.fields = self.make_fields(run)
             self.jitter(p, view_h)
+        if (self.on["style_swd"] or self.on["color_swd"]) and self.covered is None:
+            self.find_covered()
         if self.on["detail"] and self.detail_target is None:
             self.detail_target = painting_detail(self.tg.style_work, view_h)
         if self.on["stroke"] and self.stroke_target is None:
@@ -471,25 +473,27 @@ class Stylize(Phase):
         t.mark("flow")
         return terms
 
-    def covered_samples(self, x: torch.Tensor, vi: int, feature_cells: bool = False) -> torch.Tensor:
-        """The rows of ``x`` [n,D] (view ``vi``'s pixels [H,W,D] flattened, or with ``feature_cells`` its VGG cells
-        [D,n] transposed) where the un-stylized scene covered the view: a Blender scene's empty background is no
-        part of the painting's distribution. The indices are found once per view (one host read), then reused."""
+    def find_covered(self) -> None:
+        """Per view, the pixels and the VGG cells the un-stylized scene covered (alpha >= 0.5; a cell by its mean):
+        the sliced Wasserstein terms compare only those with the painting, since a Blender scene's empty background
+        is no part of its distribution. One host read per view, here at the phase's start, none in a step."""
         from ..losses import VGG16Features  # lazy: imports Warp
 
-        x = x.T if feature_cells else x.reshape(-1, x.shape[-1])  # [n,D]
-        key = (vi, x.shape[0])
-        idx = self.covered.get(key)
-        if idx is None:
-            cov = self.tg.coverage[vi][..., 0]  # [H,W]
-            if feature_cells:  # the coverage on VGG's cell grid
-                cov = VGG16Features.cell_average(cov, self.cfg.vgg_scale)
-            cov = cov.reshape(-1)
-            idx = torch.nonzero(cov >= HOLE_ALPHA)[:, 0] if cov.numel() == x.shape[0] else None
-            if idx is None or idx.numel() == 0:  # nothing covered (or a grid VGG made otherwise): every row
-                idx = torch.arange(x.shape[0], device=x.device)
-            self.covered[key] = idx
-        return x.index_select(0, idx)
+        def covered(cov):  # [h,w] -> (indices of the covered entries (all of them if none is), h*w)
+            flat = cov.reshape(-1)
+            idx = torch.nonzero(flat >= HOLE_ALPHA)[:, 0]
+            return (idx if idx.numel() else torch.arange(flat.numel(), device=flat.device)), flat.numel()
+
+        self.covered = [{"pixels": covered(c[..., 0]),
+                         "cells": covered(VGG16Features.cell_average(c[..., 0], self.cfg.vgg_scale))}
+                        for c in self.tg.coverage]
+
+    def covered_samples(self, x: torch.Tensor, vi: int, feature_cells: bool = False) -> torch.Tensor:
+        """The rows of ``x`` where view ``vi``'s un-stylized scene was, [n,D]: ``x`` is the view's pixels [H,W,D],
+        or with ``feature_cells`` its VGG features [D, cells]."""
+        x = x.T if feature_cells else x.reshape(-1, x.shape[-1])  # [rows, D]
+        idx, rows = self.covered[vi]["cells" if feature_cells else "pixels"]
+        return x.index_select(0, idx) if rows == x.shape[0] else x  # another grid than VGG's: every row
 
     def flush_extra(self, run: Run, view: View) -> dict:
         from ..losses import flow_alignment_score_torch  # lazy: imports Warp
