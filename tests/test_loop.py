@@ -165,7 +165,8 @@ def test_stylize_terms_against_closed_forms(demo):
     assert detail > 0.1  # active
     opac = torch.full((run.params.num,), 0.25 ** 2, dtype=torch.float64)
     opac[::2] = (0.25 - 3.0) ** 2
-    want = {"style_swd": style_swd, "color_swd": color_swd, "content": content, "depth": depth, "tv": tv, "chroma_tv": chroma_tv, "palette": snap, "style_gram": gram,
+    want = {"style_swd": style_swd, "color_swd": color_swd, "content": content, "depth": depth, "tv": tv,
+            "chroma_tv": chroma_tv, "palette": snap, "style_gram": gram,
             "detail": detail, "stroke": stroke, "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k
