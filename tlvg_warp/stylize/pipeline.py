@@ -480,10 +480,10 @@ class Stylize(Phase):
         is no part of its distribution. One host read per view, here at the phase's start, none in a step."""
         from ..losses import VGG16Features  # lazy: imports Warp
 
-        def covered(cov):  # [h,w] -> (indices of the covered entries (all of them if none is), h*w)
+        def covered(cov):  # [h,w] -> indices of the covered entries (all of them if none is)
             flat = cov.reshape(-1)
             idx = torch.nonzero(flat >= HOLE_ALPHA)[:, 0]
-            return (idx if idx.numel() else torch.arange(flat.numel(), device=flat.device)), flat.numel()
+            return idx if idx.numel() else torch.arange(flat.numel(), device=flat.device)
 
         self.covered = [{"pixels": covered(c[..., 0]),
                          "cells": covered(VGG16Features.cell_average(c[..., 0], self.cfg.vgg_scale))}
@@ -491,10 +491,9 @@ class Stylize(Phase):
 
     def covered_samples(self, x: torch.Tensor, vi: int, feature_cells: bool = False) -> torch.Tensor:
         """The rows of ``x`` where view ``vi``'s un-stylized scene was, [n,D]: ``x`` is the view's pixels [H,W,D],
-        or with ``feature_cells`` its VGG features [D, cells]."""
+        or with ``feature_cells`` its VGG features [D, cells] (``VGG16Features.cell_average`` gives their grid)."""
         x = x.T if feature_cells else x.reshape(-1, x.shape[-1])  # [rows, D]
-        idx, rows = self.covered[vi]["cells" if feature_cells else "pixels"]
-        return x.index_select(0, idx) if rows == x.shape[0] else x  # another grid than VGG's: every row
+        return x.index_select(0, self.covered[vi]["cells" if feature_cells else "pixels"])
 
     def flush_extra(self, run: Run, view: View) -> dict:
         from ..losses import flow_alignment_score_torch  # lazy: imports Warp
