@@ -668,3 +668,35 @@ def test_a_resumed_stylize_phase_draws_the_directions_an_uninterrupted_one_would
     sty_b.setup(b)
     resumed = [float(sty_b.terms(b, _view(b, 1))[k].detach()) for k in ("style_swd", "color_swd")]
     assert resumed == pytest.approx(nxt, rel=1e-6) and all(abs(x - y) > 1e-9 for x, y in zip(first, nxt))
+
+
+def test_the_chroma_colour_term_compares_rgb_minus_luminance_and_ignores_a_grey_shift(demo):
+    """loss.color_swd_space chroma: the colour term is the sliced Wasserstein distance between the covered pixels'
+    and the painting's RGB minus Y (numpy float64 oracle), so brightening the render by a grey offset leaves it
+    unchanged while the rgb form moves."""
+    def term(space, shift):
+        net = StubFeatures()
+        run, cfg, tg = _stylize_run(demo, net, **{"loss.w_color_swd": 1.0, "loss.color_swd_projections": 6,
+                                                  "loss.color_swd_space": space})
+        sty = run.phase("stylize")
+        sty.setup(run)
+        view = _view(run, 2)
+        view.out.color = view.out.color + shift
+        return float(sty.terms(run, view)["color_swd"].detach()), run, cfg, tg, view
+
+    got, run, cfg, tg, view = term("chroma", 0.0)
+    with torch.no_grad():
+        ro0 = render(demo.gaussians, run.cams[2], run.background)
+    cov = ro0.alpha.double().clamp(0, 1)[..., None]
+    img = cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64)
+    luma = np.array([0.299, 0.587, 0.114])
+    chroma = lambda x: x - (x @ luma)[:, None]  # noqa: E731
+    x = chroma(img.numpy().reshape(-1, 3)[cov.numpy().reshape(-1) >= 0.5])
+    y = chroma(tg.style_work.double().numpy().reshape(-1, 3))
+    d = random_directions(3, 6, (cfg.seed + 1) * 1_000_003, "cpu").double().numpy()
+    px, py = np.sort(x @ d, axis=0), np.sort(y @ d, axis=0)
+    rows = np.floor((np.arange(len(px)) + 0.5) * len(py) / len(px)).astype(int)
+    want = ((px - py[rows]) ** 2).mean() / y.var(axis=0).mean()
+    assert got == pytest.approx(want, rel=TERM_TOL)
+    assert term("chroma", 0.05)[0] == pytest.approx(got, rel=1e-4)  # a grey offset has no chroma
+    assert abs(term("rgb", 0.05)[0] - term("rgb", 0.0)[0]) > 1e-3 * term("rgb", 0.0)[0]

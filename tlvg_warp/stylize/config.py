@@ -50,6 +50,9 @@ class StyleLoss:
     swd_projections: int = 128  # random directions per step of the feature term (768 dimensions)
     color_swd_projections: int = 32  # ... and of the colour term (3 dimensions: 32 cover them; each direction costs
     # a sort of every pixel of the view)
+    color_swd_space: str = "rgb"  # what the colour term compares: rgb (colour and brightness) | chroma (RGB minus its
+    # luminance Y: the painting's hues in their shares, the scene's tones left to the style and content terms, so a
+    # painting's brightest region is not drawn onto an object for its brightness)
     w_coverage: float = 0.0  # hinge on the render's alpha below the un-stylized scene's: no holes open (ours; 0: off)
     w_silhouette: float = 0.0  # hinge on the render's alpha above the un-stylized scene's: splats may not grow into an
     # empty background, where the style terms do not look (ours; 0: off; zero on a capture covered everywhere)
@@ -85,7 +88,7 @@ class StyleLoss:
              "stroke_along": ("of", "ratio", "bounded"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
-             "color_swd_projections": (">=", 1),
+             "color_swd_projections": (">=", 1), "color_swd_space": ("of", "rgb", "chroma"),
              **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_palette_snap",
                                        "w_style_swd", "w_color_swd",
                                        "w_coverage", "w_silhouette", "w_detail", "w_stroke", "w_orient",

@@ -325,8 +325,9 @@ class Stylize(Phase):
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         # the sliced Wasserstein terms: the painting's feature cells [Ns,768] and its pixels [M,3]
         self.swd_fn = SlicedWasserstein(tg.style_feats.T, w.swd_projections, cfg.seed) if w.w_style_swd else None
-        self.color_swd_fn = SlicedWasserstein(tg.style_work.reshape(-1, 3).to(tg.style_feats.device),
-                                              w.color_swd_projections, cfg.seed + 1) if w.w_color_swd else None
+        paint_px = tg.style_work.reshape(-1, 3).to(tg.style_feats.device)  # [M,3]
+        self.color_swd_fn = SlicedWasserstein(self.colour_samples(paint_px), w.color_swd_projections,
+                                              cfg.seed + 1) if w.w_color_swd else None
         self.covered = None  # per view: the pixels and VGG cells the un-stylized scene covered (find_covered)
         self.fields = None  # per view [H,W,3] on the device
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
@@ -435,7 +436,7 @@ class Stylize(Phase):
             if on["style_color"]:
                 terms["style_color"] = self.color_fn(a_rgb, key=vi)
             if on["color_swd"]:
-                terms["color_swd"] = self.color_swd_fn(self.covered_samples(img, vi))
+                terms["color_swd"] = self.color_swd_fn(self.colour_samples(self.covered_samples(img, vi)))
             t.mark("style")
             if on["content"]:
                 terms["content"] = content_loss(a_rgb, tg.photo_feats[vi]) * tg.content_scale[vi]
@@ -494,6 +495,14 @@ class Stylize(Phase):
         or with ``feature_cells`` its VGG features [D, cells] (``VGG16Features.cell_average`` gives their grid)."""
         x = x.T if feature_cells else x.reshape(-1, x.shape[-1])  # [rows, D]
         return x.index_select(0, self.covered[vi]["cells" if feature_cells else "pixels"])
+
+    def colour_samples(self, x: torch.Tensor) -> torch.Tensor:
+        """What the colour term compares of pixels [n,3]: their RGB, or (color_swd_space chroma) RGB minus Y."""
+        if self.cfg.loss.color_swd_space == "chroma":
+            from ..losses import luminance  # lazy: imports Warp
+
+            return x - luminance(x)
+        return x
 
     def flush_extra(self, run: Run, view: View) -> dict:
         from ..losses import flow_alignment_score_torch  # lazy: imports Warp
