@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -28,7 +29,13 @@ def same_ruler(a: dict, b: dict) -> bool:
         return False
     pa = {x["name"]: x["per_view"] for x in a["anchors"]}
     pb = {x["name"]: x["per_view"] for x in b["anchors"]}
-    return pa == pb
+    if {n: sorted(v) for n, v in pa.items()} != {n: sorted(v) for n, v in pb.items()}:
+        return False
+    # alike to 1e-9: evaluations with another thread count sum in another order (last-digit differences)
+    return all(len(pa[n][m]) == len(pb[n][m]) and all(x == y or (x is not None and y is not None and
+                                                                 math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12))
+                                                      for x, y in zip(pa[n][m], pb[n][m]))
+               for n in pa for m in pa[n])
 
 
 def merge(a: dict, b: dict, take: dict, rename: dict) -> dict:
