@@ -32,7 +32,7 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
     project, ewa_cov2d = make_projection(scalar, camera)
     sh_color, sh_backward, sh_coeff_grad = make_sh(scalar, module_name(scalar), camera)
     flow_terms = make_flow_terms(scalar, module_name(scalar), ewa_cov2d, camera)
-    forward, backward = make_blend(scalar, module_name(scalar), BLEND_MIN_BLOCKS)
+    forward, backward, forward_cpu, backward_cpu = make_blend(scalar, module_name(scalar), BLEND_MIN_BLOCKS)
     return SimpleNamespace(
         scalar=scalar,
         vec2=wp.types.vector(2, scalar),
@@ -47,6 +47,8 @@ def raster_kernels(scalar_name: str) -> SimpleNamespace:
         flow_terms=flow_terms,
         blend_forward=forward,
         blend_backward=backward,
+        blend_forward_cpu=forward_cpu,  # the same walks, one pixel at a time (raster.blend picks them on the CPU)
+        blend_backward_cpu=backward_cpu,
         count_tiles=binning.count_tiles_kernel,
         emit_keys=binning.emit_keys_kernel,
         depth_rank=binning.depth_rank_kernel,

@@ -109,7 +109,7 @@ class RasterizeFn(torch.autograd.Function):
                    for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
             # the blending backward first: the GPU waits on its enqueue, so everything else of the host's part comes
             # after it (the sorted ids, T and last go when this block ends: stream-ordered, safe with it queued)
-            fast_launch(K.blend_backward, st["threads"],
+            fast_launch(st["backward"], st["threads"],
                         st["args"] + st["saved"] + [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
                         + [ct(kept_flat), ct(geo_flat)], wdev, block_dim=TILE * TILE)
             inputs = ctx.saved_tensors  # (raises if an input changed in place since the forward)
