@@ -17,7 +17,7 @@ from .types import Camera
 TILE = 16
 
 SCAN_INT32_LIMIT = 2**31  # below this bound on the total the ends are scanned in int32 (the tests lower it)
-CPU_WALK = True  # on the CPU, the blending kernels that walk one pixel's list without staging (3-4x faster there);
+CPU_WALK = True  # on the CPU, the blending kernels that walk one pixel's list without staging (3-5x faster there);
 # False runs the GPU's staged kernels on the CPU too (the test comparing the two sets sets it)
 _capture: dict | None = None  # set by capture_binning(): the next renders' binning state lands here
 

@@ -325,9 +325,9 @@ class Stylize(Phase):
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         # the sliced Wasserstein terms: the painting's feature cells [Ns,768] and its pixels [M,3]
         self.swd_fn = SlicedWasserstein(tg.style_feats.T, w.swd_projections, cfg.seed) if w.w_style_swd else None
-        paint_px = tg.style_work.reshape(-1, 3).to(tg.style_feats.device)  # [M,3]
-        self.color_swd_fn = SlicedWasserstein(self.colour_samples(paint_px), w.color_swd_projections,
-                                              cfg.seed + 1) if w.w_color_swd else None
+        self.color_swd_fn = SlicedWasserstein(
+            self.colour_samples(tg.style_work.reshape(-1, 3).to(tg.style_feats.device)),  # [M,3]
+            w.color_swd_projections, cfg.seed + 1) if w.w_color_swd else None
         self.covered = None  # per view: the pixels and VGG cells the un-stylized scene covered (find_covered)
         self.fields = None  # per view [H,W,3] on the device
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
