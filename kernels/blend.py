@@ -563,8 +563,9 @@ def make_blend(scalar, module: str, min_blocks=(0, 0)):
         out_T: wp.array2d(dtype=scalar),  # [H, W]
         out_last: wp.array2d(dtype=wp.int32),  # [H, W]
         weights: wp.array(dtype=scalar),  # [N]
+        first_thread: int,  # this launch's part of the image starts at thread first_thread (raster.blend splits it)
     ):
-        p = pixel_of(wp.tid(), tiles_x)
+        p = pixel_of(wp.tid() + first_thread, tiles_x)
         if p[0] >= width or p[1] >= height:
             return
         px = scalar(p[0]) + scalar(0.5)

@@ -628,3 +628,26 @@ def test_the_power_cut_only_skips_splats_below_the_alpha_floor():
     for dt in (torch.float32, torch.float64):
         assert float(torch.exp(torch.tensor(POWER_CUT, dtype=dt))) < ALPHA_MIN
     assert math.exp(POWER_CUT + 0.01) > ALPHA_MIN
+
+
+@pytest.mark.parametrize("size", [(61, 45), (16, 16), (40, 70)])
+def test_the_cpu_forward_split_over_two_threads_equals_one_launch(monkeypatch, size):
+    """raster.CPU_THREADS 2 launches the CPU walk's two halves of the tiles from two threads; one launch and the
+    staged kernels are the oracles: the same images and gradients to the last bit (a lost or doubled half, or a
+    wrong offset, would leave pixels unwritten or written twice with another pixel's list)."""
+    import tlvg_warp.raster as raster
+
+    g = fitted_like_scene(800, seed=7, dtype=torch.float32)
+    cam = camera(*size)
+    got = []
+    for walk, threads in ((True, 2), (True, 1), (False, 1)):
+        monkeypatch.setattr(raster, "CPU_WALK", walk)
+        monkeypatch.setattr(raster, "CPU_THREADS", threads)
+        gl = leafs(g)
+        out = render(gl, cam, [0.1, 0.2, 0.3])
+        gen = torch.Generator().manual_seed(2)
+        loss = sum((o * torch.randn(o.shape, generator=gen, dtype=o.dtype)).sum() for o in (out.color, out.alpha, out.depth))
+        got.append([out.color, out.alpha, out.depth] + list(torch.autograd.grad(loss, [getattr(gl, f) for f in FIELDS])))
+    for other in got[1:]:
+        for a, b in zip(got[0], other):
+            assert torch.equal(a, b)

@@ -264,10 +264,10 @@ def _slot_kind(p) -> int:
 
 
 _BYTES, _SCALAR, _STRUCT = 1, 2, 3
-_sites: dict = {}  # (kernel, device alias, block_dim, adjoint) -> _Site
+_sites: dict = {}  # (kernel, device alias, block_dim, adjoint, instance) -> _Site
 
 
-def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, adj_args=None) -> None:
+def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, adj_args=None, instance: int = 0) -> None:
     """``wp.launch(kernel, dim, inputs=args, device=device, block_dim=block_dim, record_tape=False)`` for the
     per-render launches, with less host time: the first call per (kernel, device, block_dim, forward/adjoint)
     records a ``wp.Launch``; later calls write its parameter slots directly (array descriptors from ``ct``,
@@ -277,11 +277,12 @@ def fast_launch(kernel, dim: int, args, device, block_dim: int | None = None, ad
     adjoint arguments (None for an array: no gradient). The Launch keeps no tensor alive between renders: on CUDA
     its parameter addresses point at the caller's descriptors only until the enqueue has copied them, on the CPU
     it holds bare copies (``_set_args``); the caller's own references cover the enqueue (the allocator is
-    stream-ordered)."""
+    stream-ordered). ``instance``: another recorded launch of the same kernel, for calls from two threads at once
+    (each thread its own: a recorded launch's slots are written just before its call)."""
     if dim <= 0:
         return
     adjoint = adj_args is not None
-    key = (kernel, device.alias, block_dim, adjoint)
+    key = (kernel, device.alias, block_dim, adjoint, instance)
     site = _sites.get(key)
     if site is None:
         bare = [_bare(a) for a in args]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
@@ -19,6 +20,7 @@ TILE = 16
 SCAN_INT32_LIMIT = 2**31  # below this bound on the total the ends are scanned in int32 (the tests lower it)
 CPU_WALK = True  # on the CPU, the blending kernels that walk one pixel's list without staging (3-5x faster there);
 # False runs the GPU's staged kernels on the CPU too (the test comparing the two sets sets it)
+CPU_THREADS = min(2, torch.get_num_threads())  # threads of the CPU blending forward (blend_cpu; 1: one launch)
 _capture: dict | None = None  # set by capture_binning(): the next renders' binning state lands here
 
 
@@ -267,6 +269,26 @@ def bin_tiles(K, pr: Projection, order: DepthOrder, width: int, height: int, all
     return ranges, ct_at(ids, 0, (total,), 4), ids
 
 
+_helper: ThreadPoolExecutor | None = None  # the second CPU thread of the blending forward (made on first use)
+
+
+def blend_cpu(K, args: list, tiles: int, may_split: bool, wdev) -> None:
+    """The CPU blending forward: Warp runs a CPU launch on one core, so with CPU_THREADS > 1 the tiles are split in two
+    halves launched from two threads at once (Warp releases the GIL in the call). Each pixel writes only its own
+    outputs, so the halves are independent, except the per-Gaussian weights (``may_split`` False): Warp's CPU
+    atomic_add is a plain add."""
+    global _helper
+    if not may_split or CPU_THREADS < 2 or tiles < 2:
+        fast_launch(K.blend_forward_cpu, tiles * TILE * TILE, args + [0], wdev)
+        return
+    if _helper is None:
+        _helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tlvg-blend")
+    first = (tiles // 2) * TILE * TILE
+    other = _helper.submit(fast_launch, K.blend_forward_cpu, first, args + [0], wdev, None, None, 1)
+    fast_launch(K.blend_forward_cpu, tiles * TILE * TILE - first, args + [first], wdev)
+    other.result()
+
+
 def blend(K, pr: Projection, order: DepthOrder, cam: Camera, settings: dict):
     """Bin, then blend front to back: the images, and the per-pixel state the blending backward reads."""
     device, dtype, n = pr.buf.device, pr.buf.dtype, pr.n
@@ -288,9 +310,11 @@ def blend(K, pr: Projection, order: DepthOrder, cam: Camera, settings: dict):
     args = [ranges, ids, w_means2d, w_conic, w_opacity, w_color, w_depth, bg, W, H, tiles_x, int(want_depth)]
     out_depth = ct(depth) if want_depth else ct_at(depth, 0, (1, 1), e)
     cpu_walk = device.type == "cpu" and CPU_WALK
-    fast_launch(K.blend_forward_cpu if cpu_walk else K.blend_forward, tiles_x * tiles_y * TILE * TILE,
-                args + [int(settings["weights"]), ct(color, K.vec3), ct(alpha), out_depth, T, last, ct(weights)],
-                wdevice(device), block_dim=TILE * TILE)
+    outs = args + [int(settings["weights"]), ct(color, K.vec3), ct(alpha), out_depth, T, last, ct(weights)]
+    if cpu_walk:
+        blend_cpu(K, outs, tiles_x * tiles_y, not settings["weights"], wdevice(device))
+    else:
+        fast_launch(K.blend_forward, tiles_x * tiles_y * TILE * TILE, outs, wdevice(device), block_dim=TILE * TILE)
     state = {"args": args, "saved": [out_depth, T, last], "threads": tiles_x * tiles_y * TILE * TILE,
              "backward": K.blend_backward_cpu if cpu_walk else K.blend_backward}
     if _capture is not None:
