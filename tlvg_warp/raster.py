@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -269,7 +270,8 @@ def bin_tiles(K, pr: Projection, order: DepthOrder, width: int, height: int, all
     return ranges, ct_at(ids, 0, (total,), 4), ids
 
 
-_helper: ThreadPoolExecutor | None = None  # the second CPU thread of the blending forward (made on first use)
+_helper: tuple | None = None  # (process id, pool): the second CPU thread of the blending forward, made on first use
+# in each process (a forked child inherits the pool without its thread)
 
 
 def blend_cpu(K, args: list, tiles: int, may_split: bool, wdev) -> None:
@@ -281,10 +283,10 @@ def blend_cpu(K, args: list, tiles: int, may_split: bool, wdev) -> None:
     if not may_split or CPU_THREADS < 2 or tiles < 2:
         fast_launch(K.blend_forward_cpu, tiles * TILE * TILE, args + [0], wdev)
         return
-    if _helper is None:
-        _helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tlvg-blend")
+    if _helper is None or _helper[0] != os.getpid():
+        _helper = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="tlvg-blend"))
     first = (tiles // 2) * TILE * TILE
-    other = _helper.submit(fast_launch, K.blend_forward_cpu, first, args + [0], wdev, None, None, 1)
+    other = _helper[1].submit(fast_launch, K.blend_forward_cpu, first, args + [0], wdev, None, None, 1)
     fast_launch(K.blend_forward_cpu, tiles * TILE * TILE - first, args + [first], wdev)
     other.result()
 
