@@ -287,8 +287,10 @@ def blend_cpu(K, args: list, tiles: int, may_split: bool, wdev) -> None:
         _helper = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="tlvg-blend"))
     first = (tiles // 2) * TILE * TILE
     other = _helper[1].submit(fast_launch, K.blend_forward_cpu, first, args + [0], wdev, None, None, 1)
-    fast_launch(K.blend_forward_cpu, tiles * TILE * TILE - first, args + [first], wdev)
-    other.result()
+    try:
+        fast_launch(K.blend_forward_cpu, tiles * TILE * TILE - first, args + [first], wdev)
+    finally:  # the helper's half writes into this render's buffers: it ends before they can go
+        other.result()
 
 
 def blend(K, pr: Projection, order: DepthOrder, cam: Camera, settings: dict):
