@@ -1,6 +1,6 @@
 """Image-space losses and the stroke field: SSIM/L1 fit, color transfer and Lab chroma, VGG-16 relu3 features,
 FAST/NNFM/Gram/content losses, the structure-tensor stroke field, its mapping onto views, the flow score."""
-from .color import (apply_color_transform, color_transfer, detail_energy, lab_chroma_loss, lab_chroma_stats,
+from .color import (apply_color_transform, chroma, color_transfer, detail_energy, lab_chroma_loss, lab_chroma_stats,
                     luminance, luminance_detail, match_detail, recolor_sh, rgb_to_lab)
 from .ssim import fit_loss, psnr, ssim
 from .stroke_field import (field_at_cells, field_from_doubled, field_picture, field_terms, flow_alignment_score,
@@ -12,7 +12,7 @@ from .style import (StyleFeatures, StyleLoss, content_loss, fast_loss, fast_proj
 from .vgg import VGG16Features, flatten_feats, how_to_get_weights, load_vgg, resize_style
 
 __all__ = [
-    "apply_color_transform", "color_transfer", "detail_energy", "lab_chroma_loss", "lab_chroma_stats", "luminance",
+    "apply_color_transform", "chroma", "color_transfer", "detail_energy", "lab_chroma_loss", "lab_chroma_stats", "luminance",
     "luminance_detail", "match_detail", "recolor_sh",
     "rgb_to_lab",
     "fit_loss", "psnr", "ssim",

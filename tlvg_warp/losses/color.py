@@ -194,6 +194,11 @@ def luminance(img: torch.Tensor) -> torch.Tensor:
     return (img @ w).unsqueeze(-1).expand_as(img)
 
 
+def chroma(img: torch.Tensor) -> torch.Tensor:
+    """The chroma residual ``img - Y`` (what is left of a colour once its luminance is taken out): same shape out."""
+    return img - luminance(img)
+
+
 def recolor_sh(sh: torch.Tensor, m: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Spherical-harmonic colours of Gaussians under the colour map ``x' = M x + t``: since color =
     SH(dir) + 0.5 and blending is an affine combination (Σ αT + T_final = 1), rendering the mapped Gaussians

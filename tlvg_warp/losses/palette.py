@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ..types import SH_C0
-from .color import LUMA, _as_torch, _blur, _luma, color_transfer, luminance, recolor_sh
+from .color import LUMA, _as_torch, _blur, _luma, chroma, color_transfer, recolor_sh
 
 TONE_BINS = 32  # luminance bins of the painting's chroma table (equal pixel counts)
 TONE_MAX_BOOST = 2.0  # a bin's mean chroma is scaled back up to its pixels' mean saturation, by at most this
@@ -128,18 +128,18 @@ def tone_palette(images, style, bins: int = TONE_BINS, coverage=None) -> TonePal
     order = torch.argsort(y_s)
     groups = torch.tensor_split(order, bins)
     c_s = _chroma(s, y_s)  # [P,2]
-    chroma = []
+    tone_chroma = []
     for g in groups:  # K small bins: a loop over bins, not pixels
         c = c_s[g]
         mean = c.mean(0)
         boost = float(c.norm(dim=1).mean() / mean.norm().clamp_min(1e-12))
-        chroma.append(mean * min(boost, TONE_MAX_BOOST))  # averaging opposite hues must not leave grey
+        tone_chroma.append(mean * min(boost, TONE_MAX_BOOST))  # averaging opposite hues must not leave grey
     q = (torch.arange(bins, dtype=torch.float64) + 0.5) / bins
     knots = torch.quantile(y_c, q)
     knots = knots + torch.arange(bins, dtype=torch.float64) * 1e-9  # strictly increasing where photos are flat
     sd_c = float(y_c.std(unbiased=False))
     return TonePalette((float(y_c.mean()), float(y_s.mean())), float(y_s.std(unbiased=False)) / max(sd_c, 1e-6),
-                       knots, torch.stack(chroma))
+                       knots, torch.stack(tone_chroma))
 
 
 def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0):
@@ -186,8 +186,8 @@ def palette_snap_loss(img: torch.Tensor, colours: torch.Tensor, weight: torch.Te
     with torch.no_grad():  # ‖x‖² - 2x·c + ‖c‖², without the constant ‖x‖²: one matmul
         nearest = ((c * c).sum(1)[None] - 2.0 * x @ c.T).argmin(1)  # [P]
     diff = x - c[nearest]  # [P,3]
-    chroma = diff - luminance(diff)  # [P,3]: Y of a difference is linear, so this is chroma(x) - chroma(colour)
-    sq = (chroma * chroma).sum(1)  # [P]
+    d_chroma = chroma(diff)  # [P,3]: Y of a difference is linear, so this is chroma(x) - chroma(colour)
+    sq = (d_chroma * d_chroma).sum(1)  # [P]
     if weight is None:
         return sq.mean()
     w = weight.reshape(-1).to(sq)

@@ -111,9 +111,9 @@ def tv_loss(img: torch.Tensor) -> torch.Tensor:
 def chroma_tv_loss(img: torch.Tensor) -> torch.Tensor:
     """TV of the chroma residual ``img - Y`` (Y = 0.299R+0.587G+0.114B): strokes may vary luminance at any
     scale while colour stays in clean patches (the "muddy colour" the luminance-only style loss exists to avoid)."""
-    from ..losses import luminance  # lazy: imports Warp
+    from ..losses import chroma  # lazy: imports Warp
 
-    return tv_loss(img - luminance(img))
+    return tv_loss(chroma(img))
 
 
 def coverage_loss(alpha: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
@@ -499,9 +499,9 @@ class Stylize(Phase):
     def colour_samples(self, x: torch.Tensor) -> torch.Tensor:
         """What the colour term compares of pixels [n,3]: their RGB, or (color_swd_space chroma) RGB minus Y."""
         if self.cfg.loss.color_swd_space == "chroma":
-            from ..losses import luminance  # lazy: imports Warp
+            from ..losses import chroma  # lazy: imports Warp
 
-            return x - luminance(x)
+            return chroma(x)
         return x
 
     def flush_extra(self, run: Run, view: View) -> dict:
