@@ -310,6 +310,41 @@ def make_blend(scalar, module: str, min_blocks=(0, 0)):
                     last = base + j + 1
         return T, C, S, last, done
 
+    @wp.func
+    def write_pixel(p: wp.vec3i, T: scalar, C: vec3, S: scalar, last: int, background: vec3, want_depth: int,
+                    out_color: wp.array2d(dtype=vec3), out_alpha: wp.array2d(dtype=scalar),
+                    out_depth: wp.array2d(dtype=scalar), out_T: wp.array2d(dtype=scalar),
+                    out_last: wp.array2d(dtype=wp.int32)):
+        """A blended pixel's outputs, and the state its backward reads (both forwards)."""
+        A = scalar(1.0) - T
+        out_color[p[1], p[0]] = C + T * background
+        out_alpha[p[1], p[0]] = A
+        if want_depth != 0:
+            D = scalar(0.0)
+            if A > scalar(0.0):
+                D = S / A
+            out_depth[p[1], p[0]] = D
+        out_T[p[1], p[0]] = T
+        out_last[p[1], p[0]] = last
+
+    @wp.func
+    def pixel_upstream(p: wp.vec3i, want_depth: int, out_T: wp.array2d(dtype=scalar),
+                       out_depth: wp.array2d(dtype=scalar), g_color: wp.array2d(dtype=vec3),
+                       g_alpha: wp.array2d(dtype=scalar), g_depth: wp.array2d(dtype=scalar)):
+        """(T, dL/dC, dL/dA, dL/dS) of a pixel for the backward walk (both backwards): the final transmittance and
+        the upstream gradients, the depth's routed to S and A."""
+        zero = scalar(0.0)
+        T = out_T[p[1], p[0]]
+        gA = g_alpha[p[1], p[0]]
+        gS = zero
+        A = scalar(1.0) - T
+        if want_depth != 0 and A > zero:
+            # depth = S / A: route its gradient to S = Σ zαT and to A
+            gD = g_depth[p[1], p[0]]
+            gS = gD / A
+            gA = gA - gD * out_depth[p[1], p[0]] / A
+        return T, g_color[p[1], p[0]], gA, gS
+
     @wp.kernel(enable_backward=False, module=module, **bounds[0])
     def blend_forward_kernel(
         ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
@@ -365,16 +400,7 @@ def make_blend(scalar, module: str, min_blocks=(0, 0)):
                 j += 1
             sync_block(0)  # the next batch overwrites the slab
         if inside:
-            A = scalar(1.0) - T
-            out_color[p[1], p[0]] = C + T * background
-            out_alpha[p[1], p[0]] = A
-            if want_depth != 0:
-                D = scalar(0.0)
-                if A > scalar(0.0):
-                    D = S / A
-                out_depth[p[1], p[0]] = D
-            out_T[p[1], p[0]] = T
-            out_last[p[1], p[0]] = last
+            write_pixel(p, T, C, S, last, background, want_depth, out_color, out_alpha, out_depth, out_T, out_last)
 
     @wp.func_native(WARP_TRANSPOSE_SUM.format(ctype=ctype))
     def warp_transpose_sum(x: vec16) -> scalar: ...
@@ -449,16 +475,8 @@ def make_blend(scalar, module: str, min_blocks=(0, 0)):
         gA = zero
         gS = zero
         if inside:
-            T = out_T[p[1], p[0]]
+            T, gC, gA, gS = pixel_upstream(p, want_depth, out_T, out_depth, g_color, g_alpha, g_depth)
             last = out_last[p[1], p[0]]
-            gC = g_color[p[1], p[0]]
-            gA = g_alpha[p[1], p[0]]
-            A = scalar(1.0) - T
-            if want_depth != 0 and A > zero:
-                # depth = S / A: route its gradient to S = Σ zαT and to A
-                gD = g_depth[p[1], p[0]]
-                gS = gD / A
-                gA = gA - gD * out_depth[p[1], p[0]] / A
         n = means2d.shape[0]
         n_values = 9 + want_depth  # the sums per Gaussian (add_grad's numbering)
         # everything behind the current Gaussian, as seen through it: starts with the background term
@@ -597,16 +615,7 @@ def make_blend(scalar, module: str, min_blocks=(0, 0)):
                         T = T_next
                         last = k + 1
             k += 1
-        A = scalar(1.0) - T
-        out_color[p[1], p[0]] = C + T * background
-        out_alpha[p[1], p[0]] = A
-        if want_depth != 0:
-            D = scalar(0.0)
-            if A > scalar(0.0):
-                D = S / A
-            out_depth[p[1], p[0]] = D
-        out_T[p[1], p[0]] = T
-        out_last[p[1], p[0]] = last
+        write_pixel(p, T, C, S, last, background, want_depth, out_color, out_alpha, out_depth, out_T, out_last)
 
     @wp.kernel(enable_backward=False, module=module)
     def blend_backward_cpu_kernel(
@@ -638,15 +647,7 @@ def make_blend(scalar, module: str, min_blocks=(0, 0)):
         py = scalar(p[1]) + scalar(0.5)
         start = ranges[p[2], 0]
         zero = scalar(0.0)
-        T = out_T[p[1], p[0]]
-        gC = g_color[p[1], p[0]]
-        gA = g_alpha[p[1], p[0]]
-        gS = zero
-        A = scalar(1.0) - T
-        if want_depth != 0 and A > zero:
-            gD = g_depth[p[1], p[0]]
-            gS = gD / A
-            gA = gA - gD * out_depth[p[1], p[0]] / A
+        T, gC, gA, gS = pixel_upstream(p, want_depth, out_T, out_depth, g_color, g_alpha, g_depth)
         n = means2d.shape[0]
         behind = T * (wp.dot(gC, background) - gA)
         k = out_last[p[1], p[0]] - 1
