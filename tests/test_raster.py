@@ -595,6 +595,28 @@ def test_runtime_radix_sort_matches_warp_utils():
         assert torch.equal(va[:300].long(), torch.sort(keys, stable=True).indices)
 
 
+def _blend_launches(monkeypatch) -> list:
+    """Records every blending launch (kernel name, threads, recorded-launch instance, from the main thread?)."""
+    import threading
+
+    import tlvg_warp.autograd as autograd
+    import tlvg_warp.raster as raster
+
+    calls = []
+
+    def recording(launch):
+        def wrapped(kernel, dim, args, device, block_dim=None, adj_args=None, instance=0):
+            if "blend_" in kernel.key:
+                calls.append((kernel.key.split("__")[-1], dim, instance,
+                              threading.current_thread() is threading.main_thread()))
+            return launch(kernel, dim, args, device, block_dim, adj_args, instance)
+        return wrapped
+
+    monkeypatch.setattr(raster, "fast_launch", recording(raster.fast_launch))
+    monkeypatch.setattr(autograd, "fast_launch", recording(autograd.fast_launch))
+    return calls
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("depth", [True, False])
 def test_the_cpu_walk_equals_the_staged_kernels_bit_for_bit(monkeypatch, dtype, depth):
@@ -606,15 +628,21 @@ def test_the_cpu_walk_equals_the_staged_kernels_bit_for_bit(monkeypatch, dtype, 
     g = fitted_like_scene(1500, seed=3, dtype=dtype)
     g = Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits + 2.0 * (torch.arange(g.num) % 3 == 0), g.sh)
     cam = camera(61, 45)
-    got = {}
+    got, launched = {}, {}
+    calls = _blend_launches(monkeypatch)
     for walk in (True, False):
         monkeypatch.setattr(raster, "CPU_WALK", walk)
+        calls.clear()
         gl = leafs(g)
         out = render(gl, cam, [0.1, 0.2, 0.3], return_weights=True, depth=depth)
         outs = [out.color, out.alpha] + ([out.depth] if depth else [])
         gen = torch.Generator().manual_seed(5)
         loss = sum((o * torch.randn(o.shape, generator=gen, dtype=o.dtype)).sum() for o in outs)
         got[walk] = outs + [out.weights] + list(torch.autograd.grad(loss, [getattr(gl, f) for f in FIELDS]))
+        launched[walk] = {c[0] for c in calls}
+    # each setting ran its own kernels (the comparison is not of one set with itself)
+    assert launched[True] == {"blend_forward_cpu_kernel", "blend_backward_cpu_kernel"}
+    assert launched[False] == {"blend_forward_kernel", "blend_backward_kernel"}
     assert float(got[True][1].detach().max()) > 1 - 2 * T_MIN  # some pixels saturated: the early stop was taken
     for a, b in zip(got[True], got[False]):
         assert torch.equal(a, b)
@@ -639,12 +667,21 @@ def test_the_cpu_forward_split_over_two_threads_equals_one_launch(monkeypatch, s
 
     g = fitted_like_scene(800, seed=7, dtype=torch.float32)
     cam = camera(*size)
+    tiles = math.ceil(size[0] / 16) * math.ceil(size[1] / 16)
     got = []
+    calls = _blend_launches(monkeypatch)
     for walk, threads in ((True, 2), (True, 1), (False, 1)):
         monkeypatch.setattr(raster, "CPU_WALK", walk)
         monkeypatch.setattr(raster, "CPU_THREADS", threads)
+        calls.clear()
         gl = leafs(g)
         out = render(gl, cam, [0.1, 0.2, 0.3])
+        forward = sorted((c[2], c[1], c[3]) for c in calls if c[0].startswith("blend_forward"))
+        if threads == 2 and tiles >= 2:  # two halves of the tiles, the first on the helper thread's own launch
+            want = [(0, (tiles - tiles // 2) * 256, True), (1, tiles // 2 * 256, False)]
+        else:  # one launch (a single tile is not split)
+            want = [(0, tiles * 256, True)]
+        assert forward == want
         gen = torch.Generator().manual_seed(2)
         loss = sum((o * torch.randn(o.shape, generator=gen, dtype=o.dtype)).sum() for o in (out.color, out.alpha, out.depth))
         got.append([out.color, out.alpha, out.depth] + list(torch.autograd.grad(loss, [getattr(gl, f) for f in FIELDS])))
