@@ -108,9 +108,9 @@ def test_cuda_render_on_a_side_stream_and_warp_state_restored():
     ups = [torch.randn_like(ref.color), torch.randn_like(ref.alpha)]
     ga = torch.autograd.grad((ref.color * ups[0]).sum() + (ref.alpha * ups[1]).sum(), [getattr(g1, f) for f in FIELDS])
     assert wp.get_device() == before_dev and core.wp_cuda_context_get_current() == before_ctx
+    g2 = leafs(g)  # made on the default stream: the side stream waits for the copies too (a race under load)
     side = torch.cuda.Stream()
     side.wait_stream(torch.cuda.current_stream())
-    g2 = leafs(g)
     with torch.cuda.stream(side):
         out = render(g2, cam, background=[0.1, 0.2, 0.3])
         gb = torch.autograd.grad((out.color * ups[0]).sum() + (out.alpha * ups[1]).sum(),
