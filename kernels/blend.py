@@ -639,8 +639,9 @@ def make_blend(scalar, module: str, min_blocks=(0, 0)):
         g_depth: wp.array2d(dtype=scalar),  # [H, W] upstream dL/ddepth (read only if want_depth)
         grad_kept: wp.array(dtype=scalar),  # as blend_backward_kernel's
         grad_geo: wp.array(dtype=scalar),
+        first_thread: int,  # as blend_forward_cpu_kernel's (each part of the image sums into its own gradients)
     ):
-        p = pixel_of(wp.tid(), tiles_x)
+        p = pixel_of(wp.tid() + first_thread, tiles_x)
         if p[0] >= width or p[1] >= height:
             return
         px = scalar(p[0]) + scalar(0.5)

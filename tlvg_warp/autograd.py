@@ -11,7 +11,7 @@ import warp as wp
 
 from .kernels.flow import COHERENCE_MIN, flow_targets_kernel
 from .launch import ct, ct_at, fast_launch, input_ct, kernels_for, to_warp, warp_on
-from .raster import (TILE, blend, camera_arg, count_intersections, no_grad_camera, packed_zeros, project,
+from .raster import (blend, blend_backward, camera_arg, count_intersections, no_grad_camera, packed_zeros, project,
                      project_adjoint, zero_upstream)
 
 
@@ -109,9 +109,7 @@ class RasterizeFn(torch.autograd.Function):
                    for g, shape in ((g_color, (H, W, 3)), (g_alpha, (H, W)), (g_depth, (H, W)))]
             # the blending backward first: the GPU waits on its enqueue, so everything else of the host's part comes
             # after it (the sorted ids, T and last go when this block ends: stream-ordered, safe with it queued)
-            fast_launch(st["backward"], st["threads"],
-                        st["args"] + st["saved"] + [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])]
-                        + [ct(kept_flat), ct(geo_flat)], wdev, block_dim=TILE * TILE)
+            blend_backward(K, st, [ct(ups[0], K.vec3), ct(ups[1]), ct(ups[2])], [kept_flat, geo_flat], wdev)
             inputs = ctx.saved_tensors  # (raises if an input changed in place since the forward)
             pouts = pr.outs
             del st, ups, pr

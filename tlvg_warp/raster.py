@@ -21,7 +21,7 @@ TILE = 16
 SCAN_INT32_LIMIT = 2**31  # below this bound on the total the ends are scanned in int32 (the tests lower it)
 CPU_WALK = True  # on the CPU, the blending kernels that walk one pixel's list without staging (3-5x faster there);
 # False runs the GPU's staged kernels on the CPU too (the test comparing the two sets sets it)
-CPU_THREADS = min(2, torch.get_num_threads())  # threads of the CPU blending forward (blend_cpu; 1: one launch)
+CPU_THREADS = min(2, torch.get_num_threads())  # threads of the CPU blending (blend_cpu, blend_backward; 1: one launch)
 _capture: dict | None = None  # set by capture_binning(): the next renders' binning state lands here
 
 
@@ -274,23 +274,47 @@ _helper: tuple | None = None  # (process id, pool): the second CPU thread of the
 # in each process (a forked child inherits the pool without its thread)
 
 
+def _halves(kernel, tiles: int, args_first, args_rest, wdev) -> None:
+    """Launch ``kernel`` over the first half of the tiles on the helper thread (its own recorded launch) and over the
+    rest on this one, each with its own arguments; return when both are done."""
+    global _helper
+    if _helper is None or _helper[0] != os.getpid():
+        _helper = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="tlvg-blend"))
+    first = (tiles // 2) * TILE * TILE
+    other = _helper[1].submit(fast_launch, kernel, first, args_first + [0], wdev, None, None, 1)
+    try:
+        fast_launch(kernel, tiles * TILE * TILE - first, args_rest + [first], wdev)
+    finally:  # the helper's half writes into this render's buffers: it ends before they can go
+        other.result()
+
+
 def blend_cpu(K, args: list, tiles: int, may_split: bool, wdev) -> None:
     """The CPU blending forward: Warp runs a CPU launch on one core, so with CPU_THREADS > 1 the tiles are split in two
     halves launched from two threads at once (Warp releases the GIL in the call). Each pixel writes only its own
     outputs, so the halves are independent, except the per-Gaussian weights (``may_split`` False): Warp's CPU
     atomic_add is a plain add."""
-    global _helper
     if not may_split or CPU_THREADS < 2 or tiles < 2:
         fast_launch(K.blend_forward_cpu, tiles * TILE * TILE, args + [0], wdev)
         return
-    if _helper is None or _helper[0] != os.getpid():
-        _helper = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="tlvg-blend"))
-    first = (tiles // 2) * TILE * TILE
-    other = _helper[1].submit(fast_launch, K.blend_forward_cpu, first, args + [0], wdev, None, None, 1)
-    try:
-        fast_launch(K.blend_forward_cpu, tiles * TILE * TILE - first, args + [first], wdev)
-    finally:  # the helper's half writes into this render's buffers: it ends before they can go
-        other.result()
+    _halves(K.blend_forward_cpu, tiles, args, args, wdev)
+
+
+def blend_backward(K, st: dict, upstream: list, grads: list, wdev) -> None:
+    """The blending backward into ``grads`` (flat per-Gaussian sums, zeroed). On the CPU with CPU_THREADS > 1 the
+    tiles are split in two halves as in the forward; Warp's CPU atomic_add is a plain add, so the helper's half sums
+    into gradient buffers of its own, added to ``grads`` after (the same values up to the order of the sums)."""
+    args = st["args"] + st["saved"] + upstream
+    threads = st["threads"]
+    tiles = threads // (TILE * TILE)
+    if st["backward"] is not K.blend_backward_cpu:
+        fast_launch(st["backward"], threads, args + [ct(g) for g in grads], wdev, block_dim=TILE * TILE)
+    elif CPU_THREADS < 2 or tiles < 2:
+        fast_launch(K.blend_backward_cpu, threads, args + [ct(g) for g in grads] + [0], wdev)
+    else:
+        own = [torch.zeros_like(g) for g in grads]
+        _halves(K.blend_backward_cpu, tiles, args + [ct(g) for g in own], args + [ct(g) for g in grads], wdev)
+        for g, o in zip(grads, own):
+            g += o
 
 
 def blend(K, pr: Projection, order: DepthOrder, cam: Camera, settings: dict):
