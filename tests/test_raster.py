@@ -630,7 +630,7 @@ def test_the_cpu_walk_equals_the_staged_kernels_bit_for_bit(monkeypatch, dtype, 
     cam = camera(61, 45)
     got, launched = {}, {}
     calls = _blend_launches(monkeypatch)
-    monkeypatch.setattr(raster, "CPU_THREADS", 1)  # one launch each way: the sums in the staged kernels' order
+    monkeypatch.setattr(raster, "CPU_HALVES", False)  # one backward launch: the sums in the staged kernels' order
     for walk in (True, False):
         monkeypatch.setattr(raster, "CPU_WALK", walk)
         calls.clear()
@@ -661,17 +661,18 @@ def test_the_power_cut_only_skips_splats_below_the_alpha_floor():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("size", [(61, 45), (16, 16), (40, 70)])
-def test_the_cpu_blending_split_over_two_threads_equals_one_launch(monkeypatch, size, dtype):
+def test_the_cpu_blending_split_over_two_threads_equals_one_thread(monkeypatch, size, dtype):
     """raster.CPU_THREADS 2 launches the CPU walk's two halves of the tiles from two threads, forward and backward;
-    one launch and the staged kernels are the oracles: the same images to the last bit (a lost or doubled half, or a
-    wrong offset, would leave pixels unwritten or written twice with another pixel's list) and the same gradients up
-    to the order of the sums (the helper's half sums into buffers of its own, added after: dropping them loses the
-    first half's splats)."""
+    on one thread the backward runs the same two halves one after the other (raster.CPU_HALVES). Oracles: one thread,
+    bit for bit (images and gradients: a run's result may not depend on the machine's cores; a lost or doubled half,
+    a wrong offset or a half summed into the other's buffer would show), and the staged kernels in one launch (the
+    same images to the last bit; gradients up to the order of the sums)."""
     import tlvg_warp.raster as raster
 
     g = fitted_like_scene(800, seed=7, dtype=dtype)
     cam = camera(*size)
     tiles = math.ceil(size[0] / 16) * math.ceil(size[1] / 16)
+    first, rest = tiles // 2 * 256, (tiles - tiles // 2) * 256
     got = []
     calls = _blend_launches(monkeypatch)
     for walk, threads in ((True, 2), (True, 1), (False, 1)):
@@ -683,17 +684,21 @@ def test_the_cpu_blending_split_over_two_threads_equals_one_launch(monkeypatch, 
         gen = torch.Generator().manual_seed(2)
         loss = sum((o * torch.randn(o.shape, generator=gen, dtype=o.dtype)).sum() for o in (out.color, out.alpha, out.depth))
         got.append([out.color, out.alpha, out.depth] + list(torch.autograd.grad(loss, [getattr(gl, f) for f in FIELDS])))
-        for stage in ("blend_forward", "blend_backward"):
-            launched = sorted((c[2], c[1], c[3]) for c in calls if c[0].startswith(stage))
-            if threads == 2 and tiles >= 2:  # two halves of the tiles, the first on the helper thread's own launch
-                want = [(0, (tiles - tiles // 2) * 256, True), (1, tiles // 2 * 256, False)]
-            else:  # one launch (a single tile is not split)
-                want = [(0, tiles * 256, True)]
-            assert launched == want, stage
+        launched = {stage: sorted((c[2], c[1], c[3]) for c in calls if c[0].startswith(stage))
+                    for stage in ("blend_forward", "blend_backward")}
+        one = [(0, tiles * 256, True)]  # one launch (a single tile is not split; the staged kernels never are)
+        two = [(0, rest, True), (1, first, False)]  # the first half on the helper thread's own launch
+        if tiles < 2 or not walk:
+            assert launched == {"blend_forward": one, "blend_backward": one}
+        elif threads == 2:
+            assert launched == {"blend_forward": two, "blend_backward": two}
+        else:  # the forward's pixels are independent: one launch; the backward's halves one after the other
+            assert launched == {"blend_forward": one, "blend_backward": sorted([(0, first, True), (0, rest, True)])}
+    for a, b in zip(got[0], got[1]):
+        assert torch.equal(a, b)
     tol = 1e-5 if dtype == torch.float32 else 1e-12
-    for other in got[1:]:
-        for k, (a, b) in enumerate(zip(got[0], other)):
-            if k < 3:  # images: each pixel is written by one launch
-                assert torch.equal(a, b)
-            else:  # gradients: the same terms, summed in another order
-                assert_close(a, b, tol, FIELDS[k - 3])
+    for k, (a, b) in enumerate(zip(got[0], got[2])):
+        if k < 3:  # images: each pixel is written by one launch
+            assert torch.equal(a, b)
+        else:  # gradients: the same terms, summed in another order
+            assert_close(a, b, tol, FIELDS[k - 3])

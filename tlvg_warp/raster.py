@@ -22,6 +22,8 @@ SCAN_INT32_LIMIT = 2**31  # below this bound on the total the ends are scanned i
 CPU_WALK = True  # on the CPU, the blending kernels that walk one pixel's list without staging (3-5x faster there);
 # False runs the GPU's staged kernels on the CPU too (the test comparing the two sets sets it)
 CPU_THREADS = min(2, torch.get_num_threads())  # threads of the CPU blending (blend_cpu, blend_backward; 1: one launch)
+CPU_HALVES = True  # the CPU blending backward sums the image's two halves of tiles apart, then adds them, on one
+# thread as on two: its gradients do not depend on CPU_THREADS (False: one launch, the staged kernels' order; tests)
 _capture: dict | None = None  # set by capture_binning(): the next renders' binning state lands here
 
 
@@ -275,12 +277,17 @@ _helper: tuple | None = None  # (process id, pool): the second CPU thread of the
 
 
 def _halves(kernel, tiles: int, args_first, args_rest, wdev) -> None:
-    """Launch ``kernel`` over the first half of the tiles on the helper thread (its own recorded launch) and over the
-    rest on this one, each with its own arguments; return when both are done."""
+    """Launch ``kernel`` over the first half of the tiles and over the rest, each with its own arguments: with
+    CPU_THREADS > 1 the first on the helper thread (its own recorded launch) beside the rest on this one, else one
+    after the other; return when both are done."""
     global _helper
+    first = (tiles // 2) * TILE * TILE
+    if CPU_THREADS < 2:
+        fast_launch(kernel, first, args_first + [0], wdev)
+        fast_launch(kernel, tiles * TILE * TILE - first, args_rest + [first], wdev)
+        return
     if _helper is None or _helper[0] != os.getpid():
         _helper = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="tlvg-blend"))
-    first = (tiles // 2) * TILE * TILE
     other = _helper[1].submit(fast_launch, kernel, first, args_first + [0], wdev, None, None, 1)
     try:
         fast_launch(kernel, tiles * TILE * TILE - first, args_rest + [first], wdev)
@@ -300,15 +307,17 @@ def blend_cpu(K, args: list, tiles: int, may_split: bool, wdev) -> None:
 
 
 def blend_backward(K, st: dict, upstream: list, grads: list, wdev) -> None:
-    """The blending backward into ``grads`` (flat per-Gaussian sums, zeroed). On the CPU with CPU_THREADS > 1 the
-    tiles are split in two halves as in the forward; Warp's CPU atomic_add is a plain add, so the helper's half sums
-    into gradient buffers of its own, added to ``grads`` after (the same values up to the order of the sums)."""
+    """The blending backward into ``grads`` (flat per-Gaussian sums, zeroed). On the CPU the tiles are split in two
+    halves (CPU_HALVES), on two threads with CPU_THREADS > 1 as in the forward; Warp's CPU atomic_add is a plain add,
+    so the first half sums into gradient buffers of its own, added to ``grads`` after. The order of the sums is the
+    same on one thread as on two, so a run's gradients do not depend on the machine's cores (a process with one
+    thread and one with two, e.g. the ranks of a run and a single process, give the same bits)."""
     args = st["args"] + st["saved"] + upstream
     threads = st["threads"]
     tiles = threads // (TILE * TILE)
     if st["backward"] is not K.blend_backward_cpu:
         fast_launch(st["backward"], threads, args + [ct(g) for g in grads], wdev, block_dim=TILE * TILE)
-    elif CPU_THREADS < 2 or tiles < 2:
+    elif not CPU_HALVES or tiles < 2:
         fast_launch(K.blend_backward_cpu, threads, args + [ct(g) for g in grads] + [0], wdev)
     else:
         own = [torch.zeros_like(g) for g in grads]
