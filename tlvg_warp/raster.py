@@ -272,7 +272,7 @@ def bin_tiles(K, pr: Projection, order: DepthOrder, width: int, height: int, all
     return ranges, ct_at(ids, 0, (total,), 4), ids
 
 
-_helper: tuple | None = None  # (process id, pool): the second CPU thread of the blending forward, made on first use
+_helper: tuple | None = None  # (process id, pool): the second CPU thread of the blending, made on first use
 # in each process (a forked child inherits the pool without its thread)
 
 
