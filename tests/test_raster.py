@@ -659,14 +659,16 @@ def test_the_power_cut_only_skips_splats_below_the_alpha_floor():
     assert math.exp(POWER_CUT + 0.01) > ALPHA_MIN
 
 
+@pytest.mark.parametrize("weights", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("size", [(61, 45), (16, 16), (40, 70)])
-def test_the_cpu_blending_split_over_two_threads_equals_one_thread(monkeypatch, size, dtype):
+def test_the_cpu_blending_split_over_two_threads_equals_one_thread(monkeypatch, size, dtype, weights):
     """raster.CPU_THREADS 2 launches the CPU walk's two halves of the tiles from two threads, forward and backward;
-    on one thread the backward runs the same two halves one after the other (raster.CPU_HALVES). Oracles: one thread,
-    bit for bit (images and gradients: a run's result may not depend on the machine's cores; a lost or doubled half,
-    a wrong offset or a half summed into the other's buffer would show), and the staged kernels in one launch (the
-    same images to the last bit; gradients up to the order of the sums)."""
+    on one thread the per-Gaussian sums (the backward's gradients, the forward's weights when asked for) take the same
+    two halves one after the other (raster.CPU_HALVES). Oracles: one thread, bit for bit (a run's result may not
+    depend on the machine's cores; a lost or doubled half, a wrong offset or a half summed into the other's buffer
+    would show), and the staged kernels in one launch (the same images to the last bit; weights and gradients up to
+    the order of the sums)."""
     import tlvg_warp.raster as raster
 
     g = fitted_like_scene(800, seed=7, dtype=dtype)
@@ -680,25 +682,26 @@ def test_the_cpu_blending_split_over_two_threads_equals_one_thread(monkeypatch, 
         monkeypatch.setattr(raster, "CPU_THREADS", threads)
         calls.clear()
         gl = leafs(g)
-        out = render(gl, cam, [0.1, 0.2, 0.3])
+        out = render(gl, cam, [0.1, 0.2, 0.3], return_weights=weights)
         gen = torch.Generator().manual_seed(2)
         loss = sum((o * torch.randn(o.shape, generator=gen, dtype=o.dtype)).sum() for o in (out.color, out.alpha, out.depth))
-        got.append([out.color, out.alpha, out.depth] + list(torch.autograd.grad(loss, [getattr(gl, f) for f in FIELDS])))
+        sums = ([out.weights] if weights else []) + list(torch.autograd.grad(loss, [getattr(gl, f) for f in FIELDS]))
+        got.append(([out.color, out.alpha, out.depth], sums))
         launched = {stage: sorted((c[2], c[1], c[3]) for c in calls if c[0].startswith(stage))
                     for stage in ("blend_forward", "blend_backward")}
         one = [(0, tiles * 256, True)]  # one launch (a single tile is not split; the staged kernels never are)
         two = [(0, rest, True), (1, first, False)]  # the first half on the helper thread's own launch
+        in_turn = sorted([(0, first, True), (0, rest, True)])  # the two halves one after the other
         if tiles < 2 or not walk:
             assert launched == {"blend_forward": one, "blend_backward": one}
         elif threads == 2:
             assert launched == {"blend_forward": two, "blend_backward": two}
-        else:  # the forward's pixels are independent: one launch; the backward's halves one after the other
-            assert launched == {"blend_forward": one, "blend_backward": sorted([(0, first, True), (0, rest, True)])}
-    for a, b in zip(got[0], got[1]):
+        else:  # without weights the forward's pixels are independent: one launch
+            assert launched == {"blend_forward": in_turn if weights else one, "blend_backward": in_turn}
+    for a, b in zip(got[0][0] + got[0][1], got[1][0] + got[1][1]):
         assert torch.equal(a, b)
-    tol = 1e-5 if dtype == torch.float32 else 1e-12
-    for k, (a, b) in enumerate(zip(got[0], got[2])):
-        if k < 3:  # images: each pixel is written by one launch
-            assert torch.equal(a, b)
-        else:  # gradients: the same terms, summed in another order
-            assert_close(a, b, tol, FIELDS[k - 3])
+    for a, b in zip(got[0][0], got[2][0]):  # images: each pixel is written by one launch
+        assert torch.equal(a, b)
+    names = (["weights"] if weights else []) + list(FIELDS)
+    for name, a, b in zip(names, got[0][1], got[2][1]):  # the same terms, summed in another order
+        assert_close(a, b, 1e-5 if dtype == torch.float32 else 1e-12, name)

@@ -22,8 +22,9 @@ SCAN_INT32_LIMIT = 2**31  # below this bound on the total the ends are scanned i
 CPU_WALK = True  # on the CPU, the blending kernels that walk one pixel's list without staging (3-5x faster there);
 # False runs the GPU's staged kernels on the CPU too (the test comparing the two sets sets it)
 CPU_THREADS = min(2, torch.get_num_threads())  # threads of the CPU blending (blend_cpu, blend_backward; 1: one launch)
-CPU_HALVES = True  # the CPU blending backward sums the image's two halves of tiles apart, then adds them, on one
-# thread as on two: its gradients do not depend on CPU_THREADS (False: one launch, the staged kernels' order; tests)
+CPU_HALVES = True  # the CPU blending's per-Gaussian sums (the backward's gradients, the forward's weights) are summed
+# over the image's two halves of tiles apart, then added, on one thread as on two: they do not depend on CPU_THREADS
+# (False: one launch, the staged kernels' order; tests)
 _capture: dict | None = None  # set by capture_binning(): the next renders' binning state lands here
 
 
@@ -295,15 +296,20 @@ def _halves(kernel, tiles: int, args_first, args_rest, wdev) -> None:
         other.result()
 
 
-def blend_cpu(K, args: list, tiles: int, may_split: bool, wdev) -> None:
+def blend_cpu(K, args: list, tiles: int, weights: torch.Tensor | None, wdev) -> None:
     """The CPU blending forward: Warp runs a CPU launch on one core, so with CPU_THREADS > 1 the tiles are split in two
     halves launched from two threads at once (Warp releases the GIL in the call). Each pixel writes only its own
-    outputs, so the halves are independent, except the per-Gaussian weights (``may_split`` False): Warp's CPU
-    atomic_add is a plain add."""
-    if not may_split or CPU_THREADS < 2 or tiles < 2:
+    outputs, so the halves are independent, except the per-Gaussian ``weights`` (the last argument) when asked for:
+    Warp's CPU atomic_add is a plain add, so the first half sums into a buffer of its own, added after, on one thread
+    as on two (CPU_HALVES, as the backward)."""
+    if tiles < 2 or (weights is None and CPU_THREADS < 2) or (weights is not None and not CPU_HALVES):
         fast_launch(K.blend_forward_cpu, tiles * TILE * TILE, args + [0], wdev)
-        return
-    _halves(K.blend_forward_cpu, tiles, args, args, wdev)
+    elif weights is None:
+        _halves(K.blend_forward_cpu, tiles, args, args, wdev)
+    else:
+        own = torch.zeros_like(weights)
+        _halves(K.blend_forward_cpu, tiles, args[:-1] + [ct(own)], args, wdev)
+        weights += own
 
 
 def blend_backward(K, st: dict, upstream: list, grads: list, wdev) -> None:
@@ -349,7 +355,7 @@ def blend(K, pr: Projection, order: DepthOrder, cam: Camera, settings: dict):
     cpu_walk = device.type == "cpu" and CPU_WALK
     outs = args + [int(settings["weights"]), ct(color, K.vec3), ct(alpha), out_depth, T, last, ct(weights)]
     if cpu_walk:
-        blend_cpu(K, outs, tiles_x * tiles_y, not settings["weights"], wdevice(device))
+        blend_cpu(K, outs, tiles_x * tiles_y, weights if settings["weights"] else None, wdevice(device))
     else:
         fast_launch(K.blend_forward, tiles_x * tiles_y * TILE * TILE, outs, wdevice(device), block_dim=TILE * TILE)
     state = {"args": args, "saved": [out_depth, T, last], "threads": tiles_x * tiles_y * TILE * TILE,
