@@ -2,13 +2,12 @@
 projects every point where our renderer puts it, and the minimal gsplat trainer follows our loop's view order, SH
 and learning-rate schedules and our densify steps. The module is loaded by path; it must not import gsplat."""
 import dataclasses
-import importlib.util
 import math
 import sys
-from pathlib import Path
 
 import pytest
 import torch
+from _bench_helpers import load_benchmark
 
 from tlvg_warp import Camera, Gaussians, render
 from tlvg_warp.reference import project_reference
@@ -18,20 +17,13 @@ from tlvg_warp.train.optim import GaussianParams
 from tlvg_warp.train.reconstruct import ReconstructConfig, split_views
 from tlvg_warp.train.session import optimizer
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "gsplat_trainer.py"
 SUBPIXEL_TOL = 1e-9  # pixels, float64: the two projections are the same arithmetic
 
 
 @pytest.fixture(scope="module")
 def bench():
     had_gsplat = "gsplat" in sys.modules
-    spec = importlib.util.spec_from_file_location("gsplat_trainer_bench", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up
-    try:
-        spec.loader.exec_module(mod)
-    finally:
-        sys.modules.pop(spec.name, None)
+    mod = load_benchmark("gsplat_trainer.py")
     assert had_gsplat or "gsplat" not in sys.modules, "the benchmark imports gsplat at module level"
     return mod
 

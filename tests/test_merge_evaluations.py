@@ -2,20 +2,14 @@
 agree on every view to 1e-9 (another thread count sums in another order), not when a view differs more, a metric is
 missing or a view is unscored on one side. Loaded by path."""
 import copy
-import importlib.util
-from pathlib import Path
 
 import pytest
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "merge_evaluations.py"
+from _bench_helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def merge():
-    spec = importlib.util.spec_from_file_location("merge_evaluations_bench", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("merge_evaluations.py")
 
 
 def _evaluation():

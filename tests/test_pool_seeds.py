@@ -1,21 +1,14 @@
 """benchmarks/pool_seeds.py: a config's seeds pooled into one run of (seed, view) items, the anchors repeated once per
 seed, so the paired comparison of the pooled runs is the mean difference over every item (checked against numpy on
 the concatenated arrays), and a pair with a missing seed is refused. Loaded by path."""
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "pool_seeds.py"
+from _bench_helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def pool_seeds():
-    spec = importlib.util.spec_from_file_location("pool_seeds_bench", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("pool_seeds.py")
 
 
 def _evaluation(rng, names, n_views=5):
