@@ -44,6 +44,9 @@ def test_every_shipped_config_loads_and_ablations_change_one_thing(capsys):
         cfg = flatten(load_config(CONFIGS / f"{name}.yaml"))
         changed = {k for k, v in cfg.items() if v != tlvg[k]}
         assert changed == keys, (name, changed)
+    # the object preset holds the positions and changes nothing else (its comment's figures are for that one change)
+    obj = flatten(load_config(CONFIGS / "tlvg_object.yaml"))
+    assert {k for k, v in obj.items() if v != tlvg[k]} == {"geometry.lock_xyz"} and obj["geometry.lock_xyz"] is True
     from tlvg_warp.train.reconstruct import load_config as load_reconstruct
 
     for p in CONFIGS.glob("*.yaml"):  # the shipped files use the current names only (no deprecation note)
