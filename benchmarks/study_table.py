@@ -4,7 +4,8 @@
 
 One table per metric (rows: scene x painting, split into the tuning pairs and the validation pairs; columns:
 every run and both anchors, mean with the 95% interval over views), then the target checks of tlvg against
-abcgs and the anchors on every pair (paired intervals from `evaluate`'s comparisons).
+abcgs and the anchors on every pair (paired intervals from `evaluate`'s comparisons; `--ablation NAME` adds the
+chroma noise against that run) with a count row, and each run's cost.
 """
 from __future__ import annotations
 
@@ -47,11 +48,75 @@ def paired(res, a, b, k):
     return None if c is None else (c["mean"], c["lo"], c["hi"])
 
 
+def verdict(res, me, b, k, sign=1):
+    """(mark, mean) of ``me`` against run or anchor ``b`` on metric ``k``: "yes" where the 95% interval of the
+    paired per-view difference (me - b, times ``sign``: -1 for a lower-is-better metric) lies above 0, "no" below,
+    "tie" where it holds 0; None when the study has no such comparison."""
+    p = paired(res, b, me, k)
+    if p is None:
+        return None
+    m, lo, hi = sign * p[0], sign * p[1], sign * p[2]
+    if sign < 0:
+        lo, hi = hi, lo
+    return ("yes" if lo > 0 else ("no" if hi < 0 else "tie")), m
+
+
+# the target table's verdict columns: (header, other run or anchor, metric, sign)
+VERDICTS = [("flow vs un-stylized", "no stylization", "flow_alignment", 1),
+            ("flow vs abcgs", "abcgs", "flow_alignment", 1),
+            ("flow energy vs un-stylized", "no stylization", "flow_energy", 1),
+            ("Gram vs abcgs", "abcgs", "style_gram", -1),
+            ("NNFM vs abcgs", "abcgs", "style_nnfm", -1),
+            ("chroma vs abcgs", "abcgs", "chroma_noise", -1)]
+LIMITS = {"detail": 0.6, "k1": 1.5, "gaussians": 1.2}  # detail >= 0.6 of the painting's; k1, Gaussians at most
+
+
+def target_rows(study: Path, data: dict, order, me: str, ablation: str | None):
+    """Per pair: {column: (text, verdict mark or passed-limit flag or None)} for the target table."""
+    cols = VERDICTS + ([(f"chroma vs {ablation}", ablation, "chroma_noise", -1)] if ablation else [])
+    rows = []
+    for key in order:
+        res = data[key]
+        r = rows_of(res)
+        t, u = r.get(me, {}), r.get("[no stylization]", {})
+        blind = res.get("not_discriminating") or {}
+        row = {}
+        for head, b, k, sign in cols:
+            v = verdict(res, me, b, k, sign)
+            row[head] = ("-", None) if v is None else (f"{v[0]} ({v[1]:+.3f}){' †' if k in blind else ''}", v[0])
+        det = t.get("detail", {}).get("mean")
+        row["detail"] = ("-", None) if det is None else (f"{det:.2f}", det >= LIMITS["detail"])
+        row["MV k1 / un-stylized"] = ("-", None)
+        if t.get("consistency_k1") and u.get("consistency_k1"):
+            k1 = t["consistency_k1"]["mean"] / max(u["consistency_k1"]["mean"], 1e-12)
+            row["MV k1 / un-stylized"] = (f"{k1:.2f}", k1 <= LIMITS["k1"])
+        row["Gaussians / input"] = ("-", None)
+        run_metrics = study / key[0] / key[1] / me / "metrics.json"
+        for rr in res["runs"]:
+            if rr["name"] == me and rr["summary"].get("gaussians") and run_metrics.is_file():
+                ratio = rr["summary"]["gaussians"] / json.loads(run_metrics.read_text())["gaussians_input"]
+                row["Gaussians / input"] = (f"{ratio:.2f}", ratio <= LIMITS["gaussians"] + 5e-3)
+        rows.append(row)
+    return [c[0] for c in cols] + ["detail", "MV k1 / un-stylized", "Gaussians / input"], rows
+
+
+def count(values) -> str:
+    """The count row's cell: yes / tie / no for a verdict column, how many pass for a limit column."""
+    vs = [v for v in values if v is not None]
+    if not vs:
+        return "-"
+    if isinstance(vs[0], bool):
+        return f"{sum(vs)} of {len(vs)} within the limit"
+    return " / ".join(f"{sum(v == m for v in vs)} {m}" for m in ("yes", "tie", "no"))
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("study")
     ap.add_argument("--tuning", default="fern:starry_night,fern:shipwreck")
     ap.add_argument("--run", default="tlvg", help="the run the target table checks (default tlvg)")
+    ap.add_argument("--ablation", default=None, help="a run whose chroma noise the checked run must be below "
+                    "(e.g. the rgb_loss ablation's name)")
     args = ap.parse_args()
     study = Path(args.study)
     data = load(study)
@@ -71,40 +136,16 @@ def main():
             split = "tuning" if key in tuning else "validation"
             print(f"| {key[0]} x {key[1]} | {split} | " + " | ".join(cell(r.get(c, {}).get(k)) for c in cols) + " |")
     me = args.run
+    heads, rows = target_rows(study, data, order, me, args.ablation)
     print(f"\n### {me} against abcgs and the un-stylized scene (paired per-view differences, 95% intervals)\n")
-    print("| pair | split | flow vs un-stylized | flow vs abcgs | flow energy vs un-stylized | Gram vs abcgs | NNFM vs abcgs | detail | chroma vs abcgs "
-          "| MV k1 / un-stylized | Gaussians / input |")
-    print("|" + " --- |" * 11)
-    for key in order:
-        res = data[key]
-        r = rows_of(res)
-        t, u = r.get(me, {}), r.get("[no stylization]", {})
-
-        def pd(b, k, sign=1):
-            p = paired(res, b, me, k)
-            if p is None:
-                return "-"
-            m, lo, hi = (sign * p[0], sign * p[1], sign * p[2])
-            if sign < 0:
-                lo, hi = hi, lo
-            mark = "yes" if lo > 0 else ("no" if hi < 0 else "tie")
-            return f"{mark} ({m:+.3f})"
-
-        flow_u = pd("no stylization", "flow_alignment")
-        mv = "-"
-        if t.get("consistency_k1") and u.get("consistency_k1"):
-            mv = f"{t['consistency_k1']['mean'] / max(u['consistency_k1']['mean'], 1e-12):.2f}"
-        g = "-"
-        run_metrics = study / key[0] / key[1] / me / "metrics.json"
-        for rr in res["runs"]:
-            if rr["name"] == me and rr["summary"].get("gaussians"):
-                g = rr["summary"]["gaussians"]
-                if run_metrics.is_file():  # the ratio to the scene the run started from
-                    g = f"{g / json.loads(run_metrics.read_text())['gaussians_input']:.2f}"
-        det = t.get("detail", {}).get("mean")
-        print(f"| {key[0]} x {key[1]} | {'tuning' if key in tuning else 'validation'} | {flow_u} | "
-              f"{pd('abcgs', 'flow_alignment')} | {pd('no stylization', 'flow_energy')} | {pd('abcgs', 'style_gram', -1)} | {pd('abcgs', 'style_nnfm', -1)} | "
-              f"{'-' if det is None else f'{det:.2f}'} | {pd('abcgs', 'chroma_noise', -1)} | {mv} | {g} |")
+    print("| pair | split | " + " | ".join(heads) + " |")
+    print("|" + " --- |" * (len(heads) + 2))
+    for key, row in zip(order, rows):
+        print(f"| {key[0]} x {key[1]} | {'tuning' if key in tuning else 'validation'} | "
+              + " | ".join(row[h][0] for h in heads) + " |")
+    print("| count | | " + " | ".join(count([row[h][1] for row in rows]) for h in heads) + " |")
+    print("\n† `evaluate` marks the metric not discriminating on that pair: the anchor it must beat wins against "
+          "every run, so the verdict compares runs that all lose to it.")
 
     cost_table(study, order, tuning)
 
