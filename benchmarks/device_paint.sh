@@ -94,6 +94,9 @@ EOF
   study)  # launch the study in the background once the fits exist: two queues side by side (tuning, validation),
           # each pair stylized then evaluated on its first MAX_VIEWS views; `PART=wait` collects
     mkdir -p "$R/pairs" "$R/seeds/pairs"
+    # a second study on the same machine: the first one's end markers and queue logs would make `PART=wait` return
+    # at once and list the first study's pairs as done (its runs and evaluations stay where they are)
+    rm -f "$R"/pairs/queue_*.done "$R"/pairs/queue_*.log "$R"/seeds/pairs/queue_*.done "$R"/seeds/pairs/queue_*.log
     queue() {  # queue NAME "VARIANTS" PAIR...
       local name=$1 vs=$2; shift 2
       local V=(); for v in $vs; do V+=(--variant "$v"); done
