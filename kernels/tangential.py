@@ -1,5 +1,7 @@
 """The tangential update hook (paper eq. 3) as one Warp kernel per Gaussian: μ ← μ₀ + Δ − λ(Δ·n)n with Δ = μ − μ₀
 the Adam step just taken and n = R(q)·e_k the footprint normal, k = argmin of the log-scales (the thinnest axis).
+With ``cap`` > 0 the step that remains is then shortened to at most cap x the splat's footprint width (its middle
+scale): a step sized to the splat, not to the scene (ours; a thin strut's splats no longer drift off it).
 Through torch the hook was about 50 launches a step (rotation matrices, a gather, the projection); here one.
 Its twin is ``tlvg_warp.train.optim.tangential_hook_torch`` (the tests compare them).
 (No ``from __future__ import annotations`` here: Warp reads the kernel's annotations as objects.)"""
@@ -42,11 +44,20 @@ def tangential_kernels(scalar_name: str) -> SimpleNamespace:
         quats: wp.array(dtype=vec4),  # [N]
         log_scales: wp.array(dtype=vec3),  # [N]
         lam: scalar,
+        cap: scalar,  # the longest step in footprint widths; 0 = no limit
     ):
         i = wp.tid()
         mu0 = before[i]
+        ls = log_scales[i]
         d = means[i] - mu0
-        n = footprint_normal(quats[i], log_scales[i])
-        means[i] = mu0 + (d - lam * wp.dot(d, n) * n)
+        n = footprint_normal(quats[i], ls)
+        t = d - lam * wp.dot(d, n) * n
+        if cap > scalar(0.0):
+            width = wp.exp(ls[0] + ls[1] + ls[2] - wp.max(ls[0], wp.max(ls[1], ls[2])) - wp.min(ls[0], wp.min(ls[1], ls[2])))
+            length = wp.length(t)
+            limit = cap * width
+            if length > limit:
+                t = t * (limit / length)
+        means[i] = mu0 + t
 
     return SimpleNamespace(kernel=tangential_kernel, scalar=scalar, vec3=vec3, vec4=vec4)

@@ -201,12 +201,42 @@ def test_tangential_kernel_equals_its_torch_twin(dtype, tol):
     ls[3] = torch.tensor([0.0, 0.0, 0.0])
     before = torch.randn(n, 3, generator=gen, dtype=dtype)
     after = before + 0.01 * torch.randn(n, 3, generator=gen, dtype=dtype)
-    outs = []
-    for make in (tangential_hook, tangential_hook_torch):
-        g = Gaussians(after.clone(), q, ls, torch.zeros(n, dtype=dtype), torch.zeros(n, 1, 3, dtype=dtype))
-        p = GaussianParams(g, 0)
-        with torch.no_grad():
-            make(0.7)(p, {"means": before})
-        outs.append(p.means.detach().clone())
-    assert (outs[0] - outs[1]).abs().max() < tol
-    assert (outs[1] - after).abs().max() > 1e-3  # the hook did change the step
+    for cap in (0.0, 0.02):  # 0.02 widths: the cap binds on some splats and not on others
+        outs = []
+        for make in (tangential_hook, tangential_hook_torch):
+            g = Gaussians(after.clone(), q, ls, torch.zeros(n, dtype=dtype), torch.zeros(n, 1, 3, dtype=dtype))
+            p = GaussianParams(g, 0)
+            with torch.no_grad():
+                make(0.7, cap)(p, {"means": before})
+            outs.append(p.means.detach().clone())
+        assert (outs[0] - outs[1]).abs().max() < tol
+        assert (outs[1] - after).abs().max() > 1e-3  # the hook did change the step
+
+
+@pytest.mark.parametrize("make_name", ["tangential_hook", "tangential_hook_torch"])
+def test_step_cap_in_footprint_widths(make_name):
+    """cap > 0: the tangential step is shortened to cap x the middle scale, in its own direction, and a step
+    already shorter is left alone. The oracle is numpy in float64 on hand-made splats whose middle scale is
+    on each axis in turn (catches the largest or smallest scale taken for the width, a cap on the step before
+    its normal part is removed, a rescale that turns the step)."""
+    import numpy as np
+    from tlvg_warp.train import optim
+
+    make = getattr(optim, make_name)
+    ls = torch.log(torch.tensor([[0.1, 0.02, 0.5], [0.3, 0.9, 0.01], [2.0, 0.05, 0.2], [0.1, 0.02, 0.5]],
+                                dtype=torch.float64))
+    q = torch.tensor([[1.0, 0, 0, 0]] * 4, dtype=torch.float64)  # axes = world axes
+    before = torch.zeros(4, 3, dtype=torch.float64)
+    after = torch.tensor([[0.3, 0.4, 0.2], [-0.5, 0.1, 0.7], [0.2, 0.3, -0.6], [1e-4, 2e-4, 0.0]], dtype=torch.float64)
+    g = Gaussians(after.clone(), q, ls, torch.zeros(4, dtype=torch.float64), torch.zeros(4, 1, 3, dtype=torch.float64))
+    p = GaussianParams(g, 0)
+    with torch.no_grad():
+        make(1.0, 0.5)(p, {"means": before})
+    s = np.exp(ls.numpy())
+    d = after.numpy().copy()
+    d[np.arange(4), s.argmin(1)] = 0.0  # λ = 1 with identity rotations: the thinnest axis's component goes
+    limit = 0.5 * np.sort(s, 1)[:, 1]
+    want = d * np.minimum(1.0, limit / np.linalg.norm(d, axis=1))[:, None]
+    np.testing.assert_allclose(p.means.detach().numpy(), want, rtol=1e-6, atol=1e-12)
+    assert np.linalg.norm(want[:3], axis=1) == pytest.approx(limit[:3])  # the cap bound the first three
+    np.testing.assert_allclose(want[3], d[3])  # and left the short step alone

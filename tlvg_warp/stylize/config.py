@@ -110,8 +110,10 @@ class Geometry:
 
     lock_xyz: bool = False  # freeze Gaussian positions during stylize (ABC-GS); False = advection (paper)
     tangential_lambda: float = 1.0  # λ of the tangential update hook (paper eq. 3), in [0, 1]; 0 = off
+    max_travel: float = 0.0  # the longest path a splat may take over the stylize phase, in its own footprint widths
+    #                          (each step at most max_travel / steps widths); 0 = no limit (paper)
 
-    RULES = {"tangential_lambda": ("in", 0, 1)}
+    RULES = {"tangential_lambda": ("in", 0, 1), "max_travel": (">=", 0)}
 
 
 def _density() -> DensityConfig:

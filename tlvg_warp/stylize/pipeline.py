@@ -598,7 +598,9 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
         return [over_background(r, c, x) for r, c, x in zip(rec, tg.coverage, rs)]
 
     dens = set(cfg.density.phases)
-    hook = [(tangential_hook(cfg.geometry.tangential_lambda), ("means",))] if cfg.geometry.tangential_lambda > 0 else []
+    geo = cfg.geometry
+    cap = geo.max_travel / max(n_sty, 1)  # widths per step
+    hook = [(tangential_hook(geo.tangential_lambda, cap), ("means",))] if geo.tangential_lambda > 0 or cap > 0 else []
     phases = [Fit("pre", n_pre, tg.recolored, density="pre" in dens),
               Stylize(n_sty, cfg, tg, vgg, density="stylize" in dens, hooks=hook,  # the hook in Stylize only
                       trainable=[f for f in FIELDS if not (cfg.geometry.lock_xyz and f == "means")]),

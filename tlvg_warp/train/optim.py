@@ -320,12 +320,14 @@ def footprint_normals(quats: torch.Tensor, log_scales: torch.Tensor) -> torch.Te
     return torch.gather(R, 2, k.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(-1)  # column k
 
 
-def tangential_hook(lam: float = 1.0):
+def tangential_hook(lam: float = 1.0, cap: float = 0.0):
     """Post-step hook (paper eq. 3): μ ← μ_before + Δμ − λ(Δμ·n)n, Δμ the Adam step just taken and n the
-    footprint normal (from the parameters after the step). λ=1 removes the normal component entirely. One Warp
-    kernel (kernels/tangential.py) for float32/float64 parameters; ``tangential_hook_torch`` is its twin."""
-    lam = float(lam)
-    twin = tangential_hook_torch(lam)
+    footprint normal (from the parameters after the step). λ=1 removes the normal component entirely. ``cap`` > 0
+    then shortens what remains to at most cap x the footprint's width (the middle scale), so each splat's step is
+    sized to the splat. One Warp kernel (kernels/tangential.py) for float32/float64 parameters;
+    ``tangential_hook_torch`` is its twin."""
+    lam, cap = float(lam), float(cap)
+    twin = tangential_hook_torch(lam, cap)
 
     def hook(params: GaussianParams, before: dict) -> None:
         # lazy: imports Warp (config loading imports this module; stylize.config reads LearningRates here)
@@ -341,21 +343,25 @@ def tangential_hook(lam: float = 1.0):
         K = tangential_kernels("float32" if mu.dtype == torch.float32 else "float64")
         with warp_on(mu.device) as wdev:  # in place on the parameter's storage (hooks run without grad)
             fast_launch(K.kernel, mu.shape[0], [ct(mu, K.vec3), ct(mu0, K.vec3), ct(q, K.vec4), ct(ls, K.vec3),
-                                                K.scalar(lam)], wdev)
+                                                K.scalar(lam), K.scalar(cap)], wdev)
 
     hook.fields = ("means",)
     return hook
 
 
-def tangential_hook_torch(lam: float = 1.0):
+def tangential_hook_torch(lam: float = 1.0, cap: float = 0.0):
     """The hook in torch (``tangential_hook``'s twin, and its path for anything the kernel does not take)."""
-    lam = float(lam)
+    lam, cap = float(lam), float(cap)
 
     def hook(params: GaussianParams, before: dict) -> None:
         mu0 = before["means"]
         delta = params.means.detach() - mu0
-        n = footprint_normals(params.quats.detach(), params.log_scales.detach()).to(delta.dtype)
+        ls = params.log_scales.detach()
+        n = footprint_normals(params.quats.detach(), ls).to(delta.dtype)
         delta = delta - lam * (delta * n).sum(-1, keepdim=True) * n
+        if cap > 0:
+            limit = cap * ls.median(dim=-1, keepdim=True).values.exp().to(delta.dtype)  # [N,1] the footprint's width
+            delta = delta * (limit / delta.norm(dim=-1, keepdim=True).clamp_min(1e-30)).clamp(max=1.0)
         params.means.data.copy_(mu0 + delta)
 
     hook.fields = ("means",)
