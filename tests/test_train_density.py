@@ -294,3 +294,10 @@ def test_budget_from_the_starting_count():
     assert DensityControl(c, 100).budget == 150 and DensityConfig(max_gaussians=7).budget(100) == 7
     c.use_budget = False
     assert DensityControl(c, 100).budget is None
+
+
+@pytest.mark.parametrize("num", [5, 10, 162451, 300000, 140138])
+def test_budget_never_above_the_factor(num):
+    """1.2 x the input is a ceiling: the budget is floor(1.2 x num), computed here in integers (a fitted beer of
+    162,451 Gaussians got 194,942 from a ceil, one over 1.2x)."""
+    assert DensityConfig(max_gaussians=0, budget_factor=1.2).budget(num) == (6 * num) // 5

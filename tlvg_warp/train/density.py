@@ -97,7 +97,8 @@ class DensityConfig:
         """The Gaussian budget of a run that starts with ``num`` Gaussians (None: no cap)."""
         if not self.use_budget:
             return None
-        return self.max_gaussians or max(num, int(math.ceil(self.budget_factor * num)))
+        # floor: 1.2 x the input is a ceiling (ceil gave one over it); the epsilon keeps 1.2 x 5 = 6 from 5.999...
+        return self.max_gaussians or max(num, int(math.floor(self.budget_factor * num + 1e-6)))
 
 
 # old flat config names of the ``density`` section shared by both commands (they still load, with a note)
