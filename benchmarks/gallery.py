@@ -19,13 +19,15 @@ from tlvg_warp.eval.metrics import sticker
 
 TILE_W = 504
 ROW_H = 300
+LABEL_H = 32  # tune.py writes each variant's name into its tile's top rows (y <= 24 at 0.7 scale): cut, the
+#               gallery labels every column itself (a study's variant names are not the names readers know)
 SHOWN = ("abcgs", "tlvg_before", "tlvg")
 
 
 def tiles_of(montage: np.ndarray, variants: list[str]) -> dict:
     h, w = montage.shape[:2]
     names = ["un-stylized", *variants]
-    out = {n: montage[:, i * TILE_W:(i + 1) * TILE_W] for i, n in enumerate(names)}
+    out = {n: montage[LABEL_H:, i * TILE_W:(i + 1) * TILE_W] for i, n in enumerate(names)}
     rest = montage[:, len(names) * TILE_W:]
     out["painting"] = rest[:, :np.flatnonzero(rest.reshape(h, -1, 3).max(axis=(0, 2)) > 0).max() + 1]
     view_h, view_w = out["un-stylized"].shape[:2]
