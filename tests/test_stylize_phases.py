@@ -1,6 +1,7 @@
 """What each phase of the stylization does (SPEC §3), on the tiny demo with a random VGG:
 - the tangential hook acts in the Stylize phase only: with it on (λ=1) or off (λ=0) a pre-process-only run
   ends with bit-identical parameters (plain Adam), a stylize-only run does not;
+- geometry.max_travel bounds each splat's path over the stylize phase by that many of its own footprint widths;
 - the content term is RGB whatever the style term's input: tlvg.yaml and its RGB-loss ablation, on the same
   first stylize step (same Gaussians, same view), log the same content value and different style values, and
   carry the same stroke fields. Oracle for the content value: content_loss on RGB features computed here."""
@@ -103,3 +104,23 @@ def _run_out(inputs, out, resume=None):
     cfg = load_config(CONFIGS / "tlvg.yaml", ["device=cpu", "vgg_weights=random", "log_every=1", "iterations=8",
                                               "phases=[2, 4, 2]"])
     return run_stylize(inputs, cfg, out, progress=False, quiet=True, vgg=_VGG[0] if _VGG else None, resume=resume)
+
+
+def test_max_travel_bounds_each_splats_path_in_its_own_widths(inputs):
+    """geometry.max_travel T over N stylize steps: each step at most T/N of the splat's footprint width (its middle
+    scale), so with the scales held (lr.scales 0) no splat ends more than T widths from where stylize began (the
+    triangle inequality over the steps). Without the limit the same run moves some splat further: the bound bites.
+    Catches the cap not wired into the run's hook, a per-step cap not divided by the steps, a width that is not the
+    splat's own. Density control and the stroke-size refinement are off so each splat keeps its row."""
+    travel, steps = 0.3, 4
+    common = ["iterations=4", f"phases=[0, {steps}, 0]", "density.phases=[]", "refine_radius=0", "lr.scales=0",
+              "lr.means=0.05"]  # a large step, so that unlimited splats do travel further than 0.3 widths
+    capped = _run(inputs, "tlvg.yaml", *common, f"geometry.max_travel={travel}")
+    free = _run(inputs, "tlvg.yaml", *common, "geometry.max_travel=0")
+    g0 = inputs.gaussians
+    width = g0.log_scales.double().exp().median(dim=-1).values  # [N] the middle scale, as the hook takes it
+    moved = lambda res: (res.gaussians.means.double() - g0.means.double()).norm(dim=-1) / width  # [N] in widths
+    assert capped.gaussians.num == free.gaussians.num == g0.num
+    assert torch.equal(capped.gaussians.log_scales, g0.log_scales)  # the widths did hold still
+    assert float(moved(capped).max()) <= travel * (1 + 1e-3)  # float32 positions: a few ulps of |μ| per step
+    assert float(moved(free).max()) > 2 * travel
