@@ -5,7 +5,10 @@
 One table per metric (rows: scene x painting, split into the tuning pairs and the validation pairs; columns:
 every run and both anchors, mean with the 95% interval over views), then the target checks of tlvg against
 abcgs and the anchors on every pair (paired intervals from `evaluate`'s comparisons; `--ablation NAME` adds the
-chroma noise against that run) with a count row, and each run's cost.
+chroma noise against that run) with a count row, and each run's cost. `--paired BASE:OTHER[,OTHER...]` prints
+instead, for each OTHER, its paired per-view difference to BASE on every pair ("better" / "worse" where the 95%
+interval excludes 0, in the metric's own direction; "level" where it holds 0): how a variant is decided against
+the config it would replace.
 """
 from __future__ import annotations
 
@@ -101,6 +104,29 @@ def target_rows(study: Path, data: dict, order, me: str, ablation: str | None):
     return [c[0] for c in cols] + ["detail", "MV k1 / un-stylized", "Gaussians / input"], rows
 
 
+PAIRED = ["flow_alignment", "flow_energy", "style_gram", "style_nnfm", "detail", "chroma_noise", "consistency_k1",
+          "holes_2x", "content"]
+
+
+def paired_rows(data: dict, order, base: str, other: str) -> list[list[str]]:
+    """One row per pair: for each metric of PAIRED, '<better|worse|level> <other - base>' (empty: not compared)."""
+    sign = dict(METRICS) | {"content": "lower"}
+    rows = []
+    for key in order:
+        cells = []
+        for k in PAIRED:
+            v = verdict(data[key], other, base, k, 1 if sign[k] == "higher" else -1)
+            if v is None:
+                cells.append("-")
+                continue
+            mark, m = v
+            diff = m if sign[k] == "higher" else -m  # other - base, in the metric's units
+            word = {"yes": "better", "no": "worse", "tie": "level"}[mark]
+            cells.append(f"{word} {diff:+.4%}" if k.startswith("holes") else f"{word} {diff:+.3f}")
+        rows.append(cells)
+    return rows
+
+
 def count(values) -> str:
     """The count row's cell: yes / tie / no for a verdict column, how many pass for a limit column."""
     vs = [v for v in values if v is not None]
@@ -118,11 +144,22 @@ def main():
     ap.add_argument("--run", default="tlvg", help="the run the target table checks (default tlvg)")
     ap.add_argument("--ablation", default=None, help="a run whose chroma noise the checked run must be below "
                     "(e.g. the rgb_loss ablation's name)")
+    ap.add_argument("--paired", default=None, metavar="BASE:OTHER[,OTHER]",
+                    help="only the paired differences of each OTHER run to BASE, per pair and metric")
     args = ap.parse_args()
     study = Path(args.study)
     data = load(study)
     tuning = {tuple(x.split(":")) for x in args.tuning.split(",")}
     order = sorted(data, key=lambda k: (k not in tuning, k))
+    if args.paired:
+        base, others = args.paired.split(":", 1)
+        for other in others.split(","):
+            print(f"\n### {other} against {base} (paired per-view differences, {other} minus {base})\n")
+            print("| pair | split | " + " | ".join(PAIRED) + " |")
+            print("|" + " --- |" * (len(PAIRED) + 2))
+            for key, cells in zip(order, paired_rows(data, order, base, other)):
+                print(f"| {key[0]} x {key[1]} | {'tuning' if key in tuning else 'validation'} | " + " | ".join(cells) + " |")
+        return
     cols = []
     for res in data.values():
         for n in rows_of(res):

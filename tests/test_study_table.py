@@ -63,3 +63,12 @@ def test_target_table_reads_directions_marks_and_counts(tmp_path):
     assert study_table.count([fern["flow vs abcgs"][1], lego["flow vs abcgs"][1]]) == "1 yes / 0 tie / 1 no"
     assert study_table.count([fern["detail"][1], lego["detail"][1]]) == "1 of 2 within the limit"
     assert study_table.count([None, None]) == "-"
+    # the paired table (--paired): the other run minus the base, judged in the metric's own direction
+    idx = {k: i for i, k in enumerate(study_table.PAIRED)}
+    against_tlvg = study_table.paired_rows(data, order, "tlvg", "abcgs")
+    assert against_tlvg[0][idx["flow_alignment"]] == "worse -0.100"  # abcgs's flow 0.10 under tlvg's
+    assert against_tlvg[0][idx["style_gram"]] == "worse +0.050"  # abcgs's Gram 0.05 above: worse
+    assert against_tlvg[0][idx["chroma_noise"]] == "level -0.020"
+    assert against_tlvg[0][idx["detail"]] == "-"  # not compared
+    assert against_tlvg[1][idx["flow_alignment"]] == "better +0.040"  # stored as "abcgs vs tlvg"
+    assert study_table.paired_rows(data, order, "abcgs", "tlvg")[0][idx["style_gram"]] == "better -0.050"
