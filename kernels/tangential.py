@@ -37,6 +37,11 @@ def tangential_kernels(scalar_name: str) -> SimpleNamespace:
             n = vec3(two * (x * y - w * z), one - two * (x * x + z * z), two * (y * z + w * x))
         return n
 
+    @wp.func
+    def footprint_width(ls: vec3):
+        """exp of the middle log-scale: the footprint's narrower in-plane axis (the thinnest is the normal)."""
+        return wp.exp(ls[0] + ls[1] + ls[2] - wp.max(ls[0], wp.max(ls[1], ls[2])) - wp.min(ls[0], wp.min(ls[1], ls[2])))
+
     @wp.kernel(enable_backward=False, module=f"tlvg_tangential_{scalar_name}")
     def tangential_kernel(
         means: wp.array(dtype=vec3),  # [N] in: after the Adam step; out: with λ of the normal part removed
@@ -53,9 +58,8 @@ def tangential_kernels(scalar_name: str) -> SimpleNamespace:
         n = footprint_normal(quats[i], ls)
         t = d - lam * wp.dot(d, n) * n
         if cap > scalar(0.0):
-            width = wp.exp(ls[0] + ls[1] + ls[2] - wp.max(ls[0], wp.max(ls[1], ls[2])) - wp.min(ls[0], wp.min(ls[1], ls[2])))
             length = wp.length(t)
-            limit = cap * width
+            limit = cap * footprint_width(ls)
             if length > limit:
                 t = t * (limit / length)
         means[i] = mu0 + t
