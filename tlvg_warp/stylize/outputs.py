@@ -407,7 +407,8 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         scores_orig = [d[2] for d in done if d[2] is not None]
         fa = float(np.mean(scores)) if scores else 0.0
         caption = (f"config: style={cfg.loss.style_loss}, luminance_only={cfg.loss.luminance_only}, "
-                   f"lock_xyz={cfg.geometry.lock_xyz}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
+                   f"lock_xyz={cfg.geometry.lock_xyz}, max_travel={cfg.geometry.max_travel:g}, "
+                   f"w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
                    f"{res.metrics['iterations']} iterations; "
                    f"alignment to its training field {fa:.3f}; "
                    + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {weights_name(res.vgg_source)}"))
