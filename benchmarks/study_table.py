@@ -18,7 +18,7 @@ from pathlib import Path
 
 METRICS = [("flow_alignment", "higher"), ("flow_energy", "higher"), ("stroke_scales", "lower"), ("style_gram", "lower"), ("style_nnfm", "lower"),
            ("content", "lower"), ("consistency_k1", "lower"), ("detail", "higher"), ("holes_1x", "lower"),
-           ("holes_2x", "lower"), ("chroma_noise", "lower")]
+           ("holes_2x", "lower"), ("spill", "lower"), ("chroma_noise", "lower")]
 
 
 def load(study: Path):
@@ -105,7 +105,7 @@ def target_rows(study: Path, data: dict, order, me: str, ablation: str | None):
 
 
 PAIRED = ["flow_alignment", "flow_energy", "style_gram", "style_nnfm", "detail", "chroma_noise", "consistency_k1",
-          "holes_2x", "content"]
+          "holes_2x", "spill", "content"]
 
 
 def paired_rows(data: dict, order, base: str, other: str) -> list[list[str]]:
@@ -122,7 +122,7 @@ def paired_rows(data: dict, order, base: str, other: str) -> list[list[str]]:
             mark, m = v
             diff = m if sign[k] == "higher" else -m  # other - base, in the metric's units
             word = {"yes": "better", "no": "worse", "tie": "level"}[mark]
-            cells.append(f"{word} {diff:+.4%}" if k.startswith("holes") else f"{word} {diff:+.3f}")
+            cells.append(f"{word} {diff:+.4%}" if k.startswith("holes") or k == "spill" else f"{word} {diff:+.3f}")
         rows.append(cells)
     return rows
 

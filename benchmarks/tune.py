@@ -24,7 +24,7 @@ sys.path.append(str(ROOT))  # after an installed package or the GPU scripts' sou
 from tlvg_warp import cli  # noqa: E402
 
 KEYS = ("flow_alignment", "stroke_stats", "gram", "nnfm", "content", "mv_error_k1", "detail", "holes_1x",
-        "holes_2x", "chroma_noise", "gaussians", "wall_time_s")
+        "holes_2x", "spill", "chroma_noise", "gaussians", "wall_time_s")
 
 
 def parse_variant(text: str):

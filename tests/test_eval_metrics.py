@@ -4,7 +4,7 @@ alignment metric breaks when its coherence weighting or its pixel correspondence
 The genuine stylization is the demo scene with every Gaussian recolored from the painting by a planar map of
 its position (painting texture attached to the geometry: consistent across views). The cases: the painting
 pasted in screen space on every view (sticker), the un-stylized scene, the genuine scene with every Gaussian
-3x wider (blurred), and with half of the Gaussians made transparent (holes)."""
+3x wider (blurred, and spilling into the empty background), and with half of the Gaussians made transparent (holes)."""
 import math
 
 import numpy as np
@@ -74,7 +74,7 @@ def cases(net):
 @pytest.mark.parametrize("case,metrics", [
     ("sticker", ("consistency_k1", "consistency_k5", "content")),
     ("unstylized", ("style_gram", "style_nnfm", "stroke_scales")),
-    ("blurred", ("detail",)),
+    ("blurred", ("detail", "spill")),  # 3x wider splats also paint the empty background around the objects
     ("holed", ("holes_1x", "holes_2x", "consistency_k1")),
 ])
 def test_known_cases_lose_to_a_genuine_stylization(cases, case, metrics):
@@ -284,3 +284,20 @@ def test_paired_says_no_difference_when_interval_contains_zero():
     assert M.paired(base, base + rng.normal(0, 0.01, 30), m)["better"] == "no difference"
     assert M.paired(base, base + 0.5 + rng.normal(0, 0.01, 30), m)["better"] == "a"
     assert M.paired(base + 0.5, base, m)["better"] == "b"
+
+
+def test_spill_counts_paint_where_the_scene_was_empty():
+    """Oracle: counted by hand on a 4x4 view. The un-stylized scene covers the left half; the run covers the left
+    half but one pixel (a hole, not spill), and three pixels of the empty right half (spill 3/8). alpha exactly 0.5
+    counts as covered (SPEC §4: alpha >= 0.5), in both the run and the un-stylized scene."""
+    base = np.zeros((4, 4), np.float32)
+    base[:, :2] = 1.0
+    run = base.copy()
+    run[0, 0] = 0.2
+    run[1, 2] = run[2, 3] = 0.9
+    run[3, 3] = 0.5
+    run[0, 3] = 0.49
+    assert M.spill(run, base) == 3 / 8
+    assert M.spill(base, base) == 0.0
+    assert M.spill(np.ones((4, 4)), np.ones((4, 4))) == 0.0  # nothing empty (a capture): nothing to spill into
+    assert M.spill(np.ones((4, 4)), base) == 1.0  # a sticker over an object scene

@@ -74,6 +74,8 @@ METRICS = {m.key: m for m in (
     Metric("detail", "Detail: high-frequency luminance energy vs the painting's", "ratio (1 = painting)", True),
     Metric("holes_1x", "Holes at training size", "fraction of covered pixels", False),
     Metric("holes_2x", "Holes at 2x resolution", "fraction of covered pixels", False),
+    Metric("spill", "Spill: painted where the un-stylized scene is empty (splats frayed or strayed)",
+           "fraction of uncovered pixels", False),
     Metric("chroma_noise", "Chroma noise: high-frequency Lab a,b energy vs the recolored photos",
            "ratio (1 = photos)", False),
     Metric("gaussians", "Gaussians", "count", False, per_view=False),
@@ -103,6 +105,7 @@ ANCHOR_TO_BEAT = {
     "chroma_noise": STICKER,
     "holes_1x": None,
     "holes_2x": None,
+    "spill": None,  # likewise: the un-stylized scene spills nothing by construction, a sticker covers every pixel
 }
 
 
@@ -351,6 +354,14 @@ def holes(alpha, base_alpha) -> float:
     a, b = _np(alpha), _np(base_alpha)
     cov = b >= ALPHA_MIN
     return float((cov & (a < ALPHA_MIN)).sum() / max(1, cov.sum()))
+
+
+def spill(alpha, base_alpha) -> float:
+    """Fraction of the pixels the un-stylized scene leaves uncovered (an empty background) that the stylized scene
+    covers: holes' mirror. A whole-view style distance rewards such paint (texture on white), the eye does not."""
+    a, b = _np(alpha), _np(base_alpha)
+    empty = b < ALPHA_MIN
+    return float((empty & (a >= ALPHA_MIN)).sum() / max(1, empty.sum()))
 
 
 # ---------------------------------------------------------------- statistics

@@ -208,6 +208,7 @@ def score_views(views: list, alpha2x: list, refs: Refs, net) -> dict:
         per["detail"].append(M.hf_energy(M.luma(ev)) / max(ps["hf"], 1e-12))
         per["holes_1x"].append(M.holes(v["alpha"], refs.base[i]["alpha"]))
         per["holes_2x"].append(M.holes(alpha2x[i], refs.alpha2x[i]))
+        per["spill"].append(M.spill(v["alpha"], refs.base[i]["alpha"]))
         per["chroma_noise"].append(M.hf_energy(M.lab_ab(img)) / max(M.hf_energy(M.lab_ab(refs.recolored[i])), 1e-12))
         if measured:
             per["flow_alignment"].append(M.flow_alignment(img, refs.fields[i]))
