@@ -158,7 +158,8 @@ def main():
             print("| pair | split | " + " | ".join(PAIRED) + " |")
             print("|" + " --- |" * (len(PAIRED) + 2))
             for key, cells in zip(order, paired_rows(data, order, base, other)):
-                print(f"| {key[0]} x {key[1]} | {'tuning' if key in tuning else 'validation'} | " + " | ".join(cells) + " |")
+                split = "tuning" if key in tuning else "validation"
+                print(f"| {key[0]} x {key[1]} | {split} | " + " | ".join(cells) + " |")
         return
     cols = []
     for res in data.values():

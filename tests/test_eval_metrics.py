@@ -288,8 +288,8 @@ def test_paired_says_no_difference_when_interval_contains_zero():
 
 def test_spill_counts_paint_where_the_scene_was_empty():
     """Oracle: counted by hand on a 4x4 view. The un-stylized scene covers the left half; the run covers the left
-    half but one pixel (a hole, not spill), and three pixels of the empty right half (spill 3/8). alpha exactly 0.5
-    counts as covered (SPEC §4: alpha >= 0.5), in both the run and the un-stylized scene."""
+    half but one pixel (a hole, not spill), and three pixels of the empty right half (spill 3/8): alpha exactly 0.5
+    counts as covered (SPEC §4: alpha >= 0.5), 0.49 does not."""
     base = np.zeros((4, 4), np.float32)
     base[:, :2] = 1.0
     run = base.copy()
