@@ -161,3 +161,25 @@ def test_lab_chroma_backward_finite_differences_and_gray():
     lab_chroma_loss(g, target_stats=st).backward()
     _lab_chroma_autograd(g2, tgt).backward()
     assert torch.isfinite(g.grad).all() and torch.allclose(g.grad, torch.nan_to_num(g2.grad), atol=1e-9)
+
+
+def test_gray_gradient_keeps_the_value_and_spreads_the_gradient_over_the_channels():
+    """gray_gradient: the same image (bit for bit), and a luminance-only loss's gradient spread evenly over R, G, B.
+    Oracle, closed form: L = Σ Y·R with Y = 0.299R + 0.587G + 0.114B has ∂L/∂img_c = R·w_c through the plain image
+    and R·(Σ w)/3 = R/3 through gray_gradient (the three weights sum to 1). Catches the channel mean returned as
+    the value, the gradient left along the luma weights, a factor lost in the spread."""
+    from tlvg_warp.losses import gray_gradient
+
+    gen = torch.Generator().manual_seed(3)
+    img = torch.rand(5, 7, 3, generator=gen, dtype=torch.float64)
+    r = torch.randn(5, 7, generator=gen, dtype=torch.float64)
+    w = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
+    grads = []
+    for f in (lambda x: x, gray_gradient):
+        x = img.clone().requires_grad_(True)
+        y = f(x)
+        assert torch.equal(y, img)
+        (luminance(y)[..., 0] * r).sum().backward()
+        grads.append(x.grad)
+    assert torch.allclose(grads[0], r[..., None] * w, atol=1e-15)
+    assert torch.allclose(grads[1], (r / 3)[..., None].expand(-1, -1, 3), atol=1e-15)

@@ -124,3 +124,15 @@ def test_max_travel_bounds_each_splats_path_in_its_own_widths(inputs):
     assert torch.equal(capped.gaussians.log_scales, g0.log_scales)  # the widths did hold still
     assert float(moved(capped).max()) <= travel * (1 + 1e-3)  # float32 positions: a few ulps of |μ| per step
     assert float(moved(free).max()) > 2 * travel
+
+
+def test_gray_luminance_gradient_changes_the_steps_not_the_losses(inputs):
+    """loss.luminance_grad gray feeds the luminance-only terms the same image with its gradient along the grey axis:
+    the first step's logged terms equal the luma run's (the same forward), the Gaussians after two steps do not (the
+    option reaches the terms). Catches the option not wired, or wired into the value instead of the gradient."""
+    common = ["iterations=2", "phases=[0, 2, 0]"]
+    luma = _run(inputs, "tlvg.yaml", *common, "loss.luminance_grad=luma")
+    gray = _run(inputs, "tlvg.yaml", *common, "loss.luminance_grad=gray")
+    for t in ("style", "content", "stroke", "orient", "lab", "chroma_tv"):
+        assert luma.log[0][t] == gray.log[0][t], t
+    assert not torch.equal(luma.gaussians.sh, gray.gaussians.sh)

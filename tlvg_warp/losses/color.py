@@ -194,6 +194,15 @@ def luminance(img: torch.Tensor) -> torch.Tensor:
     return (img @ w).unsqueeze(-1).expand_as(img)
 
 
+def gray_gradient(img: torch.Tensor) -> torch.Tensor:
+    """``img`` [...,3] unchanged in value; its gradient spread evenly over the three channels (each gets the mean
+    of the incoming three). A luminance-only term fed this image moves a pixel's colour along the grey axis
+    (R, G, B by the same amount), which leaves its chroma RGB - Y, instead of along Y's weights (0.299, 0.587,
+    0.114), which shifts Lab a, b about as much as L."""
+    m = img.mean(-1, keepdim=True)  # [...,1]
+    return img.detach() + (m - m.detach())
+
+
 def chroma(img: torch.Tensor) -> torch.Tensor:
     """The chroma residual ``img - Y`` (what is left of a colour once its luminance is taken out): same shape out."""
     return img - luminance(img)

@@ -24,6 +24,10 @@ class StyleLoss:
 
     style_loss: str = "fast"  # fast (FAST, reference code) | nnfm (ARF) | gram
     luminance_only: bool = True  # style loss on Y = 0.299R+0.587G+0.114B for render and painting (paper §3.3)
+    luminance_grad: str = "luma"  # how the luminance-only terms (style on Y, the orientation and stroke terms) push a
+    # pixel's colour: luma (Y's own gradient, along (0.299, 0.587, 0.114): a step that raises Y moves Lab a, b about as
+    # much as L) | gray (the same Y, its gradient spread evenly over R, G, B: the step runs along the grey axis and
+    # leaves the pixel's chroma; ours)
     w_style: float = 2.0  # style loss weight (reference code)
     w_style_color: float = 0.0  # a second style term on RGB features: the painting's colour texture (ours; 0: off)
     w_style_gram: float = 0.0  # a Gram (texture statistics) term on the style term's features: it asks for the
@@ -85,6 +89,7 @@ class StyleLoss:
 
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
              "field_source": ("of", "stylize_start", "unstylized"),
+             "luminance_grad": ("of", "luma", "gray"),
              "stroke_along": ("of", "ratio", "bounded"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),

@@ -412,7 +412,7 @@ class Stylize(Phase):
 
     def terms(self, run: Run, view: View) -> dict:
         # lazy: imports Warp
-        from ..losses import content_loss, detail_energy, lab_chroma_loss, luminance
+        from ..losses import content_loss, detail_energy, gray_gradient, lab_chroma_loss, luminance
         from ..losses.palette import palette_snap_loss
 
         tg, on, t, vi = self.tg, self.on, run.timer, view.index
@@ -420,10 +420,12 @@ class Stylize(Phase):
         # the style and content terms see the render only where the scene was: pixels of an empty background
         # (a Blender scene's white) would otherwise pull splats out to paint them
         img = over_background(view.out.color, tg.coverage[vi], run.background)
+        # what the luminance-only terms see: the same image, its gradient along the grey axis with luminance_grad gray
+        img_y = gray_gradient(img) if self.cfg.loss.luminance_grad == "gray" else img
         terms = {}
         if self.vgg_on:
             if self.cfg.loss.luminance_only:  # the style term sees luminance, the content term RGB: one batch
-                a, a_rgb = self.vgg.features_of([luminance(img), img], self.cfg.vgg_scale)
+                a, a_rgb = self.vgg.features_of([luminance(img_y), img], self.cfg.vgg_scale)
             else:
                 a = a_rgb = self.vgg.features_of([img], self.cfg.vgg_scale)[0]
             t.mark("vgg")
@@ -454,7 +456,7 @@ class Stylize(Phase):
             # orient: the render's own orientation against the view's stroke field; stroke: contrast across the
             # field up to the painting's, along it no more than it. clone: a graph's output is overwritten by the
             # next view's replay, and the logged terms are read later
-            orient, stroke = self.field_terms(img, self.fields[vi][..., :2], tg.coverage[vi]).clone().unbind()
+            orient, stroke = self.field_terms(img_y, self.fields[vi][..., :2], tg.coverage[vi]).clone().unbind()
             if on["stroke"]:
                 terms["stroke"] = stroke
         if on["coverage"]:
