@@ -288,8 +288,8 @@ def test_paired_says_no_difference_when_interval_contains_zero():
 
 def test_spill_counts_paint_where_the_scene_was_empty():
     """Oracle: counted by hand on a 4x4 view. The un-stylized scene covers the left half; the run covers the left
-    half but one pixel (a hole, not spill), and three pixels of the empty right half (spill 3/8): alpha exactly 0.5
-    counts as covered (SPEC §4: alpha >= 0.5), 0.49 does not."""
+    half but one pixel (a hole, not spill), and three pixels of the empty right half (spill 3 of the view's 16):
+    alpha exactly 0.5 counts as covered (SPEC §4: alpha >= 0.5), 0.49 does not."""
     base = np.zeros((4, 4), np.float32)
     base[:, :2] = 1.0
     run = base.copy()
@@ -297,7 +297,7 @@ def test_spill_counts_paint_where_the_scene_was_empty():
     run[1, 2] = run[2, 3] = 0.9
     run[3, 3] = 0.5
     run[0, 3] = 0.49
-    assert M.spill(run, base) == 3 / 8
+    assert M.spill(run, base) == 3 / 16
     assert M.spill(base, base) == 0.0
     assert M.spill(np.ones((4, 4)), np.ones((4, 4))) == 0.0  # nothing empty (a capture): nothing to spill into
-    assert M.spill(np.ones((4, 4)), base) == 1.0  # a sticker over an object scene
+    assert M.spill(np.ones((4, 4)), base) == 0.5  # a sticker over an object scene: all of its empty half

@@ -75,7 +75,7 @@ METRICS = {m.key: m for m in (
     Metric("holes_1x", "Holes at training size", "fraction of covered pixels", False),
     Metric("holes_2x", "Holes at 2x resolution", "fraction of covered pixels", False),
     Metric("spill", "Spill: painted where the un-stylized scene is empty (splats frayed or strayed)",
-           "fraction of uncovered pixels", False),
+           "fraction of the view", False),
     Metric("chroma_noise", "Chroma noise: high-frequency Lab a,b energy vs the recolored photos",
            "ratio (1 = photos)", False),
     Metric("gaussians", "Gaussians", "count", False, per_view=False),
@@ -357,11 +357,12 @@ def holes(alpha, base_alpha) -> float:
 
 
 def spill(alpha, base_alpha) -> float:
-    """Fraction of the pixels the un-stylized scene leaves uncovered (an empty background) that the stylized scene
-    covers: holes' mirror. A whole-view style distance rewards such paint (texture on white), the eye does not."""
+    """Fraction of the view that the stylized scene covers where the un-stylized scene leaves it uncovered (an
+    empty background): holes' mirror. A whole-view style distance rewards such paint (texture on white), the eye
+    does not. Over the whole view, not over the empty pixels: a capture with a few uncovered pixels at its border
+    would otherwise swing between 0 and 1."""
     a, b = _np(alpha), _np(base_alpha)
-    empty = b < ALPHA_MIN
-    return float((empty & (a >= ALPHA_MIN)).sum() / max(1, empty.sum()))
+    return float(((b < ALPHA_MIN) & (a >= ALPHA_MIN)).mean())
 
 
 # ---------------------------------------------------------------- statistics
