@@ -1,6 +1,7 @@
 """Color transfer (closed-form moments), sRGB->Lab vs OpenCV, the Lab chroma loss, luminance."""
 import cv2
 import numpy as np
+import pytest
 import torch
 
 from tlvg_warp.losses import (apply_color_transform, color_transfer, lab_chroma_loss, lab_chroma_stats, luminance,
@@ -183,3 +184,18 @@ def test_gray_gradient_keeps_the_value_and_spreads_the_gradient_over_the_channel
         grads.append(x.grad)
     assert torch.allclose(grads[0], r[..., None] * w, atol=1e-15)
     assert torch.allclose(grads[1], (r / 3)[..., None].expand(-1, -1, 3), atol=1e-15)
+
+
+@pytest.mark.parametrize("rgb", [(0.3, 0.4, 0.6), (0.5, 0.5, 0.5), (0.2, 0.5, 0.3), (0.7, 0.6, 0.3)])
+def test_a_step_along_the_luma_weights_moves_lab_chroma_and_a_grey_step_barely(rgb):
+    """Why loss.luminance_grad gray exists: raising Y by 0.05 along Y's own gradient (0.299, 0.587, 0.114) moves Lab
+    a, b by more than 5 units on these colours (as much as it moves L), along the grey axis (1, 1, 1) by under 1.
+    Oracle: rgb_to_lab, itself checked against OpenCV above."""
+    c = torch.tensor(rgb, dtype=torch.float64)
+    w = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
+    moved = []
+    for d in (w, torch.ones(3, dtype=torch.float64)):
+        step = 0.05 / float(w @ d) * d  # raises Y by 0.05
+        lab = rgb_to_lab(torch.stack([c, c + step]))
+        moved.append(float((lab[1, 1:] - lab[0, 1:]).norm()))
+    assert moved[0] > 5.0 > 1.0 > moved[1]
