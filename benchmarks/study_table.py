@@ -106,11 +106,12 @@ def target_rows(study: Path, data: dict, order, me: str, ablation: str | None):
 
 PAIRED = ["flow_alignment", "flow_energy", "style_gram", "style_nnfm", "detail", "chroma_noise", "consistency_k1",
           "holes_2x", "spill", "content"]
+FRACTIONS = {"holes_1x", "holes_2x", "spill"}  # shares of the view's pixels: printed as percentages
 
 
 def paired_rows(data: dict, order, base: str, other: str) -> list[list[str]]:
     """One row per pair: for each metric of PAIRED, '<better|worse|level> <other - base>' (empty: not compared)."""
-    sign = dict(METRICS) | {"content": "lower"}
+    sign = dict(METRICS)
     rows = []
     for key in order:
         cells = []
@@ -122,7 +123,7 @@ def paired_rows(data: dict, order, base: str, other: str) -> list[list[str]]:
             mark, m = v
             diff = m if sign[k] == "higher" else -m  # other - base, in the metric's units
             word = {"yes": "better", "no": "worse", "tie": "level"}[mark]
-            cells.append(f"{word} {diff:+.4%}" if k.startswith("holes") or k == "spill" else f"{word} {diff:+.3f}")
+            cells.append(f"{word} {diff:+.4%}" if k in FRACTIONS else f"{word} {diff:+.3f}")
         rows.append(cells)
     return rows
 

@@ -40,7 +40,9 @@ def tangential_kernels(scalar_name: str) -> SimpleNamespace:
     @wp.func
     def footprint_width(ls: vec3):
         """exp of the middle log-scale: the footprint's narrower in-plane axis (the thinnest is the normal)."""
-        return wp.exp(ls[0] + ls[1] + ls[2] - wp.max(ls[0], wp.max(ls[1], ls[2])) - wp.min(ls[0], wp.min(ls[1], ls[2])))
+        largest = wp.max(ls[0], wp.max(ls[1], ls[2]))
+        smallest = wp.min(ls[0], wp.min(ls[1], ls[2]))
+        return wp.exp(ls[0] + ls[1] + ls[2] - largest - smallest)
 
     @wp.kernel(enable_backward=False, module=f"tlvg_tangential_{scalar_name}")
     def tangential_kernel(
