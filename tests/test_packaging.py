@@ -28,8 +28,9 @@ def _packages_on_disk() -> set[str]:
 def test_pyproject_lists_every_package_and_maps_kernels():
     tomllib = pytest.importorskip("tomllib", reason="tomllib is in the standard library from Python 3.11")
     tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
-    assert set(tool["packages"]) == _packages_on_disk()
+    assert set(tool["packages"]) == _packages_on_disk() | {"tlvg_warp.configs"}  # configs/: data, no __init__.py
     assert tool["package-dir"]["tlvg_warp.kernels"] == "kernels"
+    assert tool["package-dir"]["tlvg_warp.configs"] == "configs"
 
 
 def _import_kernels(env: dict, cwd: Path, drop_editable: bool = False) -> str:
@@ -68,3 +69,50 @@ def test_benchmark_scripts_do_not_shadow_the_package():
     when nothing is installed (the GPU machine): the root may only be appended."""
     for script in (REPO / "benchmarks").glob("*.py"):
         assert "sys.path.insert(0" not in script.read_text(), script.name
+
+
+def test_a_wheel_carries_the_tuned_configs(tmp_path):
+    """`pip install` from a wheel, run from a folder with no configs/: the default config is the wheel's copy of
+    configs/tlvg.yaml (byte for byte), not the bare built-in defaults."""
+    pytest.importorskip("setuptools")
+    src = tmp_path / "src"
+    for name in ("pyproject.toml", "README.md"):
+        (src / name).parent.mkdir(parents=True, exist_ok=True)
+        (src / name).write_bytes((REPO / name).read_bytes())
+    import shutil
+
+    for folder in ("tlvg_warp", "kernels", "configs"):
+        shutil.copytree(REPO / folder, src / folder, ignore=shutil.ignore_patterns("__pycache__"))
+    pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
+    subprocess.run(pip + ["wheel", "--no-deps", "--no-build-isolation", "-w", str(tmp_path / "whl"), str(src)],
+                   check=True, capture_output=True, timeout=300)
+    (wheel,) = (tmp_path / "whl").glob("*.whl")
+    subprocess.run(pip + ["install", "--no-deps", "--target", str(tmp_path / "site"), str(wheel)],
+                   check=True, capture_output=True, timeout=300)
+    code = ("import sys\n"
+            "sys.meta_path[:] = [f for f in sys.meta_path if 'ditable' not in repr(f)]\n"
+            "from tlvg_warp.stylize.job import resolve_config\n"
+            "print(resolve_config(None)); print(resolve_config('configs/abcgs.yaml'))\n")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env["PYTHONPATH"] = str(tmp_path / "site")
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    default, preset = (Path(line) for line in r.stdout.split())
+    assert default.is_relative_to(tmp_path / "site") and preset.is_relative_to(tmp_path / "site")
+    assert default.read_bytes() == (REPO / "configs" / "tlvg.yaml").read_bytes()
+    assert preset.read_bytes() == (REPO / "configs" / "abcgs.yaml").read_bytes()
+
+
+def test_config_names_resolve_to_a_local_file_first_then_a_shipped_preset(tmp_path, monkeypatch):
+    from tlvg_warp.stylize.job import resolve_config
+
+    monkeypatch.chdir(tmp_path)
+    shipped = (REPO / "configs" / "abcgs.yaml").read_bytes()
+    for name in ("configs/abcgs.yaml", "abcgs.yaml", "abcgs"):
+        assert resolve_config(name).read_bytes() == shipped, name
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "abcgs.yaml").write_text("iterations: 7\n")  # the user's own file wins
+    assert resolve_config("configs/abcgs.yaml") == Path("configs/abcgs.yaml")
+    for missing in ("configs/nosuch.yaml", str(tmp_path / "elsewhere" / "abcgs.yaml")):
+        assert resolve_config(missing) == Path(missing)  # left for load_config to report

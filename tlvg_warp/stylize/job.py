@@ -10,7 +10,7 @@ run folder:
 or all of it in one call, the checkpoint dropped once the outputs are written: ``metrics, result = job.run()``.
 
 ``start`` resolves everything that can fail before a file is written: the config (a checkpoint's on resume; else
---config, configs/tlvg.yaml when present or the built-in defaults; the demo's size when no scene or data is named
+--config, else configs/tlvg.yaml (the source tree's or the installed copy); the demo's size when no scene or data is named
 and the user chose none), the sources, the device (one rank per GPU under torchrun) and the VGG weights."""
 from __future__ import annotations
 
@@ -38,6 +38,28 @@ DEMO_CPU = {"iterations": 240, "downscale": 1.0, "density.interval": 20,
             "style_height": 0, "vgg_scale": 0.5, "lr.sh_dc": 0.01}
 DEMO_GPU = {"iterations": 600, "downscale": 0.25, "density.interval": 100}
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
+INSTALLED_CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # where a wheel puts configs/ (package data)
+
+
+def shipped_config(name: str = "tlvg.yaml") -> Path | None:
+    """A config that ships with the tool: the source tree's configs/NAME, else the copy a wheel installed (a user
+    who ran `pip install` gets the tuned method, not the bare defaults); None when neither exists."""
+    for path in (REPO_CONFIG.parent / name, INSTALLED_CONFIGS / name):
+        if path.is_file():
+            return path
+    return None
+
+
+def resolve_config(config) -> Path | None:
+    """--config as given: a file that exists; else a shipped preset named as the README names it (configs/abcgs.yaml,
+    abcgs.yaml or abcgs), so the presets work from any folder after `pip install`; else the path itself, which
+    load_config reports as missing. No --config: configs/tlvg.yaml."""
+    if config is None:
+        return shipped_config()
+    path = Path(config)
+    if path.is_file() or path.parent not in (Path("."), Path("configs")):
+        return path
+    return shipped_config(path.name if path.suffix else path.name + ".yaml") or path
 
 
 @dataclass
@@ -74,7 +96,7 @@ class StylizeJob:
             cfg = load_config(None, over, config_from_dict(ck["config"]))
         else:
             sources = {}
-            cfg_path = config if config is not None else (REPO_CONFIG if REPO_CONFIG.is_file() else None)
+            cfg_path = resolve_config(config)
             base_over = []
             if scene is None and data is None:  # the demo's size, unless the user chose one
                 gpu = torch.cuda.is_available() and device != "cpu"
@@ -172,4 +194,4 @@ def _names_key(overrides, key: str) -> bool:
     return any(canonical(StylizeConfig, s.split("=", 1)[0].strip()) == key for s in overrides)
 
 
-__all__ = ["StylizeJob", "DEMO_CPU", "DEMO_GPU", "REPO_CONFIG"]
+__all__ = ["StylizeJob", "DEMO_CPU", "DEMO_GPU", "REPO_CONFIG", "resolve_config", "shipped_config"]
