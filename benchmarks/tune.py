@@ -23,8 +23,9 @@ sys.path.append(str(ROOT))  # after an installed package or the GPU scripts' sou
 
 from tlvg_warp import cli  # noqa: E402
 
-KEYS = ("flow_alignment", "stroke_stats", "gram", "nnfm", "content", "mv_error_k1", "detail", "holes_1x",
-        "holes_2x", "spill", "chroma_noise", "gaussians", "wall_time_s")
+from tlvg_warp.eval.metrics import METRICS  # noqa: E402
+
+KEYS = tuple(k for k in METRICS if k not in ("consistency_k5", "bytes"))  # the table's columns: evaluate's metrics
 
 
 def parse_variant(text: str):
