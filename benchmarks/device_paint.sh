@@ -86,7 +86,11 @@ EOF
     (cd "$R/scene" && tar -czf "$OUT/scene_$s.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json))
     ;;
   fit)
-    for s in $SCENES; do fit_bg "${DATASET[$s]}" "$s"; done
+    for s in $SCENES; do  # a dataset that did not travel (its .carry folder left out of the call) fails at once,
+      # not after FIT_LIMIT seconds of waiting for a fit that never started
+      [ -d "$D/scenes/${DATASET[$s]}" ] || { echo "$s: $D/scenes/${DATASET[$s]} missing (carry its .carry folder)" >&2; exit 2; }
+      fit_bg "${DATASET[$s]}" "$s"
+    done
     timeout "${FIT_LIMIT:-500}" bash -c "$(declare -f wait_for); wait_for $FITS"
     for s in $SCENES; do echo "$s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" | tail -n 2 | tr '\n' ' ')"; done
     ls -la "$F"
