@@ -136,3 +136,18 @@ def test_gray_luminance_gradient_changes_the_steps_not_the_losses(inputs):
     for t in ("style", "content", "stroke", "orient", "lab", "chroma_tv"):
         assert luma.log[0][t] == gray.log[0][t], t
     assert not torch.equal(luma.gaussians.sh, gray.gaussians.sh)
+
+
+def test_colour_floor_keeps_every_channel_at_or_above_zero_in_every_phase(inputs):
+    """colour_floor lifts SH-0 colours below 0 after each step of every phase: a run that pushes channels under 0
+    without it (the oracle: SH_C0·dc + 0.5 of its result) ends with none under 0 with it. Catches the hook
+    unwired, wired in one phase only, or flooring the coefficient at 0 instead of the colour."""
+    from tlvg_warp.types import SH_C0
+
+    common = ["iterations=9", "phases=[3, 3, 3]", "lr.sh_dc=0.2"]  # large colour steps: channels leave [0, 1]
+    free = _run(inputs, "tlvg.yaml", *common)
+    floored = _run(inputs, "tlvg.yaml", *common, "colour_floor=true")
+    colour = lambda r: SH_C0 * r.gaussians.sh[:, 0] + 0.5  # noqa: E731  [N,3]
+    assert float(colour(free).min()) < -0.05  # the run does push channels under 0
+    assert float(colour(floored).min()) >= 0.0
+    assert float((colour(floored) < 1e-4).float().mean()) > 0  # ... and some sit on the floor

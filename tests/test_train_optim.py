@@ -240,3 +240,35 @@ def test_step_cap_in_footprint_widths(make_name):
     np.testing.assert_allclose(p.means.detach().numpy(), want, rtol=1e-6, atol=1e-12)
     assert np.linalg.norm(want[:3], axis=1) == pytest.approx(limit[:3])  # the cap bound the first three
     np.testing.assert_allclose(want[3], d[3])  # and left the short step alone
+
+
+def test_colour_floor_hook_lifts_dead_channels_so_the_renderer_passes_them_a_gradient():
+    """A splat whose red channel is under 0 renders red 0 and gets no gradient on it (kernels/sh.py clamps); after the
+    hook the channel sits at 0 and the same loss moves it. Oracle for the floor: max(colour, 0) in float64; for the
+    gradient: the renderer's own backward. With view-dependent bands the hook leaves the colours alone."""
+    from tlvg_warp.renderer import render
+    from tlvg_warp.train.optim import GaussianParams, colour_floor_hook
+    from tlvg_warp.types import SH_C0, Camera, Gaussians
+
+    rgb = torch.tensor([[-0.3, 0.4, 0.9], [0.2, -0.01, 1.3]], dtype=torch.float64)
+    g = Gaussians.from_colors(torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.1, 0.0]]), rgb.float(), 0.3, opacity=0.8)
+    cam = Camera.look_at((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), width=24, height=24, fov_deg=40.0)
+    p = GaussianParams(g, 0)
+
+    def red_grad() -> torch.Tensor:
+        p.sh_dc.grad = None
+        render(p.gaussians(), cam, (0.0, 0.0, 0.0)).color[..., 0].sum().backward()
+        return p.sh_dc.grad[:, 0, 0].detach()
+
+    assert float(red_grad()[0]) == 0.0  # dead: red is clamped
+    with torch.no_grad():
+        colour_floor_hook()(p, {})
+    after = SH_C0 * p.sh_dc[:, 0].detach().double() + 0.5
+    assert torch.allclose(after, rgb.clamp_min(0.0), atol=1e-5)
+    assert float(after.min()) >= 0.0
+    assert float(red_grad()[0]) > 0.0  # alive: more red would add red
+    p3 = GaussianParams(g.with_sh_degree(1), 1)
+    before = p3.sh_dc.detach().clone()
+    with torch.no_grad():
+        colour_floor_hook()(p3, {})
+    assert torch.equal(p3.sh_dc, before)

@@ -49,7 +49,7 @@ from ..errors import InputError
 from ..renderer import render
 from ..train.init import scene_extent
 from ..train.loop import Diverged, Fit, Phase, Run, View, train
-from ..train.optim import FIELDS, GaussianParams, tangential_hook
+from ..train.optim import FIELDS, GaussianParams, colour_floor_hook, tangential_hook
 from ..train.refine import refine_to_radius
 from ..train.session import Session, density_control, new_run, optimizer
 from ..types import SH_C0, Gaussians
@@ -603,10 +603,12 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
     geo = cfg.geometry
     cap = geo.max_travel / max(n_sty, 1)  # widths per step
     hook = [(tangential_hook(geo.tangential_lambda, cap), ("means",))] if geo.tangential_lambda > 0 or cap > 0 else []
-    phases = [Fit("pre", n_pre, tg.recolored, density="pre" in dens),
-              Stylize(n_sty, cfg, tg, vgg, density="stylize" in dens, hooks=hook,  # the hook in Stylize only
-                      trainable=[f for f in FIELDS if not (cfg.geometry.lock_xyz and f == "means")]),
-              Fit("post", n_post, make_targets=post_targets, trainable=POST_TRAINABLE, density="post" in dens)]
+    floor = [(colour_floor_hook(), ())] if cfg.colour_floor else []  # in every phase
+    phases = [Fit("pre", n_pre, tg.recolored, density="pre" in dens, hooks=floor),
+              Stylize(n_sty, cfg, tg, vgg, density="stylize" in dens, hooks=hook + floor,  # the tangential hook in
+                      trainable=[f for f in FIELDS if not (cfg.geometry.lock_xyz and f == "means")]),  # Stylize only
+              Fit("post", n_post, make_targets=post_targets, trainable=POST_TRAINABLE, density="post" in dens,
+                  hooks=floor)]
     run = new_run(cfg, params, opt, density, phases, cams, device=device, background=bg, dist=dist, out=out,
                   fmt=CHECKPOINT_FORMAT, extra=lambda: {"config": dataclasses.asdict(cfg),
                                                         "names": list(inp.names), "sources": inp.sources})

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch.optim.adam import adam
 
-from ..types import Gaussians, sh_coeffs
+from ..types import SH_C0, Gaussians, sh_coeffs
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
@@ -349,6 +349,18 @@ def tangential_hook(lam: float = 1.0, cap: float = 0.0):
     return hook
 
 
+def colour_floor_hook():
+    """A post-step hook: SH-0 colours (SH_C0·dc + 0.5) below 0 lifted to just above 0. The renderer outputs
+    max(colour, 0) and passes no gradient where colour < 0 (kernels/sh.py), so without the floor a channel pushed
+    under 0 never moves again. A no-op where view-dependent bands are kept (the colour then depends on the view)."""
+    floor = (-0.5 + 1e-6) / SH_C0  # a hair above 0: the gradient passes where colour >= 0
+
+    def hook(params: "GaussianParams", before: dict) -> None:
+        if params.sh_rest.shape[1] == 0:
+            params.sh_dc.clamp_(min=floor)
+    return hook
+
+
 def tangential_hook_torch(lam: float = 1.0, cap: float = 0.0):
     """The hook in torch (``tangential_hook``'s twin, and its path for anything the kernel does not take)."""
     lam, cap = float(lam), float(cap)
@@ -369,4 +381,4 @@ def tangential_hook_torch(lam: float = 1.0, cap: float = 0.0):
 
 
 __all__ = ["FIELDS", "LR_RENAMED", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
-           "quat_to_rotmat", "rotmat_to_quat", "footprint_normals", "tangential_hook", "tangential_hook_torch", "sh_coeffs"]
+           "quat_to_rotmat", "rotmat_to_quat", "footprint_normals", "tangential_hook", "tangential_hook_torch", "colour_floor_hook", "sh_coeffs"]
