@@ -94,7 +94,7 @@ def test_a_wheel_carries_the_tuned_configs(tmp_path):
                    check=True, capture_output=True, timeout=300)
     code = ("import sys\n"
             "sys.meta_path[:] = [f for f in sys.meta_path if 'ditable' not in repr(f)]\n"
-            "from tlvg_warp.stylize.job import resolve_config\n"
+            "from tlvg_warp.config_io import resolve_config\n"
             "print(resolve_config(None)); print(resolve_config('configs/abcgs.yaml'))\n")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env["PYTHONPATH"] = str(tmp_path / "site")
@@ -108,7 +108,7 @@ def test_a_wheel_carries_the_tuned_configs(tmp_path):
 
 
 def test_config_names_resolve_to_a_local_file_first_then_a_shipped_preset(tmp_path, monkeypatch):
-    from tlvg_warp.stylize.job import resolve_config
+    from tlvg_warp.config_io import resolve_config
 
     monkeypatch.chdir(tmp_path)
     shipped = (REPO / "configs" / "abcgs.yaml").read_bytes()
@@ -119,3 +119,5 @@ def test_config_names_resolve_to_a_local_file_first_then_a_shipped_preset(tmp_pa
     assert resolve_config("configs/abcgs.yaml") == Path("configs/abcgs.yaml")
     for missing in ("configs/nosuch.yaml", str(tmp_path / "elsewhere" / "abcgs.yaml")):
         assert resolve_config(missing) == Path(missing)  # left for load_config to report
+    assert resolve_config(None, default=None) is None  # reconstruct: the class defaults
+    assert resolve_config("reconstruct").read_bytes() == (REPO / "configs" / "reconstruct.yaml").read_bytes()

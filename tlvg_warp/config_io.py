@@ -318,5 +318,32 @@ def _yaml_lines(cfg, indent: str) -> list[str]:
     return lines
 
 
+# --- the configs that ship with the tool ------------------------------------------------------------------
+CONFIG_DIRS = (Path(__file__).resolve().parents[1] / "configs",  # a source tree (or an editable install)
+               Path(__file__).resolve().parent / "configs")  # where a wheel puts configs/ (package data)
+
+
+def shipped_config(name: str = "tlvg.yaml") -> Path | None:
+    """A config that ships with the tool: the source tree's configs/NAME, else the copy a wheel installed (a user
+    who ran `pip install` gets the tuned method, not the bare defaults); None when neither exists."""
+    for folder in CONFIG_DIRS:
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def resolve_config(config, default: str | None = "tlvg.yaml") -> Path | None:
+    """--config as given: a file that exists; else a shipped preset named as the README names it (configs/abcgs.yaml,
+    abcgs.yaml or abcgs), so the presets work from any folder after `pip install`; else the path itself, which the
+    loader reports as missing. No --config: the shipped ``default`` (None: the class defaults)."""
+    if config is None:
+        return shipped_config(default) if default else None
+    path = Path(config)
+    if path.is_file() or path.parent not in (Path("."), Path("configs")):
+        return path
+    return shipped_config(path.name if path.suffix else path.name + ".yaml") or path
+
+
 __all__ = ["ConfigError", "read_yaml_mapping", "field_comments", "keys", "flatten", "canonical", "coerce",
-           "from_dict", "yaml_chain", "parse_override", "load", "validate", "check_run_settings", "config_yaml"]
+           "from_dict", "yaml_chain", "parse_override", "load", "validate", "check_run_settings", "config_yaml",
+           "CONFIG_DIRS", "shipped_config", "resolve_config"]

@@ -21,7 +21,8 @@ def add_arguments(p):
                    help="dataset folder (COLMAP, LLFF, Blender or INRIA; see load_dataset) or 'demo' for the built-in scene")
     p.add_argument("--out", default=None, help="output folder (default: the --resume folder)")
     p.add_argument("--config", default=None,
-                   help="YAML config (e.g. configs/reconstruct.yaml); default: the built-in defaults, which it mirrors")
+                   help="YAML config (e.g. configs/reconstruct.yaml, found by name from any folder); default: the built-in "
+                        "defaults, which it mirrors")
     p.add_argument("--iterations", type=int, default=None, help="optimizer steps (config: iterations)")
     p.add_argument("--downscale", type=float, default=None, help="image downscale factor (config: downscale)")
     p.add_argument("--images", default=None, help="image sub-folder, e.g. images_8 (config: images)")
@@ -37,6 +38,7 @@ def add_arguments(p):
 
 def run(args) -> int:
     # lazy: CLI startup
+    from ..config_io import resolve_config
     from ..distributed import Dist
     from ..train.reconstruct import (RUN_FILES, FitDiverged, ReconstructConfig, config_from_dict, fit_scene,
                                      load_checkpoint, load_config)
@@ -53,7 +55,7 @@ def run(args) -> int:
                      ("device", args.device)):
         if val is not None:
             overrides.append(f"{key}={val}")
-    cfg = load_config(args.config, overrides, base)
+    cfg = load_config(resolve_config(args.config, default=None), overrides, base)  # a preset by name from any folder
     dataset = _load(args.data, cfg)
     dist = Dist.from_env(str(resolve_device(cfg.device)))  # torchrun: one rank per GPU, views of a step split
     # the main rank owns the folder (locked; bad input leaves nothing behind); the others only read

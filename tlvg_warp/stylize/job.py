@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from ..config_io import canonical
+from ..config_io import canonical, resolve_config
 from ..distributed import Dist
 from ..errors import InputError
 from ..runs import drop_checkpoints, resolve_device, run_folder
@@ -38,28 +38,6 @@ DEMO_CPU = {"iterations": 240, "downscale": 1.0, "density.interval": 20,
             "style_height": 0, "vgg_scale": 0.5, "lr.sh_dc": 0.01}
 DEMO_GPU = {"iterations": 600, "downscale": 0.25, "density.interval": 100}
 REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
-INSTALLED_CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # where a wheel puts configs/ (package data)
-
-
-def shipped_config(name: str = "tlvg.yaml") -> Path | None:
-    """A config that ships with the tool: the source tree's configs/NAME, else the copy a wheel installed (a user
-    who ran `pip install` gets the tuned method, not the bare defaults); None when neither exists."""
-    for path in (REPO_CONFIG.parent / name, INSTALLED_CONFIGS / name):
-        if path.is_file():
-            return path
-    return None
-
-
-def resolve_config(config) -> Path | None:
-    """--config as given: a file that exists; else a shipped preset named as the README names it (configs/abcgs.yaml,
-    abcgs.yaml or abcgs), so the presets work from any folder after `pip install`; else the path itself, which
-    load_config reports as missing. No --config: configs/tlvg.yaml."""
-    if config is None:
-        return shipped_config()
-    path = Path(config)
-    if path.is_file() or path.parent not in (Path("."), Path("configs")):
-        return path
-    return shipped_config(path.name if path.suffix else path.name + ".yaml") or path
 
 
 @dataclass
@@ -194,4 +172,4 @@ def _names_key(overrides, key: str) -> bool:
     return any(canonical(StylizeConfig, s.split("=", 1)[0].strip()) == key for s in overrides)
 
 
-__all__ = ["StylizeJob", "DEMO_CPU", "DEMO_GPU", "REPO_CONFIG", "resolve_config", "shipped_config"]
+__all__ = ["StylizeJob", "DEMO_CPU", "DEMO_GPU", "REPO_CONFIG"]
