@@ -21,8 +21,8 @@ def add_arguments(p):
                    help="dataset folder (COLMAP, LLFF, Blender or INRIA; see load_dataset) or 'demo' for the built-in scene")
     p.add_argument("--out", default=None, help="output folder (default: the --resume folder)")
     p.add_argument("--config", default=None,
-                   help="YAML config (e.g. configs/reconstruct.yaml, found by name from any folder); default: the built-in "
-                        "defaults, which it mirrors")
+                   help="YAML config (e.g. configs/reconstruct.yaml, found by name from any folder); default: the "
+                        "built-in defaults, which it mirrors")
     p.add_argument("--iterations", type=int, default=None, help="optimizer steps (config: iterations)")
     p.add_argument("--downscale", type=float, default=None, help="image downscale factor (config: downscale)")
     p.add_argument("--images", default=None, help="image sub-folder, e.g. images_8 (config: images)")

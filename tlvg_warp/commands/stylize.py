@@ -29,8 +29,8 @@ def add_arguments(p):
                    help="posed photos (COLMAP, LLFF, Blender, INRIA); alone: the scene is fitted first")
     p.add_argument("--style", default=None, metavar="IMAGE", help="the painting (default: The Starry Night)")
     p.add_argument("--config", default=None, metavar="YAML",
-                   help="stylization config (default: configs/tlvg.yaml, installed with the package); presets, found by "
-                        "name from any folder: configs/tlvg_object.yaml (every position held still), "
+                   help="stylization config (default: configs/tlvg.yaml, installed with the package); presets, found "
+                        "by name from any folder: configs/tlvg_object.yaml (every position held still), "
                         "configs/tlvg_swd.yaml (the painting's colours as a whole), configs/abcgs.yaml (the baseline)")
     p.add_argument("--out", default=None, metavar="DIR", help="run folder (default: runs/stylize_<time>)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
