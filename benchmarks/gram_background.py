@@ -22,20 +22,23 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gallery import tiles_of  # noqa: E402  (benchmarks/gallery.py: the montage's tiles, their labels cut)
+from tlvg_warp.eval import DEFAULT_EVAL_HEIGHT as EVAL_HEIGHT  # evaluate's style height
 from tlvg_warp.eval import metrics as M
 from tlvg_warp.losses import load_vgg
 
-TILE_W = 504  # benchmarks/tune.py's montage tiles
-LABEL_H = 32  # the variant's name written in each tile's top rows
 WHITE = 0.93  # a pixel darker than this in any channel is painted (the empty background renders white)
-EVAL_HEIGHT = 256  # evaluate's style height
 
 
-def read_rgb(path: Path) -> np.ndarray:
+def read_bgr(path: Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise SystemExit(f"{path}: not an image")
-    return img[..., ::-1].astype(np.float32) / 255.0
+    return img
+
+
+def to_rgb(bgr: np.ndarray) -> np.ndarray:
+    return bgr[..., ::-1].astype(np.float32) / 255.0
 
 
 def gram(net, img: np.ndarray, painting_grams: dict) -> float:
@@ -55,16 +58,15 @@ def main() -> None:
     ap.add_argument("pairs", nargs="+")
     ap.add_argument("--styles", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "styles"))
     args = ap.parse_args()
-    names = ["un-stylized", *args.variants.split(",")]
     runs = args.runs.split(",")
     net = load_vgg("hed", device="cpu")
     print("| pair | " + " | ".join(f"{r}: whole / object only / outside" for r in runs) + " |")
     print("|" + " --- |" * (len(runs) + 1))
     for pair in args.pairs:
-        montage = read_rgb(Path(args.pairs_dir) / f"{pair}.jpg")
-        tiles = {n: montage[LABEL_H:, i * TILE_W:(i + 1) * TILE_W] for i, n in enumerate(names)}
+        tiles = {n: to_rgb(t) for n, t in tiles_of(read_bgr(Path(args.pairs_dir) / f"{pair}.jpg"),
+                                                   args.variants.split(",")).items()}
         painting_name = pair.split("_", 1)[1]
-        painting = read_rgb(next(Path(args.styles).glob(f"{painting_name}.*")))
+        painting = to_rgb(read_bgr(next(Path(args.styles).glob(f"{painting_name}.*"))))
         pg = M.vgg_feats(net, M.resize_to_height(painting, EVAL_HEIGHT))["grams"]
         obj = object_mask(tiles["un-stylized"])
         cells = []

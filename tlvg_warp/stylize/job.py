@@ -10,8 +10,8 @@ run folder:
 or all of it in one call, the checkpoint dropped once the outputs are written: ``metrics, result = job.run()``.
 
 ``start`` resolves everything that can fail before a file is written: the config (a checkpoint's on resume; else
---config, else configs/tlvg.yaml (the source tree's or the installed copy); the demo's size when no scene or data is named
-and the user chose none), the sources, the device (one rank per GPU under torchrun) and the VGG weights."""
+--config, else configs/tlvg.yaml (the source tree's or the installed copy); the demo's size when no scene or data
+is named and the user chose none), the sources, the device (one rank per GPU under torchrun) and the VGG weights."""
 from __future__ import annotations
 
 import contextlib
@@ -37,7 +37,6 @@ from .pipeline import RUN_FILES, load_checkpoint, run_stylize
 DEMO_CPU = {"iterations": 240, "downscale": 1.0, "density.interval": 20,
             "style_height": 0, "vgg_scale": 0.5, "lr.sh_dc": 0.01}
 DEMO_GPU = {"iterations": 600, "downscale": 0.25, "density.interval": 100}
-REPO_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tlvg.yaml"
 
 
 @dataclass
@@ -172,4 +171,4 @@ def _names_key(overrides, key: str) -> bool:
     return any(canonical(StylizeConfig, s.split("=", 1)[0].strip()) == key for s in overrides)
 
 
-__all__ = ["StylizeJob", "DEMO_CPU", "DEMO_GPU", "REPO_CONFIG"]
+__all__ = ["StylizeJob", "DEMO_CPU", "DEMO_GPU"]
