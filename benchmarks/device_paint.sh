@@ -82,7 +82,7 @@ EOF
     V=(); for v in $VARIANTS; do V+=(--variant "$v"); done
     OMP_NUM_THREADS=8 python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
       --styles "$(echo "$STYLES" | tr ',' '\n' | sed "s|^|$D/styles/|" | paste -sd, -)" --out "$R/scene/$s" "${V[@]}" \
-      --montage "$OUT/scene_$s.jpg" --view "${VIEW:-0}" --max-views "${MAX_VIEWS:-24}" 2>&1 | grep "^|\|^run \|^evaluate \|Error"
+      --montage "$OUT/scene_$s.jpg" --view "${VIEW:-0}" --max-views "${MAX_VIEWS:-24}" 2>&1 | grep "^|\|^run \|^evaluate \|rror\|Traceback\|Killed\|Segmentation"
     (cd "$R/scene" && tar -czf "$OUT/scene_$s.tgz" $(ls -d */*/evaluation/evaluation.json */*/*/metrics.json))
     ;;
   fit)
@@ -109,7 +109,7 @@ EOF
         OMP_NUM_THREADS=${QUEUE_THREADS:-6} python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
           --styles "$D/styles/$st" --out "$R/pairs/$s" "${V[@]}" --montage "$R/pairs/${s}_${st%.*}.jpg" \
           --view "${VIEW:-0}" --max-views "${MAX_VIEWS:-24}" >> "$R/pairs/queue_$name.log" 2>&1
-        echo "done $spec" >> "$R/pairs/queue_$name.log"
+        echo "done $spec (exit $?)" >> "$R/pairs/queue_$name.log"
       done
       touch "$R/pairs/queue_$name.done"
     }
@@ -142,6 +142,7 @@ EOF
     # the fits ran in the background (PART=fit FIT_LIMIT=1 returns at once): their held-out PSNR and size, here
     for s in $SCENES; do echo "fit $s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" 2>/dev/null | tail -n 2 | tr '\n' ' ')"; done
     grep -h "^done\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log "$R"/seeds/pairs/queue_*.log 2>/dev/null | tail -n 60
-    (cd "$R" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d {pairs,seeds/pairs}/*/*/evaluation/evaluation.json {pairs,seeds/pairs}/*/*/*/metrics.json pairs/*.jpg 2>/dev/null))
+    (cd "$R" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d {pairs,seeds/pairs}/*/*/evaluation/evaluation.json {pairs,seeds/pairs}/*/*/*/metrics.json pairs/*.jpg \
+      {pairs,seeds/pairs}/queue_*.log 2>/dev/null))  # the queue logs: a pair that failed says why
     ;;
 esac

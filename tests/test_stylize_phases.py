@@ -145,7 +145,7 @@ def test_colour_floor_keeps_every_channel_at_or_above_zero_in_every_phase(inputs
     from tlvg_warp.types import SH_C0
 
     common = ["iterations=9", "phases=[3, 3, 3]", "lr.sh_dc=0.2"]  # large colour steps: channels leave [0, 1]
-    free = _run(inputs, "tlvg.yaml", *common)
+    free = _run(inputs, "tlvg.yaml", *common, "colour_floor=false")
     floored = _run(inputs, "tlvg.yaml", *common, "colour_floor=true")
     colour = lambda r: SH_C0 * r.gaussians.sh[:, 0] + 0.5  # noqa: E731  [N,3]
     assert float(colour(free).min()) < -0.05  # the run does push channels under 0

@@ -170,7 +170,8 @@ class StylizeConfig:
     keep_colors: bool = False  # keep the scene's own colours: no palette transfer, style on luminance only
     colour_floor: bool = False  # after every step, SH-0 colour channels below 0 are lifted to 0 (ours). The renderer
     # clamps a channel there and passes it no gradient, so a channel pushed under 0 stays dead for the rest of the run
-    # (a CPU look: 57% of lego x Starry Night's stylized splats had one); no effect with keep_sh
+    # (57% of lego x Starry Night's stylized splats had one); no effect with keep_sh. Off here (the paper's method),
+    # on in configs/tlvg.yaml (chroma noise down on all five tuning pairs: docs/study.md)
     palette_detail: bool = False  # after the palette transfer, raise the recolored photos' luminance detail toward the
     # painting's (losses.match_detail). Off: on the study it raised detail but lowered flow alignment on one tuning pair
     vgg_weights: str | None = None  # torchvision vgg16 state dict path, "random", or None (env / torch hub cache)
