@@ -199,3 +199,28 @@ def test_a_step_along_the_luma_weights_moves_lab_chroma_and_a_grey_step_barely(r
         lab = rgb_to_lab(torch.stack([c, c + step]))
         moved.append(float((lab[1, 1:] - lab[0, 1:]).norm()))
     assert moved[0] > 5.0 > 1.0 > moved[1]
+
+
+def test_lab_targets_raise_each_spread_to_the_paintings_and_keep_the_means():
+    """``lab_sigma: painting``: per view (μ_a, μ_b) stay the recolored view's and each σ becomes max(view's σ,
+    painting's σ), OpenCV's Lab the oracle; ``photo`` is the view's statistics unchanged. Catches the painting's
+    means taken too, min for max, the two channels swapped, or the option not applied."""
+    from tlvg_warp.stylize.pipeline import lab_targets
+
+    rng = np.random.default_rng(5)
+    grey = 0.5 + 0.02 * rng.standard_normal((12, 10, 3))  # a near-grey view: both of its σ under the painting's
+    painting = np.stack([rng.random((20, 16)), 0.3 * rng.random((20, 16)), rng.random((20, 16))], -1)  # σ_b > σ_a
+    coloured = rng.random((12, 10, 3))  # a view with more a-spread than the painting's
+    views = [torch.from_numpy(np.clip(v, 0, 1)) for v in (grey, coloured)]
+    ab = lambda im: cv2.cvtColor(np.asarray(im, np.float32), cv2.COLOR_RGB2Lab).reshape(-1, 3)[:, 1:]  # noqa: E731
+    paint_sd = ab(painting).std(0)
+    assert paint_sd[1] > paint_sd[0] + 5  # the test's premise: the two channels differ
+    photo = lab_targets(views, torch.from_numpy(painting), "photo")
+    raised = lab_targets(views, torch.from_numpy(painting), "painting")
+    for v, st_photo, st in zip(views, photo, raised):
+        lab = ab(v.numpy())
+        assert np.allclose(st_photo.numpy(), np.r_[lab.mean(0), lab.std(0)], atol=LAB_TOL)
+        assert np.allclose(st[:2].numpy(), lab.mean(0), atol=LAB_TOL)  # the view's means
+        assert np.allclose(st[2:].numpy(), np.maximum(lab.std(0), paint_sd), atol=LAB_TOL)
+    assert raised[0][3] > photo[0][3] + 5  # the grey view's b-spread raised to the painting's
+    assert float(raised[1][2]) == pytest.approx(float(photo[1][2]))  # a spread already above the painting's kept

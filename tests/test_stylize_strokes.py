@@ -86,3 +86,20 @@ def test_orient_term_descends_to_the_field():
         opt.step()
     end = flow_alignment_score(x.detach().numpy().astype(np.float32), field)
     assert start < 0.3 and end > 0.6, (start, end)
+
+
+def test_lab_sigma_painting_reaches_the_lab_term_of_a_run():
+    """``loss.lab_sigma=painting`` changes the Lab term a run optimizes: at the first stylize step (same seed, same
+    render) its value exceeds the ``photo`` run's, whose targets are the recolored views' own spreads (the demo's
+    recolored still life has less b-spread than The Starry Night). Catches the option parsed but not wired into
+    the targets."""
+    from tlvg_warp.losses import load_vgg
+    from tlvg_warp.stylize import load_config, run_stylize
+
+    inp = demo_stylize_inputs(3, 48, 36, 4)[1]
+    vgg = load_vgg("random")
+    over = ["device=cpu", "vgg_weights=random", "iterations=1", "phases=[0, 1, 0]", "density.phases=[]",
+            "loss.w_lab_start=1", "loss.w_lab_end=1"]
+    lab = {s: run_stylize(inp, load_config(CONFIGS / "tlvg.yaml", [*over, f"loss.lab_sigma={s}"]), None,
+                          progress=False, quiet=True, vgg=vgg).log[0]["lab"] for s in ("photo", "painting")}
+    assert lab["painting"] > lab["photo"] + 1.0  # Lab units: the raised spread is far from the render's

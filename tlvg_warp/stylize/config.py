@@ -77,6 +77,9 @@ class StyleLoss:
     w_scale_reg: float = 1.0  # ||log_scales - value at stylize start||_2 (reference code)
     w_lab_start: float = 0.2  # Lab chroma statistics weight at the first stylize step (paper, linear schedule)
     w_lab_end: float = 0.05  # ... and at the last stylize step
+    lab_sigma: str = "photo"  # the Lab term's target spread of a, b per view: photo (the recolored photo's, the
+    # paper) or painting (at least the painting's, channel by channel; ours): a grey photo's recolored targets keep
+    # a fraction of the painting's colour contrast, and the term then holds the render to that fraction
     w_align: float = 2.0  # flow-alignment energy weight (paper eq. 1, ours; configs/tlvg.yaml sets the tuned 8.0)
     w_aniso: float = 0.2  # anisotropy energy weight (across-stroke footprint energy + λmin/λmax, ours)
     field_mapping: str = "matched"  # the flow terms' target: matched (FAST match carries the painting's field) | canvas
@@ -91,6 +94,7 @@ class StyleLoss:
              "field_source": ("of", "stylize_start", "unstylized"),
              "luminance_grad": ("of", "luma", "gray"),
              "stroke_along": ("of", "ratio", "bounded"),
+             "lab_sigma": ("of", "photo", "painting"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
              "color_swd_projections": (">=", 1), "color_swd_space": ("of", "rgb", "chroma"),

@@ -166,6 +166,18 @@ def jitter_luminance_(sh_dc: torch.Tensor, amplitude: float, seed: int) -> torch
     return _shift_dc_(sh_dc, delta[:, None].expand(-1, 3))[:, 0]
 
 
+def lab_targets(recolored: list, painting: torch.Tensor, sigma: str) -> list:
+    """Per view the Lab term's target (μ_a, μ_b, σ_a, σ_b) [4]: the recolored photo's statistics; with ``sigma``
+    "painting" each σ raised to at least the painting's [h,w,3] (the means stay the view's)."""
+    from ..losses import lab_chroma_stats
+
+    stats = [lab_chroma_stats(r) for r in recolored]
+    if sigma == "photo":
+        return stats
+    floor = lab_chroma_stats(painting.to(recolored[0]))[2:]  # [2] the painting's σ_a, σ_b
+    return [torch.cat([st[:2], torch.maximum(st[2:], floor)]) for st in stats]
+
+
 def jitter_palette_(sh_dc: torch.Tensor, painting: torch.Tensor, amount: float, seed: int) -> torch.Tensor:
     """Moves every Gaussian's DC colour [N,1,3] by ``amount`` x (one random pixel of ``painting`` [H,W,3] minus the
     painting's mean colour), in place; returns the offsets [N,3] in colour units."""
@@ -209,7 +221,7 @@ class Targets:
     match_feats: torch.Tensor  # [768, Ns] luminance features: the field match
     style_doubled_cells: torch.Tensor  # the painting's doubled-angle field at its feature cells
     recolored: list  # per view [H,W,3]: the photos in the painting's palette (pre-process and Lab targets)
-    lab_stats: list  # per view: the Lab chroma statistics of ``recolored`` (the Lab term's target, once)
+    lab_stats: list  # per view: the Lab term's target statistics (``lab_targets``, once)
     palette: object  # that colour map (losses.palette: AffinePalette or TonePalette; its recolor_sh for Gaussians)
     photo_feats: list  # per view [768, Nc]: RGB VGG features of the photo (content)
     inv_depth: list  # per view [H,W]: the un-stylized scene's inverse depth
@@ -258,7 +270,8 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
         recolored = [over_background(r, c, p) for r, c, p in zip(recolored, coverage, photos)]
     return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
                    None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
-                   flatten_feats(sf_lum).contiguous(), cells, recolored, [lab_chroma_stats(r) for r in recolored],
+                   flatten_feats(sf_lum).contiguous(), cells, recolored,
+                   lab_targets(recolored, style_work, cfg.loss.lab_sigma),
                    palette, photo_feats, inv_depth, originals, coverage,
                    [content_scale(f, cfg.loss.content_norm) for f in photo_feats],
                    painting_colours(style_work, cfg.loss.palette_colours, cfg.seed).to(device)
