@@ -92,7 +92,7 @@ def test_lab_sigma_painting_reaches_the_lab_term_of_a_run():
     """``loss.lab_sigma=painting`` changes the Lab term a run optimizes: at the first stylize step (same seed, same
     render) its value exceeds the ``photo`` run's, whose targets are the recolored views' own spreads (the demo's
     recolored still life has less b-spread than The Starry Night). Catches the option parsed but not wired into
-    the targets."""
+    the targets, or applied under keep_colors, whose targets are the scene's own colours."""
     from tlvg_warp.losses import load_vgg
     from tlvg_warp.stylize import load_config, run_stylize
 
@@ -103,3 +103,6 @@ def test_lab_sigma_painting_reaches_the_lab_term_of_a_run():
     lab = {s: run_stylize(inp, load_config(CONFIGS / "tlvg.yaml", [*over, f"loss.lab_sigma={s}"]), None,
                           progress=False, quiet=True, vgg=vgg).log[0]["lab"] for s in ("photo", "painting")}
     assert lab["painting"] > lab["photo"] + 1.0  # Lab units: the raised spread is far from the render's
+    kept = {s: run_stylize(inp, load_config(CONFIGS / "tlvg.yaml", [*over, "keep_colors=true", f"loss.lab_sigma={s}"]),
+                           None, progress=False, quiet=True, vgg=vgg).log[0]["lab"] for s in ("photo", "painting")}
+    assert kept["painting"] == pytest.approx(kept["photo"], rel=1e-6)  # keep_colors: the scene's own spread

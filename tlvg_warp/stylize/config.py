@@ -79,7 +79,8 @@ class StyleLoss:
     w_lab_end: float = 0.05  # ... and at the last stylize step
     lab_sigma: str = "photo"  # the Lab term's target spread of a, b per view: photo (the recolored photo's, the
     # paper) or painting (at least the painting's, channel by channel; ours): a grey photo's recolored targets keep
-    # a fraction of the painting's colour contrast, and the term then holds the render to that fraction
+    # a fraction of the painting's colour contrast, and the term then holds the render to that fraction; keep_colors
+    # keeps the photo's
     w_align: float = 2.0  # flow-alignment energy weight (paper eq. 1, ours; configs/tlvg.yaml sets the tuned 8.0)
     w_aniso: float = 0.2  # anisotropy energy weight (across-stroke footprint energy + λmin/λmax, ours)
     field_mapping: str = "matched"  # the flow terms' target: matched (FAST match carries the painting's field) | canvas

@@ -409,7 +409,8 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         lum = (f"luminance_only=True ({cfg.loss.luminance_grad} gradient)" if cfg.loss.luminance_only
                else "luminance_only=False")
         caption = (f"config: style={cfg.loss.style_loss}, {lum}, "
-                   f"lock_xyz={cfg.geometry.lock_xyz}, max_travel={cfg.geometry.max_travel:g}, colour_floor={cfg.colour_floor}, "
+                   f"lock_xyz={cfg.geometry.lock_xyz}, max_travel={cfg.geometry.max_travel:g}, "
+                   f"colour_floor={cfg.colour_floor}, "
                    f"w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
                    f"{res.metrics['iterations']} iterations; "
                    f"alignment to its training field {fa:.3f}; "

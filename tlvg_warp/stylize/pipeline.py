@@ -234,8 +234,7 @@ class Targets:
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     # lazy: imports Warp
-    from ..losses import (field_at_cells, flatten_feats, lab_chroma_stats, luminance, match_detail, resize_style,
-                          stroke_field)
+    from ..losses import field_at_cells, flatten_feats, luminance, match_detail, resize_style, stroke_field
     from ..losses.palette import AffinePalette, painting_colours, palette_transfer
 
     style_np = inp.style.detach().cpu().numpy().astype(np.float32)
@@ -271,7 +270,7 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
                    None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
                    flatten_feats(sf_lum).contiguous(), cells, recolored,
-                   lab_targets(recolored, style_work, cfg.loss.lab_sigma),
+                   lab_targets(recolored, style_work, "photo" if cfg.keep_colors else cfg.loss.lab_sigma),
                    palette, photo_feats, inv_depth, originals, coverage,
                    [content_scale(f, cfg.loss.content_norm) for f in photo_feats],
                    painting_colours(style_work, cfg.loss.palette_colours, cfg.seed).to(device)
