@@ -106,10 +106,14 @@ EOF
       local V=(); for v in $vs; do V+=(--variant "$v"); done
       for spec in "$@"; do
         IFS=: read -r s d ds st <<< "$spec"
-        OMP_NUM_THREADS=${QUEUE_THREADS:-6} python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
-          --styles "$D/styles/$st" --out "$R/pairs/$s" "${V[@]}" --montage "$R/pairs/${s}_${st%.*}.jpg" \
-          --view "${VIEW:-0}" --max-views "${MAX_VIEWS:-24}" >> "$R/pairs/queue_$name.log" 2>&1
-        echo "done $spec (exit $?)" >> "$R/pairs/queue_$name.log"
+        for try in 1 2; do  # a pair that failed runs once more (tune.py skips the runs it finished): one lost pair
+          # cost a second machine
+          OMP_NUM_THREADS=${QUEUE_THREADS:-6} python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" \
+            --downscale "$ds" --styles "$D/styles/$st" --out "$R/pairs/$s" "${V[@]}" --montage "$R/pairs/${s}_${st%.*}.jpg" \
+            --view "${VIEW:-0}" --max-views "${MAX_VIEWS:-24}" >> "$R/pairs/queue_$name.log" 2>&1
+          rc=$?; [ $rc = 0 ] && break
+        done
+        echo "done $spec (exit $rc, try $try)" >> "$R/pairs/queue_$name.log"
       done
       touch "$R/pairs/queue_$name.done"
     }

@@ -140,7 +140,12 @@ def main():
         evaluate(args, variants, styles)
     if args.montage:
         montage(args, variants, styles, args.view)
+    missing = [f"{Path(st).stem}/{n}" for st in styles for n, _, _ in variants
+               if not (Path(args.out) / Path(st).stem / n / "metrics.json").is_file()]
+    if missing:  # a caller that retries (benchmarks/device_paint.sh) sees it; the finished runs stay and are skipped
+        print(f"runs that did not finish: {', '.join(missing)}", file=sys.stderr)
+    return 1 if missing else 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
