@@ -15,9 +15,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gallery import tiles_of
+from gallery import object_mask, tiles_of
 
-WHITE = 245  # an un-stylized pixel with every channel above this is the Blender scenes' empty background
+BACKGROUND_SHARE = 0.2  # a view this much empty is an object on a background: its spread is the object's
 
 
 def lab_std(im: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -35,8 +35,8 @@ def main() -> None:
     print("| pair | L std: " + " / ".join(shown) + " | a std | b std |\n| --- | --- | --- | --- |")
     for path in sorted(Path(a.pairs).glob("*.jpg")):
         tiles = tiles_of(cv2.imread(str(path)), a.variants.split(","))
-        un = tiles["un-stylized"]
-        mask = ~(un.min(axis=2) > WHITE) if (un.min(axis=2) > WHITE).mean() > 0.2 else None  # an object on white
+        painted = object_mask(tiles["un-stylized"])
+        mask = painted if (~painted).mean() > BACKGROUND_SHARE else None  # a capture keeps its bright pixels
         s = {k: lab_std(tiles[k], None if k == "painting" else mask) for k in shown}
         scene, painting = path.stem.split("_", 1)
         cells = [" / ".join(f"{s[k][i]:.1f}" for k in shown) for i in range(3)]

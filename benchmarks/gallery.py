@@ -22,6 +22,15 @@ ROW_H = 300
 LABEL_H = 32  # tune.py writes each variant's name into its tile's top rows (y <= 24 at 0.7 scale): cut, the
 #               gallery labels every column itself (a study's variant names are not the names readers know)
 SHOWN = ("abcgs", "tlvg_before", "tlvg")
+WHITE = 0.93  # a pixel darker than this in any channel is painted (a Blender scene's empty background renders white)
+
+
+def object_mask(unstylized: np.ndarray) -> np.ndarray:
+    """[H,W] bool: where the un-stylized tile (uint8 or float in [0,1], any channel order) shows the scene, grown by
+    2 px so that the silhouette's anti-aliased edge counts as the object."""
+    x = unstylized.astype(np.float32) / 255.0 if unstylized.dtype == np.uint8 else unstylized
+    painted = (x.min(-1) < WHITE).astype(np.uint8)
+    return cv2.dilate(painted, np.ones((5, 5), np.uint8)) > 0
 
 
 def tiles_of(montage: np.ndarray, variants: list[str]) -> dict:

@@ -22,12 +22,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gallery import tiles_of  # noqa: E402  (benchmarks/gallery.py: the montage's tiles, their labels cut)
+from gallery import WHITE, object_mask, tiles_of  # noqa: E402  (benchmarks/gallery.py: the montage's tiles)
 from tlvg_warp.eval import DEFAULT_EVAL_HEIGHT as EVAL_HEIGHT  # evaluate's style height
 from tlvg_warp.eval import metrics as M
 from tlvg_warp.losses import load_vgg
-
-WHITE = 0.93  # a pixel darker than this in any channel is painted (the empty background renders white)
 
 
 def read_bgr(path: Path) -> np.ndarray:
@@ -43,11 +41,6 @@ def to_rgb(bgr: np.ndarray) -> np.ndarray:
 
 def gram(net, img: np.ndarray, painting_grams: dict) -> float:
     return M.style_gram(M.vgg_feats(net, M.resize_to_height(img, EVAL_HEIGHT))["grams"], painting_grams)
-
-
-def object_mask(unstylized: np.ndarray) -> np.ndarray:
-    painted = (unstylized.min(-1) < WHITE).astype(np.uint8)
-    return cv2.dilate(painted, np.ones((5, 5), np.uint8)) > 0
 
 
 def main() -> None:

@@ -381,4 +381,5 @@ def tangential_hook_torch(lam: float = 1.0, cap: float = 0.0):
 
 
 __all__ = ["FIELDS", "LR_RENAMED", "LearningRates", "exp_decay", "GaussianParams", "GaussianOptimizer",
-           "quat_to_rotmat", "rotmat_to_quat", "footprint_normals", "tangential_hook", "tangential_hook_torch", "colour_floor_hook", "sh_coeffs"]
+           "quat_to_rotmat", "rotmat_to_quat", "footprint_normals", "tangential_hook", "tangential_hook_torch",
+           "colour_floor_hook", "sh_coeffs"]
