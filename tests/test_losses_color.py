@@ -224,3 +224,27 @@ def test_lab_targets_raise_each_spread_to_the_paintings_and_keep_the_means():
         assert np.allclose(st[2:].numpy(), np.maximum(lab.std(0), paint_sd), atol=LAB_TOL)
     assert raised[0][3] > photo[0][3] + 5  # the grey view's b-spread raised to the painting's
     assert float(raised[1][2]) == pytest.approx(float(photo[1][2]))  # a spread already above the painting's kept
+
+
+def test_lab_pool_takes_the_statistics_over_block_means():
+    """``loss.lab_pool`` N: targets and render are averaged over N x N blocks before the Lab statistics (OpenCV's
+    area resize, which averages whole blocks, and OpenCV's Lab the oracle); a chequerboard of two chromas has its
+    per-pixel a, b spread but none left over 2 x 2 blocks, so the pooled term asks nothing of speckle. Catches the
+    pool ignored, applied to one side only, or the blocks taken with a stride other than their size."""
+    from tlvg_warp.losses import lab_chroma_loss
+    from tlvg_warp.stylize.pipeline import block_mean, lab_targets
+
+    rng = np.random.default_rng(7)
+    view = rng.random((12, 16, 3))
+    oracle = cv2.resize(view.astype(np.float32), (4, 3), interpolation=cv2.INTER_AREA)  # 4 x 4 block means
+    assert np.allclose(block_mean(torch.from_numpy(view), 4).numpy(), oracle, atol=1e-6)
+    ab = cv2.cvtColor(oracle, cv2.COLOR_RGB2Lab).reshape(-1, 3)[:, 1:]
+    st = lab_targets([torch.from_numpy(view)], torch.from_numpy(view), "photo", pool=4)[0]
+    assert np.allclose(st.numpy(), np.r_[ab.mean(0), ab.std(0)], atol=LAB_TOL)
+    red, cyan = np.array([0.8, 0.3, 0.3]), np.array([0.3, 0.55, 0.55])  # one luminance-ish grey mean, two chromas
+    board = np.where((np.add.outer(np.arange(8), np.arange(8)) % 2 == 0)[..., None], red, cyan)  # [8,8,3]
+    flat = np.broadcast_to(board.reshape(-1, 3).mean(0), board.shape).copy()  # the same block means, no speckle
+    b, f = torch.from_numpy(board), torch.from_numpy(flat)
+    per_pixel = lab_chroma_loss(b, target_stats=lab_targets([f], f, "photo")[0])
+    pooled = lab_chroma_loss(block_mean(b, 2), target_stats=lab_targets([f], f, "photo", pool=2)[0])
+    assert float(per_pixel) > 5.0 and float(pooled) < 1e-3

@@ -166,15 +166,30 @@ def jitter_luminance_(sh_dc: torch.Tensor, amplitude: float, seed: int) -> torch
     return _shift_dc_(sh_dc, delta[:, None].expand(-1, 3))[:, 0]
 
 
-def lab_targets(recolored: list, painting: torch.Tensor, sigma: str) -> list:
-    """Per view the Lab term's target (μ_a, μ_b, σ_a, σ_b) [4]: the recolored photo's statistics; with ``sigma``
-    "painting" each σ raised to at least the painting's [h,w,3] (the means stay the view's)."""
+def block_mean(img: torch.Tensor, n: int) -> torch.Tensor:
+    """[H,W,3] -> [H//n, W//n, 3]: the mean over n x n blocks (the edge rows and columns past a whole block
+    dropped); n = 1 returns ``img`` itself. Differentiable."""
+    if n == 1:
+        return img
+    out = torch.nn.functional.avg_pool2d(img.permute(2, 0, 1).unsqueeze(0), n)  # [1,3,h,w]
+    return out[0].permute(1, 2, 0).contiguous()
+
+
+def lab_block_px(height: int, block: float) -> int:
+    """The Lab term's block edge in pixels for a view ``height`` pixels tall: ``block`` x height, at least 1."""
+    return max(1, round(block * height))
+
+
+def lab_targets(recolored: list, painting: torch.Tensor, sigma: str, pool: int = 1) -> list:
+    """Per view the Lab term's target (μ_a, μ_b, σ_a, σ_b) [4]: the recolored photo's statistics over
+    ``pool`` x ``pool`` block means; with ``sigma`` "painting" each σ raised to at least the painting's [h,w,3] (over
+    its blocks of the same size; the means stay the view's)."""
     from ..losses import lab_chroma_stats
 
-    stats = [lab_chroma_stats(r) for r in recolored]
+    stats = [lab_chroma_stats(block_mean(r, pool)) for r in recolored]
     if sigma == "photo":
         return stats
-    floor = lab_chroma_stats(painting.to(recolored[0]))[2:]  # [2] the painting's σ_a, σ_b
+    floor = lab_chroma_stats(block_mean(painting.to(recolored[0]), pool))[2:]  # [2] the painting's σ_a, σ_b
     return [torch.cat([st[:2], torch.maximum(st[2:], floor)]) for st in stats]
 
 
@@ -270,7 +285,8 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
                    None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
                    flatten_feats(sf_lum).contiguous(), cells, recolored,
-                   lab_targets(recolored, style_work, "photo" if cfg.keep_colors else cfg.loss.lab_sigma),
+                   lab_targets(recolored, style_work, "photo" if cfg.keep_colors else cfg.loss.lab_sigma,
+                               lab_block_px(recolored[0].shape[0], cfg.loss.lab_block)),
                    palette, photo_feats, inv_depth, originals, coverage,
                    [content_scale(f, cfg.loss.content_norm) for f in photo_feats],
                    painting_colours(style_work, cfg.loss.palette_colours, cfg.seed).to(device)
@@ -480,7 +496,8 @@ class Stylize(Phase):
         if on["scale_reg"]:
             terms["scale_reg"] = anchor_norm(p.log_scales, anchors["log_scales"])
         if on["lab"]:
-            terms["lab"] = lab_chroma_loss(img, target_stats=tg.lab_stats[vi])
+            terms["lab"] = lab_chroma_loss(block_mean(img, lab_block_px(img.shape[0], self.cfg.loss.lab_block)),
+                                           target_stats=tg.lab_stats[vi])
         if on["orient"]:
             terms["orient"] = orient  # in STYLIZE_TERMS's place: the sum's order is the logged one
         t.mark("terms")
