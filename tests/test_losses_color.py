@@ -226,25 +226,26 @@ def test_lab_targets_raise_each_spread_to_the_paintings_and_keep_the_means():
     assert float(raised[1][2]) == pytest.approx(float(photo[1][2]))  # a spread already above the painting's kept
 
 
-def test_lab_pool_takes_the_statistics_over_block_means():
-    """``loss.lab_pool`` N: targets and render are averaged over N x N blocks before the Lab statistics (OpenCV's
-    area resize, which averages whole blocks, and OpenCV's Lab the oracle); a chequerboard of two chromas has its
-    per-pixel a, b spread but none left over 2 x 2 blocks, so the pooled term asks nothing of speckle. Catches the
-    pool ignored, applied to one side only, or the blocks taken with a stride other than their size."""
+def test_lab_block_takes_the_statistics_over_block_means():
+    """``loss.lab_block`` B: targets and render are averaged over blocks B x the view's height on a side before the
+    Lab statistics (OpenCV's area resize, which averages whole blocks, and OpenCV's Lab the oracle); a chequerboard
+    of two chromas has its per-pixel a, b spread but none left over 2 x 2 blocks, so the block term asks nothing of
+    speckle. Catches the block ignored, applied to one side only, sized off the width, or strided unlike its size."""
     from tlvg_warp.losses import lab_chroma_loss
-    from tlvg_warp.stylize.pipeline import block_mean, lab_targets
+    from tlvg_warp.stylize.pipeline import block_mean, lab_block_px, lab_targets
 
+    assert (lab_block_px(12, 1 / 3), lab_block_px(160, 0.03), lab_block_px(100, 0.0)) == (4, 5, 1)
     rng = np.random.default_rng(7)
-    view = rng.random((12, 16, 3))
+    view = rng.random((12, 16, 3))  # 12 tall: blocks of 1/3 the height are 4 x 4 pixels
     oracle = cv2.resize(view.astype(np.float32), (4, 3), interpolation=cv2.INTER_AREA)  # 4 x 4 block means
     assert np.allclose(block_mean(torch.from_numpy(view), 4).numpy(), oracle, atol=1e-6)
     ab = cv2.cvtColor(oracle, cv2.COLOR_RGB2Lab).reshape(-1, 3)[:, 1:]
-    st = lab_targets([torch.from_numpy(view)], torch.from_numpy(view), "photo", pool=4)[0]
+    st = lab_targets([torch.from_numpy(view)], torch.from_numpy(view), "photo", block=1 / 3)[0]
     assert np.allclose(st.numpy(), np.r_[ab.mean(0), ab.std(0)], atol=LAB_TOL)
-    red, cyan = np.array([0.8, 0.3, 0.3]), np.array([0.3, 0.55, 0.55])  # one luminance-ish grey mean, two chromas
+    red, cyan = np.array([0.8, 0.3, 0.3]), np.array([0.3, 0.55, 0.55])  # two chromas
     board = np.where((np.add.outer(np.arange(8), np.arange(8)) % 2 == 0)[..., None], red, cyan)  # [8,8,3]
     flat = np.broadcast_to(board.reshape(-1, 3).mean(0), board.shape).copy()  # the same block means, no speckle
     b, f = torch.from_numpy(board), torch.from_numpy(flat)
     per_pixel = lab_chroma_loss(b, target_stats=lab_targets([f], f, "photo")[0])
-    pooled = lab_chroma_loss(block_mean(b, 2), target_stats=lab_targets([f], f, "photo", pool=2)[0])
-    assert float(per_pixel) > 5.0 and float(pooled) < 1e-3
+    blocked = lab_chroma_loss(block_mean(b, 2), target_stats=lab_targets([f], f, "photo", block=0.25)[0])
+    assert float(per_pixel) > 5.0 and float(blocked) < 1e-3

@@ -180,16 +180,18 @@ def lab_block_px(height: int, block: float) -> int:
     return max(1, round(block * height))
 
 
-def lab_targets(recolored: list, painting: torch.Tensor, sigma: str, pool: int = 1) -> list:
-    """Per view the Lab term's target (μ_a, μ_b, σ_a, σ_b) [4]: the recolored photo's statistics over
-    ``pool`` x ``pool`` block means; with ``sigma`` "painting" each σ raised to at least the painting's [h,w,3] (over
-    its blocks of the same size; the means stay the view's)."""
+def lab_targets(recolored: list, painting: torch.Tensor, sigma: str, block: float = 0.0) -> list:
+    """Per view the Lab term's target (μ_a, μ_b, σ_a, σ_b) [4]: the recolored photo's statistics over the means of
+    blocks ``block`` x its height on a side (0: per pixel); with ``sigma`` "painting" each σ raised to at least the
+    painting's [h,w,3] (over blocks of the first view's size in pixels: the painting's working size puts its strokes
+    at the view's scale; the means stay the view's)."""
     from ..losses import lab_chroma_stats
 
-    stats = [lab_chroma_stats(block_mean(r, pool)) for r in recolored]
+    stats = [lab_chroma_stats(block_mean(r, lab_block_px(r.shape[0], block))) for r in recolored]
     if sigma == "photo":
         return stats
-    floor = lab_chroma_stats(block_mean(painting.to(recolored[0]), pool))[2:]  # [2] the painting's σ_a, σ_b
+    n = lab_block_px(recolored[0].shape[0], block)
+    floor = lab_chroma_stats(block_mean(painting.to(recolored[0]), n))[2:]  # [2] the painting's σ_a, σ_b
     return [torch.cat([st[:2], torch.maximum(st[2:], floor)]) for st in stats]
 
 
@@ -286,7 +288,7 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
                    None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
                    flatten_feats(sf_lum).contiguous(), cells, recolored,
                    lab_targets(recolored, style_work, "photo" if cfg.keep_colors else cfg.loss.lab_sigma,
-                               lab_block_px(recolored[0].shape[0], cfg.loss.lab_block)),
+                               cfg.loss.lab_block),
                    palette, photo_feats, inv_depth, originals, coverage,
                    [content_scale(f, cfg.loss.content_norm) for f in photo_feats],
                    painting_colours(style_work, cfg.loss.palette_colours, cfg.seed).to(device)
