@@ -47,6 +47,10 @@ def test_every_shipped_config_loads_and_ablations_change_one_thing(capsys):
     # the object preset holds the positions and changes nothing else (its comment's figures are for that one change)
     obj = flatten(load_config(CONFIGS / "tlvg_object.yaml"))
     assert {k for k, v in obj.items() if v != tlvg[k]} == {"geometry.lock_xyz"} and obj["geometry.lock_xyz"] is True
+    # the contrast preset changes the Lab term's target spread and its blocks, nothing else (its figures are for those)
+    contrast = flatten(load_config(CONFIGS / "tlvg_contrast.yaml"))
+    assert {k for k, v in contrast.items() if v != tlvg[k]} == {"loss.lab_sigma", "loss.lab_block"}
+    assert (contrast["loss.lab_sigma"], contrast["loss.lab_block"]) == ("painting", 0.03)
     from tlvg_warp.train.reconstruct import load_config as load_reconstruct
 
     for p in CONFIGS.glob("*.yaml"):  # the shipped files use the current names only (no deprecation note)
