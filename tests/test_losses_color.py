@@ -249,3 +249,32 @@ def test_lab_block_takes_the_statistics_over_block_means():
     per_pixel = lab_chroma_loss(b, target_stats=lab_targets([f], f, "photo")[0])
     blocked = lab_chroma_loss(block_mean(b, 2), target_stats=lab_targets([f], f, "photo", block=0.25)[0])
     assert float(per_pixel) > 5.0 and float(blocked) < 1e-3
+
+
+def test_lab_where_covered_reads_only_the_blocks_the_scene_covers():
+    """``loss.lab_where: covered``: the Lab statistics of the blocks whose mean un-stylized alpha is at least 0.5
+    (an object on white is asked for its own colour spread, not its background's); a capture covered everywhere reads
+    every block (index None, the same statistics as ``all``). OpenCV's area resize and Lab the oracle. Catches the
+    mask ignored, inverted, taken per pixel instead of per block, or applied to the target only."""
+    from tlvg_warp.losses import lab_chroma_loss
+    from tlvg_warp.stylize.pipeline import lab_blocks, lab_input, lab_targets
+
+    rng = np.random.default_rng(11)
+    view = rng.random((12, 16, 3))
+    alpha = np.zeros((12, 16, 1))  # 4 x 4 blocks: 3 rows of 4
+    alpha[:4, :8] = 1.0  # the object covers blocks 0 and 1
+    alpha[4:6, :4] = 1.0  # and half of block 4 (its mean 0.5: covered)
+    alpha[8:10, 4:8] = 0.4  # a faint block 9 (mean 0.2: not covered)
+    (idx,) = lab_blocks([torch.from_numpy(alpha)], 1 / 3)
+    assert sorted(idx.tolist()) == [0, 1, 4]
+    means = cv2.resize(view.astype(np.float32), (4, 3), interpolation=cv2.INTER_AREA).reshape(-1, 3)
+    ab = cv2.cvtColor(means[[0, 1, 4]][None], cv2.COLOR_RGB2Lab)[0, :, 1:]
+    st = lab_targets([torch.from_numpy(view)], torch.from_numpy(view), "photo", 1 / 3, [idx])[0]
+    assert np.allclose(st.numpy(), np.r_[ab.mean(0), ab.std(0)], atol=LAB_TOL)
+    # the render is read at the same blocks: equal to the view there and anything elsewhere, it scores 0
+    keep = np.zeros((12, 16, 1), bool)
+    keep[:4, :8] = keep[4:8, :4] = True  # the pixels of blocks 0, 1 and 4
+    other = torch.from_numpy(np.where(keep, view, rng.random((12, 16, 3))))
+    assert float(lab_chroma_loss(lab_input(other, 1 / 3, idx), target_stats=st)) < 1e-3
+    assert float(lab_chroma_loss(lab_input(other, 1 / 3, None), target_stats=st)) > 0.5
+    assert lab_blocks([torch.ones(12, 16, 1, dtype=torch.float64)], 1 / 3) == [None]

@@ -84,6 +84,8 @@ class StyleLoss:
     lab_block: float = 0.0  # the Lab term's statistics on the render and targets averaged over square blocks this
     # fraction of the view's height on a side (ours; 0: per pixel, the paper): a spread of a, b asked of blocks is
     # met by colour patches, while per pixel speckle meets it as well, which chroma TV then fights
+    lab_where: str = "all"  # the pixels (blocks) the Lab term reads: all, or covered (those the un-stylized scene
+    # covers: an object on an empty background is asked for its own colour statistics, not its background's; ours)
     w_align: float = 2.0  # flow-alignment energy weight (paper eq. 1, ours; configs/tlvg.yaml sets the tuned 8.0)
     w_aniso: float = 0.2  # anisotropy energy weight (across-stroke footprint energy + λmin/λmax, ours)
     field_mapping: str = "matched"  # the flow terms' target: matched (FAST match carries the painting's field) | canvas
@@ -98,7 +100,7 @@ class StyleLoss:
              "field_source": ("of", "stylize_start", "unstylized"),
              "luminance_grad": ("of", "luma", "gray"),
              "stroke_along": ("of", "ratio", "bounded"),
-             "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1),
+             "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1), "lab_where": ("of", "all", "covered"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
              "color_swd_projections": (">=", 1), "color_swd_space": ("of", "rgb", "chroma"),

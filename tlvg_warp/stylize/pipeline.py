@@ -180,14 +180,33 @@ def lab_block_px(height: int, block: float) -> int:
     return max(1, round(block * height))
 
 
-def lab_targets(recolored: list, painting: torch.Tensor, sigma: str, block: float = 0.0) -> list:
+def lab_blocks(coverage: list, block: float) -> list:
+    """Per view the flat indices [P] of the Lab term's blocks (``block_mean`` of the view at ``lab_block_px``) that
+    the un-stylized scene covers (block-mean alpha >= 0.5; ``coverage``: per view [H,W,1]), or None where it covers
+    them all (a capture): computed once, so the step gathers them without a host sync."""
+    out = []
+    for cov in coverage:
+        covered = block_mean(cov, lab_block_px(cov.shape[0], block)).reshape(-1) >= 0.5  # [h*w]
+        out.append(None if bool(covered.all()) else torch.nonzero(covered)[:, 0])
+    return out
+
+
+def lab_input(img: torch.Tensor, block: float, index: torch.Tensor | None) -> torch.Tensor:
+    """What the Lab term reads of a view [H,W,3]: its block means [h,w,3], or [P,3] of them at ``index``."""
+    means = block_mean(img, lab_block_px(img.shape[0], block))
+    return means if index is None else means.reshape(-1, 3).index_select(0, index)
+
+
+def lab_targets(recolored: list, painting: torch.Tensor, sigma: str, block: float = 0.0,
+                index: list | None = None) -> list:
     """Per view the Lab term's target (μ_a, μ_b, σ_a, σ_b) [4]: the recolored photo's statistics over the means of
-    blocks ``block`` x its height on a side (0: per pixel); with ``sigma`` "painting" each σ raised to at least the
-    painting's [h,w,3] (over blocks of the first view's size in pixels: the painting's working size puts its strokes
-    at the view's scale; the means stay the view's)."""
+    blocks ``block`` x its height on a side (0: per pixel), over the blocks ``index`` names (``lab_blocks``; None:
+    all); with ``sigma`` "painting" each σ raised to at least the painting's [h,w,3] (over blocks of the first view's
+    size in pixels: the painting's working size puts its strokes at the view's scale; the means stay the view's)."""
     from ..losses import lab_chroma_stats
 
-    stats = [lab_chroma_stats(block_mean(r, lab_block_px(r.shape[0], block))) for r in recolored]
+    index = index or [None] * len(recolored)
+    stats = [lab_chroma_stats(lab_input(r, block, i)) for r, i in zip(recolored, index)]
     if sigma == "photo":
         return stats
     n = lab_block_px(recolored[0].shape[0], block)
@@ -247,6 +266,7 @@ class Targets:
     content_scale: list = field(default_factory=list)  # per view: what the content MSE is multiplied by (1, or
     # 1 / the photo features' mean square with loss.content_norm)
     colours: torch.Tensor | None = None  # [K,3] on the device: the painting's dominant colours (the snap term's)
+    lab_index: list = field(default_factory=list)  # per view: the Lab term's blocks (``lab_blocks``) or None: all
 
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
@@ -284,15 +304,16 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
         # the background the scene does not cover stays the photo's (a Blender scene's white): a recoloured
         # background would make the fit grow splats to paint it
         recolored = [over_background(r, c, p) for r, c, p in zip(recolored, coverage, photos)]
+    lab_index = lab_blocks(coverage, cfg.loss.lab_block) if cfg.loss.lab_where == "covered" else [None] * len(coverage)
     return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
                    None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
                    flatten_feats(sf_lum).contiguous(), cells, recolored,
                    lab_targets(recolored, style_work, "photo" if cfg.keep_colors else cfg.loss.lab_sigma,
-                               cfg.loss.lab_block),
+                               cfg.loss.lab_block, lab_index),
                    palette, photo_feats, inv_depth, originals, coverage,
                    [content_scale(f, cfg.loss.content_norm) for f in photo_feats],
                    painting_colours(style_work, cfg.loss.palette_colours, cfg.seed).to(device)
-                   if cfg.loss.w_palette_snap > 0 and not cfg.keep_colors else None)
+                   if cfg.loss.w_palette_snap > 0 and not cfg.keep_colors else None, lab_index=lab_index)
 
 
 def content_scale(photo_feats: torch.Tensor, normalized: bool) -> float:
@@ -498,7 +519,7 @@ class Stylize(Phase):
         if on["scale_reg"]:
             terms["scale_reg"] = anchor_norm(p.log_scales, anchors["log_scales"])
         if on["lab"]:
-            terms["lab"] = lab_chroma_loss(block_mean(img, lab_block_px(img.shape[0], self.cfg.loss.lab_block)),
+            terms["lab"] = lab_chroma_loss(lab_input(img, self.cfg.loss.lab_block, tg.lab_index[vi]),
                                            target_stats=tg.lab_stats[vi])
         if on["orient"]:
             terms["orient"] = orient  # in STYLIZE_TERMS's place: the sum's order is the logged one
