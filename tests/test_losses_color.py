@@ -278,3 +278,4 @@ def test_lab_where_covered_reads_only_the_blocks_the_scene_covers():
     assert float(lab_chroma_loss(lab_input(other, 1 / 3, idx), target_stats=st)) < 1e-3
     assert float(lab_chroma_loss(lab_input(other, 1 / 3, None), target_stats=st)) > 0.5
     assert lab_blocks([torch.ones(12, 16, 1, dtype=torch.float64)], 1 / 3) == [None]
+    assert lab_blocks([torch.zeros(12, 16, 1, dtype=torch.float64)], 1 / 3) == [None]  # an empty view: all, not NaN

@@ -182,12 +182,13 @@ def lab_block_px(height: int, block: float) -> int:
 
 def lab_blocks(coverage: list, block: float) -> list:
     """Per view the flat indices [P] of the Lab term's blocks (``block_mean`` of the view at ``lab_block_px``) that
-    the un-stylized scene covers (block-mean alpha >= 0.5; ``coverage``: per view [H,W,1]), or None where it covers
-    them all (a capture): computed once, so the step gathers them without a host sync."""
+    the un-stylized scene covers (block-mean alpha >= 0.5; ``coverage``: per view [H,W,1]), or None (every block)
+    where it covers them all (a capture) or none (no statistics of an empty set): computed once, so the step gathers
+    them without a host sync."""
     out = []
     for cov in coverage:
         covered = block_mean(cov, lab_block_px(cov.shape[0], block)).reshape(-1) >= 0.5  # [h*w]
-        out.append(None if bool(covered.all()) else torch.nonzero(covered)[:, 0])
+        out.append(None if bool(covered.all()) or not bool(covered.any()) else torch.nonzero(covered)[:, 0])
     return out
 
 
