@@ -19,8 +19,8 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      Reproduces: "Stress cases".
   stylize [--set K=V ...]
                      fern (fern.spz, 504x378, The Starry Night) stylized 3000 iterations, RUNS processes (default
-                     2) after a 300-iteration warm-up; arguments go to each run. Reproduces: "Stylization" (process
-                     wall, flow alignment).
+                     2) after a 300-iteration warm-up; arguments go to each run, its folder fern_$TAG$i.
+                     Reproduces: "Stylization" (process wall, flow alignment).
   startup            fern stylized for 1 iteration, twice (warm caches the second time): process wall against the
                      run's own wall, and where the import time goes (python -X importtime). Reproduces: the
                      1-iteration figure of "Stylization".
@@ -37,7 +37,8 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   cost-curves        time and peak memory of a stylize step and a fit step against Gaussians (0.1M-10M) and pixels (0.1-4 MP) on
                      random scenes (benchmarks/cost_curves.py; the chart and CSV under $OUT/cost_curves).
   step-profile       is a fern stylize step host-bound? (benchmarks/profile_step.py: wall per step, GPU time
-                     per step, top kernels).
+                     per step, top kernels; ARGS go to the run, e.g. --set terms_cuda_graphs=false; WARM, TIMED:
+                     the steps timed without the profiler).
   fit-vs-gsplat [ARGS]
                      fern (images_4, 7000 iterations) fitted by `reconstruct`'s fit and by a minimal trainer on
                      gsplat 1.5.3's rasterization and DefaultStrategy, same views, loss and schedule
@@ -117,9 +118,10 @@ case "$cmd" in
     gpu
     python3 -m tlvg_warp stylize $FERN --iterations 300 --out "$R/warm" --overwrite --quiet > /dev/null 2>&1
     for i in $(seq 1 "${RUNS:-2}"); do
-      /usr/bin/time -f "fern stylize $i 3000 wall %e s" python3 -m tlvg_warp stylize $FERN --iterations 3000 \
-        --out "$R/fern_$i" --overwrite --quiet "$@" > "$R/fern_$i.log" 2>&1; tail -n 2 "$R/fern_$i.log"
-      metrics "$R/fern_$i/metrics.json" wall_time_s train_time_s training_field_alignment time_per_phase_s
+      n=fern_${TAG:-}$i
+      /usr/bin/time -f "$n stylize 3000 wall %e s" python3 -m tlvg_warp stylize $FERN --iterations 3000 \
+        --out "$R/$n" --overwrite --quiet "$@" > "$R/$n.log" 2>&1; tail -n 2 "$R/$n.log"
+      metrics "$R/$n/metrics.json" wall_time_s train_time_s training_field_alignment time_per_phase_s
     done;;
   startup)
     gpu
@@ -131,7 +133,7 @@ case "$cmd" in
     python3 -X importtime -c "import tlvg_warp.cli" 2> "$R/importtime.txt"
     sort -t'|' -k2 -n "$R/importtime.txt" | tail -n 6;;
   quality)
-    runs=$(ls -d "$R"/fern_[0-9]* 2>/dev/null | grep -v "\.log$")
+    runs=$(ls -d "$R"/fern_*/metrics.json 2>/dev/null | xargs -r -n1 dirname)
     [ -n "$runs" ] || { echo "no runs: run \`stylize\` first"; exit 1; }
     timeout 400 python3 -m tlvg_warp evaluate $runs --max-views 10 --out "$R/fern_eval" > "$R/fern_eval.log" 2>&1
     tail -n 24 "$R/fern_eval.log"; cp "$R/fern_eval/evaluation.json" "$OUT/" 2>/dev/null;;
@@ -142,10 +144,10 @@ case "$cmd" in
     rm -rf "$tmp";;
   scaling) exec bash benchmarks/scaling.sh "$@";;
   cuda-tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py tests/test_losses_vgg.py tests/test_losses_stroke.py \
-    tests/test_stroke_hinge.py::test_field_terms_as_a_cuda_graph_match_eager;;  # that file's other tests run Warp's CPU kernels
+    tests/test_stroke_hinge.py::test_field_terms_as_a_cuda_graph_match_eager tests/test_stylize_graph.py::test_stylize_terms_as_one_cuda_graph_match_eager;;  # the other tests of those two files run Warp's CPU kernels
   host-profile) exec python3 benchmarks/profile_host.py "$@";;
   cost-curves) gpu; exec python3 benchmarks/cost_curves.py --out "$OUT/cost_curves" "$@";;
-  step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet;;
+  step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet "$@";;
   ssim) exec python3 benchmarks/ssim_check.py;;
   fit-vs-gsplat) gpu; TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16} exec python3 \
     benchmarks/gsplat_trainer.py "$D/fern_llff" --images images_4 --iterations 7000 --raster ours,gsplat --out "$OUT" "$@";;

@@ -150,6 +150,25 @@ def test_lab_chroma_kernels_match_autograd_of_rgb_to_lab():
     assert abs(l3.item() - want.item()) < 1e-4 and torch.allclose(r3.grad.double(), r2.grad, atol=1e-5)
 
 
+def test_lab_chroma_through_torch_matches_the_kernels():
+    """The torch twin a CUDA graph replays (the Warp kernels are not captured) gives the kernels' loss and gradient
+    in float64, on a grey render too (σ = 0: a 0 gradient there, not NaN), and passes finite differences. Catches a
+    sample σ for the population one, a σ term dropped, or NaN at grey."""
+    from tlvg_warp.losses.color import lab_chroma_loss_torch
+
+    rng = np.random.default_rng(7)
+    st = lab_chroma_stats(torch.from_numpy(rng.random((6, 7, 3))))
+    for x in (rng.random((9, 11, 3)) * 1.1 - 0.05, np.full((4, 4, 3), 0.5)):
+        r1, r2 = (torch.from_numpy(x).requires_grad_(True) for _ in range(2))
+        got, want = lab_chroma_loss_torch(r1, st), lab_chroma_loss(r2, target_stats=st)
+        got.backward()
+        want.backward()
+        assert abs(got.item() - want.item()) < 1e-10 and want.item() > 1.0
+        assert torch.isfinite(r1.grad).all() and torch.allclose(r1.grad, r2.grad, rtol=1e-8, atol=1e-11)
+    x = torch.from_numpy(rng.random((5, 6, 3)) * 0.8 + 0.1).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: lab_chroma_loss_torch(t, st), (x,))
+
+
 def test_lab_chroma_backward_finite_differences_and_gray():
     rng = np.random.default_rng(6)
     x = torch.from_numpy(rng.random((5, 6, 3)) * 0.8 + 0.1).requires_grad_(True)  # away from the kinks

@@ -141,12 +141,26 @@ def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
     """sRGB in [0,1], channel-last [...,3] -> Lab (L in [0,100], a/b roughly [-128,127]); differentiable."""
     c = rgb.clamp_min(0.0)  # renders are >= 0 by construction; negatives have no sRGB meaning
     lin = torch.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055).clamp_min(_TINY) ** 2.4)
-    xyz = lin @ _RGB2XYZ.to(rgb).T / _WHITE.to(rgb)  # [...,3], normalized by the white point
+    m, white = _lab_constants(rgb.dtype, rgb.device)
+    xyz = lin @ m.T / white  # [...,3], normalized by the white point
     f = torch.where(xyz > _EPS_T, xyz.clamp_min(_TINY) ** (1.0 / 3.0), xyz / (3 * (6.0 / 29.0) ** 2) + 4.0 / 29.0)
     L = 116.0 * f[..., 1] - 16.0
     a = 500.0 * (f[..., 0] - f[..., 1])
     b = 200.0 * (f[..., 1] - f[..., 2])
     return torch.stack([L, a, b], dim=-1)
+
+
+_lab_consts: dict = {}  # (dtype, device) -> (RGB->XYZ, white): made once, so that rgb_to_lab copies
+# nothing from the host per call (a CUDA graph cannot capture such a copy)
+
+
+def _lab_constants(dtype, device) -> tuple:
+    key = (dtype, str(device))
+    c = _lab_consts.get(key)
+    if c is None:
+        c = _lab_consts[key] = (_RGB2XYZ.to(dtype=dtype, device=device),
+                                _WHITE.to(dtype=dtype, device=device))
+    return c
 
 
 _lumas: dict = {}  # (dtype, device) -> the luma weights: built once, never copied to the device per call
@@ -183,6 +197,18 @@ def lab_chroma_loss(render: torch.Tensor, target: torch.Tensor | None = None, *,
             raise ValueError("lab_chroma_loss needs target or target_stats")
         target_stats = lab_chroma_stats(target.to(render))
     return LabChromaLossFn.apply(render, target_stats)
+
+
+_VAR_FLOOR = 1e-30
+
+
+def lab_chroma_loss_torch(render: torch.Tensor, target_stats: torch.Tensor) -> torch.Tensor:
+    """:func:`lab_chroma_loss` through :func:`rgb_to_lab` and autograd (~50 small kernels a call where the Warp
+    version takes ~8): what a CUDA graph of the stylize terms replays, since it records only torch's own kernels."""
+    ab = rgb_to_lab(render.reshape(-1, 3))[:, 1:]  # [P,2]
+    var, mu = torch.var_mean(ab, dim=0, correction=0)
+    sd = var.clamp_min(_VAR_FLOOR).sqrt()  # a grey render (σ = 0) gets a 0 gradient there, as the Warp version, not NaN
+    return 0.5 * torch.linalg.vector_norm(torch.cat([mu, sd]) - target_stats.reshape(4), ord=1)
 
 
 def luminance(img: torch.Tensor) -> torch.Tensor:

@@ -2,9 +2,9 @@
 step), so a loss made of many small torch ops costs more host time launching them than GPU time running them.
 
 ``GraphedCall`` captures ``fn(x, *aux)`` for one set of input shapes as two graphs, forward and backward (the
-gradient with respect to ``x`` only; ``aux`` are constants such as a target field, copied in on each call).
-``GraphedFn`` keeps one ``GraphedCall`` per input shape (at most ``MAX_GRAPHS``, eager beyond) and runs eagerly
-where graphs do not apply (CPU tensors, no gradient wanted).
+gradient with respect to ``x``, or to the first ``n_grad`` inputs; the rest, ``aux``, are constants such as a target
+field, copied in on each call). ``GraphedFn`` keeps one ``GraphedCall`` per input shape (at most ``MAX_GRAPHS``,
+eager beyond) and runs eagerly where graphs do not apply (CPU tensors, no gradient wanted).
 
 What ``torch.cuda.make_graphed_callables`` builds, captured by hand so that the backward is seeded by a scalar,
 ``(out * grad_out).sum()``: autograd given a tensor seed imports torch.fx's symbolic shapes, and with them sympy,
@@ -27,36 +27,38 @@ class GraphedCall:
 
     WARMUP = 3  # eager passes on a side stream before capture (cuDNN picks its algorithms, the allocator warms)
 
-    def __init__(self, fn: Callable[..., torch.Tensor], x: torch.Tensor, *aux: torch.Tensor):
-        self.x = x.detach().clone().requires_grad_(True)  # static input
-        self.aux = [a.detach().clone() for a in aux]  # static constants
-        dev = self.x.device
+    def __init__(self, fn: Callable[..., torch.Tensor], *inputs: torch.Tensor, n_grad: int = 1):
+        self.xs = [x.detach().clone().requires_grad_(True) for x in inputs[:n_grad]]  # static inputs
+        self.aux = [a.detach().clone() for a in inputs[n_grad:]]  # static constants
+        dev = self.xs[0].device
         side = torch.cuda.Stream(dev)
         side.wait_stream(torch.cuda.current_stream(dev))
         with torch.cuda.stream(side):
             for _ in range(self.WARMUP):
-                out = fn(self.x, *self.aux)
-                torch.autograd.grad(out.sum(), self.x)
+                out = fn(*self.xs, *self.aux)
+                torch.autograd.grad(out.sum(), self.xs)
             del out
         torch.cuda.current_stream(dev).wait_stream(side)
         pool = torch.cuda.graph_pool_handle()
         self.forward_graph, self.backward_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
         with torch.cuda.graph(self.forward_graph, pool=pool):
-            self.out = fn(self.x, *self.aux)  # static
+            self.out = fn(*self.xs, *self.aux)  # static
         self.grad_out = torch.zeros_like(self.out)  # static seed, written before each backward replay
         with torch.cuda.graph(self.backward_graph, pool=pool):
-            (self.grad_x,) = torch.autograd.grad((self.out * self.grad_out).sum(), self.x)  # static
+            self.grads = torch.autograd.grad((self.out * self.grad_out).sum(), self.xs)  # static
 
-    def __call__(self, x: torch.Tensor, *aux: torch.Tensor) -> torch.Tensor:
-        for static, a in zip(self.aux, aux):
+    def __call__(self, *inputs: torch.Tensor) -> torch.Tensor:
+        n = len(self.xs)
+        for static, a in zip(self.aux, inputs[n:]):
             static.copy_(a)
-        return _GraphReplayFn.apply(self, x)
+        return _GraphReplayFn.apply(self, *inputs[:n])
 
 
 class _GraphReplayFn(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, graphed: GraphedCall, x):
-        graphed.x.detach().copy_(x)
+    def forward(ctx, graphed: GraphedCall, *xs):
+        for static, x in zip(graphed.xs, xs):
+            static.detach().copy_(x)
         graphed.forward_graph.replay()
         ctx.graphed = graphed
         return graphed.out.detach()
@@ -66,23 +68,25 @@ class _GraphReplayFn(torch.autograd.Function):
         graphed = ctx.graphed
         graphed.grad_out.copy_(grad_out)
         graphed.backward_graph.replay()
-        return None, graphed.grad_x.detach()
+        return (None, *(g.detach() for g in graphed.grads))
 
 
 class GraphedFn:
-    """``fn(x, *aux)`` replayed from a ``GraphedCall`` per input shape where graphs apply, else called eagerly."""
+    """``fn(*inputs)`` replayed from a ``GraphedCall`` per input shape where graphs apply, else called eagerly; the
+    gradient flows to the first ``n_grad`` inputs."""
 
-    def __init__(self, fn: Callable[..., torch.Tensor], max_graphs: int = MAX_GRAPHS):
-        self.fn, self.max_graphs = fn, max_graphs
+    def __init__(self, fn: Callable[..., torch.Tensor], max_graphs: int = MAX_GRAPHS, n_grad: int = 1):
+        self.fn, self.max_graphs, self.n_grad = fn, max_graphs, n_grad
         self.graphs: dict = {}
 
-    def __call__(self, x: torch.Tensor, *aux: torch.Tensor) -> torch.Tensor:
-        if not (x.is_cuda and x.requires_grad and torch.is_grad_enabled()):
-            return self.fn(x, *aux)
-        key = tuple((tuple(t.shape), t.dtype, t.device) for t in (x, *aux))
+    def __call__(self, *inputs: torch.Tensor) -> torch.Tensor:
+        xs = inputs[:self.n_grad]
+        if not (xs[0].is_cuda and any(x.requires_grad for x in xs) and torch.is_grad_enabled()):
+            return self.fn(*inputs)
+        key = tuple((tuple(t.shape), t.dtype, t.device) for t in inputs)
         call = self.graphs.get(key)
         if call is None:
             if len(self.graphs) >= self.max_graphs:
-                return self.fn(x, *aux)
-            call = self.graphs[key] = GraphedCall(self.fn, x, *aux)
-        return call(x, *aux)
+                return self.fn(*inputs)
+            call = self.graphs[key] = GraphedCall(self.fn, *inputs, n_grad=self.n_grad)
+        return call(*inputs)

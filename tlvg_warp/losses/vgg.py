@@ -163,13 +163,14 @@ class VGG16Features(nn.Module):
         f = self.layers(img, ("relu3_1", "relu3_2", "relu3_3"), scale)
         return torch.cat([f["relu3_1"], f["relu3_2"], f["relu3_3"]], dim=1)
 
-    def features_of(self, images, scale: float = 1.0) -> list[torch.Tensor]:
+    def features_of(self, images, scale: float = 1.0, graphs: bool = True) -> list[torch.Tensor]:
         """Loss features [768, h*w] of several same-size images in ONE pass (a batch): the stylize step's
         luminance render (style term) and RGB render (content term) cost one VGG forward and backward
-        instead of two. ``images``: a list of [H,W,3] (or [1,3,H,W]) tensors; returns a list in that order."""
+        instead of two. ``images``: a list of [H,W,3] (or [1,3,H,W]) tensors; returns a list in that order.
+        ``graphs`` False: never the pass's own graph (a caller capturing a larger graph around it)."""
         xs = [im.permute(2, 0, 1).unsqueeze(0) if im.dim() == 3 else im for im in images]
         x = torch.cat(xs, 0)
-        graphed = (self._graphed_pass(x, scale) if self.cuda_graphs and x.is_cuda and x.requires_grad
+        graphed = (self._graphed_pass(x, scale) if graphs and self.cuda_graphs and x.is_cuda and x.requires_grad
                    and torch.is_grad_enabled() else None)
         f = graphed(x) if graphed is not None else self(x, scale)  # [B,768,h,w]
         return [fi.reshape(fi.shape[0], -1) for fi in f]

@@ -188,6 +188,10 @@ class StylizeConfig:
     vgg_scale: float = 0.5  # the render is resized by this before VGG (SPEC §3: x0.5)
     vgg_channels_last: bool = True  # on CUDA: VGG in NHWC (cuDNN's layout; float32 arithmetic, gradients within 3e-4)
     vgg_cuda_graphs: bool = True  # on CUDA: the loss's VGG pass (forward and backward) replays a captured CUDA graph
+    terms_cuda_graphs: bool = True  # on CUDA: every term read off the render alone (VGG, content, depth, chroma TV,
+    # orientation, stroke, coverage, silhouette, Lab) replays as one captured CUDA graph each way; vgg_cuda_graphs
+    # and orient_cuda_graphs apply where it does not (a term it lacks is on: loss.w_style_gram, w_style_swd,
+    # w_style_color, w_color_swd, w_palette_snap, w_detail; or loss.lab_where covered)
     orient_cuda_graphs: bool = True  # on CUDA: the orientation and stroke terms (loss.w_orient, w_stroke) replay one
     # captured CUDA graph
     keep_sh: bool = False  # keep view-dependent SH bands in stylized.ply (default: degree 0, ~3.6x smaller)

@@ -402,6 +402,9 @@ class Stylize(Phase):
                        or self.on["style_swd"])
         self.render_weights = self.on["align"] or self.on["aniso"]
         self.field_terms = None  # the orientation and stroke terms as one call (made in setup, with the targets)
+        self.terms_graph = None  # on CUDA: image_terms as one graph (made in setup)
+        self.content_scales = None  # per view the content scale as a device scalar (image_terms' argument)
+        self.over_bg = None  # the run's background, that image_terms composites over
 
     def weights(self, k: int) -> dict:
         return dict(self.const, lab=self.cfg.loss.lab_weight(k, self.steps))
@@ -425,6 +428,12 @@ class Stylize(Phase):
             self.stroke_target = painting_stroke(self.tg.style_work, view_h)
         if (self.on["orient"] or self.on["stroke"]) and self.field_terms is None:
             self.field_terms = self.make_field_terms()
+        self.over_bg = run.background
+        if self.content_scales is None:
+            self.content_scales = [torch.tensor(float(c), dtype=f.dtype, device=f.device)
+                                   for c, f in zip(self.tg.content_scale, self.tg.photo_feats)]
+        if self.terms_graph is None:
+            self.terms_graph = self.make_terms_graph()
 
     def make_field_terms(self):
         """The orientation and stroke terms from one luminance-gradient pass: ~100 small torch ops forward and
@@ -462,68 +471,139 @@ class Stylize(Phase):
             out.append(flow_field_tensor(d.to(device=run.device, dtype=torch.float32)))
         return out
 
-    def terms(self, run: Run, view: View) -> dict:
-        # lazy: imports Warp
-        from ..losses import content_loss, detail_energy, gray_gradient, lab_chroma_loss, luminance
-        from ..losses.palette import palette_snap_loss
+    # the terms read off the render alone, in STYLIZE_TERMS's order (``image_terms`` computes the live ones)
+    IMAGE_TERMS = ("content", "depth", "tv", "chroma_tv", "stroke", "coverage", "silhouette", "lab", "orient")
+    # terms that read the render too but not in ``image_terms``: with one of them on, the terms stay eager
+    EAGER_ONLY = ("style_gram", "style_swd", "style_color", "color_swd", "palette", "detail")
 
-        tg, on, t, vi = self.tg, self.on, run.timer, view.index
-        p, anchors = run.params, run.density.tracked
+    def make_terms_graph(self):
+        """On CUDA the render-only terms (``image_terms``) as one graph each way (``terms_cuda_graphs``): about a
+        hundred small torch kernels a step, each launched by the host, become one replay. None where it does not
+        apply (CPU, the option off, a term of EAGER_ONLY on, the Lab term on a subset of blocks)."""
+        from ..losses.graphs import GraphedFn  # lazy: imports Warp
+
+        if (not self.cfg.terms_cuda_graphs or any(self.on[t] for t in self.EAGER_ONLY)
+                or any(i is not None for i in self.tg.lab_index) or not self.tg.coverage[0].is_cuda):
+            return None
+        return GraphedFn(partial(self.image_terms, in_graph=True), n_grad=3)
+
+    def graphed_terms(self, args: tuple) -> torch.Tensor | None:
+        """``image_terms`` replayed from its graph, or None (no graph: the caller runs it eagerly). A first capture
+        that fails (a kernel the capture cannot record) says so once and leaves the run eager."""
+        g = self.terms_graph
+        if g is None:
+            return None
+        if g.graphs:
+            return g(*args)
+        try:
+            return g(*args)
+        except RuntimeError as e:
+            warnings.warn(f"the stylize terms run eagerly: their CUDA graph could not be captured ({e})")
+            self.terms_graph = None
+            return None
+
+    def image_names(self) -> list:
+        return [t for t in self.IMAGE_TERMS if self.on[t]]
+
+    def image_terms(self, color, alpha, depth, coverage, field, photo_feats, content_scale, inv_depth, lab_stats,
+                    in_graph: bool = False, lab_index: torch.Tensor | None = None) -> torch.Tensor:
+        """The terms read off the render alone and the VGG features the style terms match, packed: [T + F], the
+        ``image_names`` terms in order, then (with VGG on) the style term's features [768, Nc] flat (the match reads
+        and caches per view, so it stays outside), and with ``style_color`` the RGB ones after them. From the render's colour [H,W,3], alpha [H,W] and depth [H,W] and the
+        view's constants: coverage [H,W,1], stroke field [H,W,2], photo features [768,Nc], content scale [],
+        inverse depth [H,W], Lab target statistics [4]. One tensor in terms of tensors only, so that on CUDA the
+        call replays as one graph each way (``in_graph``: inside it the VGG pass and the field terms run as
+        plain calls, not graphs of their own, and the Lab term through torch's kernels, not Warp's)."""
+        from ..losses import content_loss, gray_gradient, lab_chroma_loss, luminance  # lazy: imports Warp
+        from ..losses.color import lab_chroma_loss_torch
+
+        on, out = self.on, []
         # the style and content terms see the render only where the scene was: pixels of an empty background
         # (a Blender scene's white) would otherwise pull splats out to paint them
-        img = over_background(view.out.color, tg.coverage[vi], run.background)
+        img = over_background(color, coverage, self.over_bg)
         # what the luminance-only terms see: the same image, its gradient along the grey axis with luminance_grad gray
         img_y = gray_gradient(img) if self.cfg.loss.luminance_grad == "gray" else img
-        terms = {}
-        if self.vgg_on:
-            if self.cfg.loss.luminance_only:  # the style term sees luminance, the content term RGB: one batch
-                a, a_rgb = self.vgg.features_of([luminance(img_y), img], self.cfg.vgg_scale)
-            else:
-                a = a_rgb = self.vgg.features_of([img], self.cfg.vgg_scale)[0]
-            t.mark("vgg")
-            if on["style"]:
-                terms["style"] = self.style_fn(a, key=vi)  # the key: a view's match may be reused (fast_refresh)
-            if on["style_gram"]:  # texture statistics over the whole view: strokes where matching finds none
-                terms["style_gram"] = self.gram_fn(a)
-            if on["style_swd"]:
-                terms["style_swd"] = self.swd_fn(self.covered_samples(a, vi, feature_cells=True))
-            if on["style_color"]:
-                terms["style_color"] = self.color_fn(a_rgb, key=vi)
-            if on["color_swd"]:
-                terms["color_swd"] = self.color_swd_fn(self.colour_samples(self.covered_samples(img, vi)))
-            t.mark("style")
-            if on["content"]:
-                terms["content"] = content_loss(a_rgb, tg.photo_feats[vi]) * tg.content_scale[vi]
+        a = a_rgb = None
+        kw = {"graphs": False} if in_graph else {}  # no graph of the pass's own inside this one
+        if self.vgg_on and self.cfg.loss.luminance_only:  # the style term sees luminance, the content term RGB: one batch
+            a, a_rgb = self.vgg.features_of([luminance(img_y), img], self.cfg.vgg_scale, **kw)
+        elif self.vgg_on:
+            a = a_rgb = self.vgg.features_of([img], self.cfg.vgg_scale, **kw)[0]
+        if on["content"]:
+            out.append(content_loss(a_rgb, photo_feats) * content_scale)
         if on["depth"]:
-            terms["depth"] = ((inverse_depth(view.out.depth) - tg.inv_depth[vi]) ** 2).mean()
+            out.append(((inverse_depth(depth) - inv_depth) ** 2).mean())
         if on["tv"]:
-            terms["tv"] = tv_loss(img)
+            out.append(tv_loss(img))
         if on["chroma_tv"]:
-            terms["chroma_tv"] = chroma_tv_loss(img)
+            out.append(chroma_tv_loss(img))
+        if on["orient"] or on["stroke"]:
+            # orient: the render's own orientation against the view's stroke field; stroke: contrast across the
+            # field up to the painting's, along it no more than it
+            fn = self.field_terms
+            orient, stroke = (getattr(fn, "fn", fn) if in_graph else fn)(img_y, field, coverage).unbind()
+            if on["stroke"]:
+                out.append(stroke)
+        if on["coverage"]:
+            out.append(coverage_loss(alpha, coverage))
+        if on["silhouette"]:
+            out.append(silhouette_loss(alpha, coverage))
+        if on["lab"]:
+            lab_in = lab_input(img, self.cfg.loss.lab_block, lab_index)
+            out.append(lab_chroma_loss_torch(lab_in, lab_stats) if in_graph
+                       else lab_chroma_loss(lab_in, target_stats=lab_stats))
+        if on["orient"]:
+            out.append(orient)
+        feats = [] if a is None else [a.reshape(-1)] + ([a_rgb.reshape(-1)] if on["style_color"] else [])
+        return torch.cat([torch.stack(out) if out else img.new_zeros(0), *feats])
+
+    def terms(self, run: Run, view: View) -> dict:
+        # lazy: imports Warp
+        from ..losses import detail_energy
+        from ..losses.palette import palette_snap_loss
+
+        tg, on, t, vi, o = self.tg, self.on, run.timer, view.index, view.out
+        p, anchors = run.params, run.density.tracked
+        args = (o.color, o.alpha, o.depth, tg.coverage[vi], self.fields[vi][..., :2], tg.photo_feats[vi],
+                self.content_scales[vi], tg.inv_depth[vi], tg.lab_stats[vi])
+        packed = self.graphed_terms(args) if o.color.is_cuda and torch.is_grad_enabled() else None
+        if packed is None:
+            packed = self.image_terms(*args, lab_index=tg.lab_index[vi])
+        names = self.image_names()
+        image = dict(zip(names, packed[:len(names)].unbind()))
+        feats = packed[len(names):].view(-1, tg.photo_feats[vi].shape[0], tg.photo_feats[vi].shape[1])  # [1|2,768,Nc]
+        t.mark("vgg")
+        terms = {}
+        if on["style"]:
+            terms["style"] = self.style_fn(feats[0], key=vi)  # the key: a view's match may be reused (fast_refresh)
+        t.mark("style")
+        img = over_background(o.color, tg.coverage[vi], run.background)  # what the eager-only terms below read
+        if on["style_gram"]:  # texture statistics over the whole view: strokes where matching finds none
+            terms["style_gram"] = self.gram_fn(feats[0])
+        if on["style_swd"]:
+            terms["style_swd"] = self.swd_fn(self.covered_samples(feats[0], vi, feature_cells=True))
+        if on["style_color"]:
+            terms["style_color"] = self.color_fn(feats[1], key=vi)
+        if on["color_swd"]:
+            terms["color_swd"] = self.color_swd_fn(self.colour_samples(self.covered_samples(img, vi)))
+        for name in ("content", "depth", "tv", "chroma_tv"):
+            if name in image:
+                terms[name] = image[name]
         if on["palette"]:
             terms["palette"] = palette_snap_loss(img, tg.colours, tg.coverage[vi])
         if on["detail"]:
             terms["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
-        if on["orient"] or on["stroke"]:
-            # orient: the render's own orientation against the view's stroke field; stroke: contrast across the
-            # field up to the painting's, along it no more than it. clone: a graph's output is overwritten by the
-            # next view's replay, and the logged terms are read later
-            orient, stroke = self.field_terms(img_y, self.fields[vi][..., :2], tg.coverage[vi]).clone().unbind()
-            if on["stroke"]:
-                terms["stroke"] = stroke
-        if on["coverage"]:
-            terms["coverage"] = coverage_loss(view.out.alpha, tg.coverage[vi])
-        if on["silhouette"]:
-            terms["silhouette"] = silhouette_loss(view.out.alpha, tg.coverage[vi])
+        for name in ("stroke", "coverage", "silhouette"):
+            if name in image:
+                terms[name] = image[name]
         if on["opacity_reg"]:
             terms["opacity_reg"] = anchor_norm(p.opacity_logits, anchors["opacity_logits"])
         if on["scale_reg"]:
             terms["scale_reg"] = anchor_norm(p.log_scales, anchors["log_scales"])
         if on["lab"]:
-            terms["lab"] = lab_chroma_loss(lab_input(img, self.cfg.loss.lab_block, tg.lab_index[vi]),
-                                           target_stats=tg.lab_stats[vi])
+            terms["lab"] = image["lab"]
         if on["orient"]:
-            terms["orient"] = orient  # in STYLIZE_TERMS's place: the sum's order is the logged one
+            terms["orient"] = image["orient"]  # in STYLIZE_TERMS's place: the sum's order is the logged one
         t.mark("terms")
         if self.render_weights:
             terms["align"], terms["aniso"] = flow_terms(view.gaussians, view.cam, self.fields[vi], view.out.weights)
