@@ -39,6 +39,8 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   step-profile       is a fern stylize step host-bound? (benchmarks/profile_step.py: wall per step, GPU time
                      per step, top kernels; ARGS go to the run, e.g. --set terms_cuda_graphs=false; WARM, TIMED:
                      the steps timed without the profiler).
+  setup-profile [N]  where a stylize run's fixed costs go: cProfile of fern stylized for N iterations (default 30),
+                     the package's functions by cumulative time (set-up, outputs, start-up).
   fit-vs-gsplat [ARGS]
                      fern (images_4, 7000 iterations) fitted by `reconstruct`'s fit and by a minimal trainer on
                      gsplat 1.5.3's rasterization and DefaultStrategy, same views, loss and schedule
@@ -148,6 +150,12 @@ case "$cmd" in
   host-profile) exec python3 benchmarks/profile_host.py "$@";;
   cost-curves) gpu; exec python3 benchmarks/cost_curves.py --out "$OUT/cost_curves" "$@";;
   step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet "$@";;
+  setup-profile)
+    python3 -m cProfile -o "$OUT/setup.prof" -m tlvg_warp stylize $FERN --iterations "${1:-30}" --out "$R/setup_run" \
+      --overwrite --quiet > "$R/setup_run.log" 2>&1; tail -n 3 "$R/setup_run.log"
+    metrics "$R/setup_run/metrics.json" wall_time_s setup_time_s train_time_s outputs_time_s
+    python3 -c "import pstats, sys; s = pstats.Stats(sys.argv[1]); s.sort_stats('cumulative').print_stats(70)" \
+      "$OUT/setup.prof" | grep -v "^$" | cut -c1-170;;
   ssim) exec python3 benchmarks/ssim_check.py;;
   fit-vs-gsplat) gpu; TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16} exec python3 \
     benchmarks/gsplat_trainer.py "$D/fern_llff" --images images_4 --iterations 7000 --raster ours,gsplat --out "$OUT" "$@";;
