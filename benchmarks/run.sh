@@ -74,6 +74,12 @@ EOF
 D=${DATA:-/tmp/tlvg-data}; F=${FITS:-/tmp/tlvg-fits}; OUT=${OUT:-/tmp/tlvg-out}; R=/tmp/tlvg-runs
 mkdir -p "$F" "$OUT" "$R"
 export OUT PYTHONUNBUFFERED=1
+# compiled bytecode kept between processes, as a pip install leaves it: under PYTHONDONTWRITEBYTECODE, with no .pyc in
+# site-packages, every process compiles the ~900 modules it imports (torch's: 2.3 s of each start on the GPU host).
+# BYTECODE=0 measures the environment as it is
+if [ "${BYTECODE:-1}" = 1 ]; then
+  unset PYTHONDONTWRITEBYTECODE; export PYTHONPYCACHEPREFIX=${PYTHONPYCACHEPREFIX:-/tmp/tlvg-pycache}
+fi
 [ -d /tmp/tlvg-gpu/site ] && export PYTHONPATH=/tmp/tlvg-gpu/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
 source "$(dirname "${BASH_SOURCE[0]}")/source_view.sh"; export PYTHONPATH=$(source_view .)${PYTHONPATH:+:$PYTHONPATH}  # kernels/ as tlvg_warp.kernels
 [ -z "${TLVG_VGG_WEIGHTS:-}" ] && [ -f /tmp/tlvg-gpu/vgg16_hed.pt ] && export TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt
