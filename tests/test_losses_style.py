@@ -169,6 +169,29 @@ def test_fast_solve_fallback_is_identity_and_bad_solve_name():
         fast_loss(a, s, solve="float16")
 
 
+def test_nearest_cell_is_the_float64_argmax(monkeypatch):
+    """The k = 1 match (NNFM, the field match) against numpy's float64 argmax of the cosines, whole and in row chunks,
+    with and without the column pass. A painting with cells repeated gives ties up to the product's rounding: there
+    either copy is right, and its cosine is the maximum (catches argmax over the wrong axis or a chunk's offset)."""
+    a, s = feats(30, 6, 23), feats(31, 6, 17)
+    s = np.concatenate([s, s[:, 4:9]], 1)  # columns 17..21 repeat 4..8
+    an, sn = a / np.linalg.norm(a, axis=0), s / np.linalg.norm(s, axis=0)
+    sim = an.T @ sn
+    def original(i):  # a copy's original column
+        return np.where(i >= 17, i - 13, i)
+
+    want = original(np.argmax(sim, 1))
+    assert np.isin(want, np.arange(4, 9)).any()  # some render cells' nearest is a repeated one
+    for budget in (1 << 25, 40):
+        monkeypatch.setattr(style_mod, "SIM_BUDGET", budget)
+        for need_cols in (False, True):
+            idx_r, _ = style_mod._topk_both(torch.from_numpy(a), style_mod.StyleFeatures(torch.from_numpy(s)), 1,
+                                            need_cols=need_cols)
+            got = idx_r[:, 0].numpy()
+            assert idx_r.shape == (23, 1) and np.array_equal(original(got), want)
+            assert np.allclose(sim[np.arange(23), got], sim.max(1), rtol=0, atol=1e-12)
+
+
 def test_topk_both_and_union_against_dense_brute_force(monkeypatch):
     a, s = feats(24, 7, 29), feats(25, 7, 41)  # 29 render cells: padded to 32 in the column product
     an, sn = a / np.linalg.norm(a, axis=0), s / np.linalg.norm(s, axis=0)

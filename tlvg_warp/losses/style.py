@@ -151,7 +151,9 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     best_v = best_i = None  # CPU: running column top-k over the row chunks [kc', Ns]
     for i0, i1 in _chunks(nc, ns):
         sim = anT[i0:i1] @ sn  # [m, Ns]
-        idx_r[i0:i1] = sim.topk(kr, dim=1).indices
+        # the nearest neighbour alone (NNFM, the field match) is one pass of argmax, where topk's radix select makes
+        # several over the same rows; ties go to the first painting cell
+        idx_r[i0:i1] = sim.argmax(1, keepdim=True) if kr == 1 else sim.topk(kr, dim=1).indices
         if need_cols and not two:
             v, i = sim.topk(min(kc, i1 - i0), dim=0)  # [k', Ns]
             if i0:
