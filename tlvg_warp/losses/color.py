@@ -207,7 +207,7 @@ def lab_chroma_loss_torch(render: torch.Tensor, target_stats: torch.Tensor) -> t
     version takes ~8): what a CUDA graph of the stylize terms replays, since it records only torch's own kernels."""
     ab = rgb_to_lab(render.reshape(-1, 3))[:, 1:]  # [P,2]
     var, mu = torch.var_mean(ab, dim=0, correction=0)
-    sd = var.clamp_min(_VAR_FLOOR).sqrt()  # a grey render (σ = 0) gets a 0 gradient there, as the Warp version, not NaN
+    sd = var.clamp_min(_VAR_FLOOR).sqrt()  # a grey render (σ = 0): a 0 gradient there, as the Warp version; not NaN
     return 0.5 * torch.linalg.vector_norm(torch.cat([mu, sd]) - target_stats.reshape(4), ord=1)
 
 

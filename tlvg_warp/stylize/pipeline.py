@@ -509,11 +509,13 @@ class Stylize(Phase):
                     in_graph: bool = False, lab_index: torch.Tensor | None = None) -> torch.Tensor:
         """The terms read off the render alone and the VGG features the style terms match, packed: [T + F], the
         ``image_names`` terms in order, then (with VGG on) the style term's features [768, Nc] flat (the match reads
-        and caches per view, so it stays outside), and with ``style_color`` the RGB ones after them. From the render's colour [H,W,3], alpha [H,W] and depth [H,W] and the
-        view's constants: coverage [H,W,1], stroke field [H,W,2], photo features [768,Nc], content scale [],
-        inverse depth [H,W], Lab target statistics [4]. One tensor in terms of tensors only, so that on CUDA the
-        call replays as one graph each way (``in_graph``: inside it the VGG pass and the field terms run as
-        plain calls, not graphs of their own, and the Lab term through torch's kernels, not Warp's)."""
+        and caches per view, so it stays outside), and with ``style_color`` the RGB ones after them. From the
+        render's colour [H,W,3], alpha [H,W] and depth [H,W] and the view's constants: coverage [H,W,1], stroke
+        field [H,W,2], photo features [768,Nc], content scale [], inverse depth [H,W], Lab target statistics [4].
+        One tensor in terms of tensors only, so that on CUDA the call replays as one graph each way (``in_graph``:
+        inside it the VGG pass and the field terms run as plain calls, not graphs of their own, and the Lab term
+        through torch's kernels, not Warp's). The graph's output buffer is overwritten by the next view's replay:
+        the loop reads the terms (logs them, runs the backward) within the step."""
         from ..losses import content_loss, gray_gradient, lab_chroma_loss, luminance  # lazy: imports Warp
         from ..losses.color import lab_chroma_loss_torch
 
@@ -525,7 +527,8 @@ class Stylize(Phase):
         img_y = gray_gradient(img) if self.cfg.loss.luminance_grad == "gray" else img
         a = a_rgb = None
         kw = {"graphs": False} if in_graph else {}  # no graph of the pass's own inside this one
-        if self.vgg_on and self.cfg.loss.luminance_only:  # the style term sees luminance, the content term RGB: one batch
+        # luminance_only: the style term sees luminance, the content term RGB, in one batch
+        if self.vgg_on and self.cfg.loss.luminance_only:
             a, a_rgb = self.vgg.features_of([luminance(img_y), img], self.cfg.vgg_scale, **kw)
         elif self.vgg_on:
             a = a_rgb = self.vgg.features_of([img], self.cfg.vgg_scale, **kw)[0]
