@@ -67,3 +67,27 @@ def test_terms_graph_option_changes_nothing_on_the_cpu(inputs):
     on, off = _run(inputs, "cpu"), _run(inputs, "cpu", "terms_cuda_graphs=false")
     assert on.log == off.log
     assert torch.equal(on.gaussians.sh, off.gaussians.sh) and torch.equal(on.gaussians.means, off.gaussians.means)
+
+
+def test_a_capture_that_fails_leaves_the_run_eager_and_a_replay_error_propagates():
+    """``Stylize.graphed_terms``: a first call whose capture raises warns once and drops the graph (the caller then
+    runs the terms eagerly); once a graph was captured, an error in a later call is not swallowed (catches a fallback
+    that hides real failures, or none at all)."""
+    from types import SimpleNamespace
+
+    from tlvg_warp.stylize.pipeline import Stylize
+
+    class Failing:
+        def __init__(self, captured):
+            self.graphs = {"shape": object()} if captured else {}
+
+        def __call__(self, *args):
+            raise RuntimeError("operation not permitted when stream is capturing")
+
+    phase = SimpleNamespace(terms_graph=Failing(captured=False))
+    with pytest.warns(UserWarning, match="run eagerly"):
+        assert Stylize.graphed_terms(phase, ()) is None
+    assert phase.terms_graph is None and Stylize.graphed_terms(phase, ()) is None
+    phase = SimpleNamespace(terms_graph=Failing(captured=True))
+    with pytest.raises(RuntimeError, match="capturing"):
+        Stylize.graphed_terms(phase, ())
