@@ -75,7 +75,7 @@ D=${DATA:-/tmp/tlvg-data}; F=${FITS:-/tmp/tlvg-fits}; OUT=${OUT:-/tmp/tlvg-out};
 mkdir -p "$F" "$OUT" "$R"
 export OUT PYTHONUNBUFFERED=1
 # compiled bytecode kept between processes, as a pip install leaves it: under PYTHONDONTWRITEBYTECODE, with no .pyc in
-# site-packages, every process compiles the ~900 modules it imports (torch's: 2.3 s of each start on the GPU host).
+# site-packages, every process compiles the modules it imports again (docs/performance.md: "compiled bytecode").
 # BYTECODE=0 measures the environment as it is
 if [ "${BYTECODE:-1}" = 1 ]; then
   unset PYTHONDONTWRITEBYTECODE; export PYTHONPYCACHEPREFIX=${PYTHONPYCACHEPREFIX:-/tmp/tlvg-pycache}

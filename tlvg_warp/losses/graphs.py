@@ -36,7 +36,7 @@ class GraphedCall:
         with torch.cuda.stream(side):
             for _ in range(self.WARMUP):
                 out = fn(*self.xs, *self.aux)
-                torch.autograd.grad(out.sum(), self.xs)
+                torch.autograd.grad(out.sum(), self.xs, allow_unused=True)
             del out
         torch.cuda.current_stream(dev).wait_stream(side)
         pool = torch.cuda.graph_pool_handle()
@@ -45,7 +45,9 @@ class GraphedCall:
             self.out = fn(*self.xs, *self.aux)  # static
         self.grad_out = torch.zeros_like(self.out)  # static seed, written before each backward replay
         with torch.cuda.graph(self.backward_graph, pool=pool):
-            self.grads = torch.autograd.grad((self.out * self.grad_out).sum(), self.xs)  # static
+            # static; an input the call does not read (e.g. depth with its term off) gets zeros
+            self.grads = torch.autograd.grad((self.out * self.grad_out).sum(), self.xs, allow_unused=True,
+                                             materialize_grads=True)
 
     def __call__(self, *inputs: torch.Tensor) -> torch.Tensor:
         n = len(self.xs)
