@@ -41,6 +41,10 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      the steps timed without the profiler).
   setup-profile [N]  where a stylize run's fixed costs go: cProfile of fern stylized for N iterations (default 30),
                      the package's functions by cumulative time (set-up, outputs, start-up).
+  intersection-drift [ARGS]
+                     fern stylized 3000 iterations with every training render's tile-intersection count recorded:
+                     how far a view's count moves between visits (benchmarks/intersection_drift.py), the headroom a
+                     buffer sized from the last visit would need.
   fit-vs-gsplat [ARGS]
                      fern (images_4, 7000 iterations) fitted by `reconstruct`'s fit and by a minimal trainer on
                      gsplat 1.5.3's rasterization and DefaultStrategy, same views, loss and schedule
@@ -154,6 +158,8 @@ case "$cmd" in
   cuda-tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py tests/test_losses_vgg.py tests/test_losses_stroke.py \
     tests/test_stroke_hinge.py::test_field_terms_as_a_cuda_graph_match_eager tests/test_stylize_graph.py::test_stylize_terms_as_one_cuda_graph_match_eager;;  # the other tests of those two files run Warp's CPU kernels
   host-profile) exec python3 benchmarks/profile_host.py "$@";;
+  intersection-drift) exec python3 benchmarks/intersection_drift.py $FERN --iterations 3000 --out "$R/drift" --overwrite \
+    --quiet "$@";;
   cost-curves) gpu; exec python3 benchmarks/cost_curves.py --out "$OUT/cost_curves" "$@";;
   step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet "$@";;
   setup-profile)
