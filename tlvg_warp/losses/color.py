@@ -141,7 +141,7 @@ def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
     """sRGB in [0,1], channel-last [...,3] -> Lab (L in [0,100], a/b roughly [-128,127]); differentiable."""
     c = rgb.clamp_min(0.0)  # renders are >= 0 by construction; negatives have no sRGB meaning
     lin = torch.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055).clamp_min(_TINY) ** 2.4)
-    m, white = _lab_constants(rgb.dtype, rgb.device)
+    m, white = _constant(_RGB2XYZ, rgb.dtype, rgb.device), _constant(_WHITE, rgb.dtype, rgb.device)
     xyz = lin @ m.T / white  # [...,3], normalized by the white point
     f = torch.where(xyz > _EPS_T, xyz.clamp_min(_TINY) ** (1.0 / 3.0), xyz / (3 * (6.0 / 29.0) ** 2) + 4.0 / 29.0)
     L = 116.0 * f[..., 1] - 16.0
@@ -150,28 +150,23 @@ def rgb_to_lab(rgb: torch.Tensor) -> torch.Tensor:
     return torch.stack([L, a, b], dim=-1)
 
 
-_lab_consts: dict = {}  # (dtype, device) -> (RGB->XYZ, white): made once, so that rgb_to_lab copies
-# nothing from the host per call (a CUDA graph cannot capture such a copy)
+_on_device: dict = {}  # (a module constant's id, dtype, device) -> that constant there: made once, so that no call
+# copies from the host (a copy from pageable memory waits for the GPU, and a CUDA graph cannot capture it)
 
 
-def _lab_constants(dtype, device) -> tuple:
-    key = (dtype, str(device))
-    c = _lab_consts.get(key)
+def _constant(t: torch.Tensor, dtype, device) -> torch.Tensor:
+    key = (id(t), dtype, str(device))
+    c = _on_device.get(key)
     if c is None:
-        c = _lab_consts[key] = (_RGB2XYZ.to(dtype=dtype, device=device),
-                                _WHITE.to(dtype=dtype, device=device))
+        c = _on_device[key] = t.to(dtype=dtype, device=device)
     return c
 
 
-_lumas: dict = {}  # (dtype, device) -> the luma weights: built once, never copied to the device per call
+_LUMA = torch.tensor(LUMA, dtype=torch.float64)
 
 
 def _luma(dtype, device) -> torch.Tensor:
-    key = (dtype, str(device))
-    t = _lumas.get(key)
-    if t is None:
-        t = _lumas[key] = torch.tensor(LUMA, dtype=dtype, device=device)
-    return t
+    return _constant(_LUMA, dtype, device)
 
 
 def lab_chroma_stats(img: torch.Tensor) -> torch.Tensor:

@@ -405,6 +405,7 @@ class Stylize(Phase):
         self.terms_graph = None  # on CUDA: image_terms as one graph (made in setup)
         self.content_scales = None  # per view the content scale as a device scalar (image_terms' argument)
         self.over_bg = None  # the run's background, that image_terms composites over
+        self.image_names = [t for t in self.IMAGE_TERMS if self.on[t]]  # image_terms' outputs, in order
 
     def weights(self, k: int) -> dict:
         return dict(self.const, lab=self.cfg.loss.lab_weight(k, self.steps))
@@ -471,7 +472,7 @@ class Stylize(Phase):
             out.append(flow_field_tensor(d.to(device=run.device, dtype=torch.float32)))
         return out
 
-    # the terms read off the render alone, in STYLIZE_TERMS's order (``image_terms`` computes the live ones)
+    # the terms read off the render alone (``image_terms`` computes those that are on)
     IMAGE_TERMS = ("content", "depth", "tv", "chroma_tv", "stroke", "coverage", "silhouette", "lab", "orient")
     # terms that read the render too but not in ``image_terms``: with one of them on, the terms stay eager
     EAGER_ONLY = ("style_gram", "style_swd", "style_color", "color_swd", "palette", "detail")
@@ -493,22 +494,19 @@ class Stylize(Phase):
         g = self.terms_graph
         if g is None:
             return None
-        if g.graphs:
-            return g(*args)
         try:
             return g(*args)
         except RuntimeError as e:
+            if g.graphs:  # captured before: a failure of its own, not the capture's
+                raise
             warnings.warn(f"the stylize terms run eagerly: their CUDA graph could not be captured ({e})")
             self.terms_graph = None
             return None
 
-    def image_names(self) -> list:
-        return [t for t in self.IMAGE_TERMS if self.on[t]]
-
     def image_terms(self, color, alpha, depth, coverage, field, photo_feats, content_scale, inv_depth, lab_stats,
                     in_graph: bool = False, lab_index: torch.Tensor | None = None) -> torch.Tensor:
         """The terms read off the render alone and the VGG features the style terms match, packed: [T + F], the
-        ``image_names`` terms in order, then (with VGG on) the style term's features [768, Nc] flat (the match reads
+        ``image_names`` terms, then (with VGG on) the style term's features [768, Nc] flat (the match reads
         and caches per view, so it stays outside), and with ``style_color`` the RGB ones after them. From the
         render's colour [H,W,3], alpha [H,W] and depth [H,W] and the view's constants: coverage [H,W,1], stroke
         field [H,W,2], photo features [768,Nc], content scale [], inverse depth [H,W], Lab target statistics [4].
@@ -561,10 +559,6 @@ class Stylize(Phase):
         return torch.cat([torch.stack(out) if out else img.new_zeros(0), *feats])
 
     def terms(self, run: Run, view: View) -> dict:
-        # lazy: imports Warp
-        from ..losses import detail_energy
-        from ..losses.palette import palette_snap_loss
-
         tg, on, t, vi, o = self.tg, self.on, run.timer, view.index, view.out
         p, anchors = run.params, run.density.tracked
         args = (o.color, o.alpha, o.depth, tg.coverage[vi], self.fields[vi][..., :2], tg.photo_feats[vi],
@@ -572,46 +566,45 @@ class Stylize(Phase):
         packed = self.graphed_terms(args) if o.color.is_cuda and torch.is_grad_enabled() else None
         if packed is None:
             packed = self.image_terms(*args, lab_index=tg.lab_index[vi])
-        names = self.image_names()
-        image = dict(zip(names, packed[:len(names)].unbind()))
-        feats = packed[len(names):].view(-1, tg.photo_feats[vi].shape[0], tg.photo_feats[vi].shape[1])  # [1|2,768,Nc]
+        n = len(self.image_names)
+        found = dict(zip(self.image_names, packed[:n].unbind()))
+        feats = packed[n:].view(-1, *tg.photo_feats[vi].shape)  # [1|2,768,Nc]: luminance (and RGB) features
         t.mark("vgg")
-        terms = {}
         if on["style"]:
-            terms["style"] = self.style_fn(feats[0], key=vi)  # the key: a view's match may be reused (fast_refresh)
+            found["style"] = self.style_fn(feats[0], key=vi)  # the key: a view's match may be reused (fast_refresh)
         t.mark("style")
-        img = over_background(o.color, tg.coverage[vi], run.background)  # what the eager-only terms below read
-        if on["style_gram"]:  # texture statistics over the whole view: strokes where matching finds none
-            terms["style_gram"] = self.gram_fn(feats[0])
-        if on["style_swd"]:
-            terms["style_swd"] = self.swd_fn(self.covered_samples(feats[0], vi, feature_cells=True))
-        if on["style_color"]:
-            terms["style_color"] = self.color_fn(feats[1], key=vi)
-        if on["color_swd"]:
-            terms["color_swd"] = self.color_swd_fn(self.colour_samples(self.covered_samples(img, vi)))
-        for name in ("content", "depth", "tv", "chroma_tv"):
-            if name in image:
-                terms[name] = image[name]
-        if on["palette"]:
-            terms["palette"] = palette_snap_loss(img, tg.colours, tg.coverage[vi])
-        if on["detail"]:
-            terms["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
-        for name in ("stroke", "coverage", "silhouette"):
-            if name in image:
-                terms[name] = image[name]
+        if any(on[name] for name in self.EAGER_ONLY):
+            found.update(self.eager_terms(run, view, feats))
         if on["opacity_reg"]:
-            terms["opacity_reg"] = anchor_norm(p.opacity_logits, anchors["opacity_logits"])
+            found["opacity_reg"] = anchor_norm(p.opacity_logits, anchors["opacity_logits"])
         if on["scale_reg"]:
-            terms["scale_reg"] = anchor_norm(p.log_scales, anchors["log_scales"])
-        if on["lab"]:
-            terms["lab"] = image["lab"]
-        if on["orient"]:
-            terms["orient"] = image["orient"]  # in STYLIZE_TERMS's place: the sum's order is the logged one
+            found["scale_reg"] = anchor_norm(p.log_scales, anchors["log_scales"])
         t.mark("terms")
         if self.render_weights:
-            terms["align"], terms["aniso"] = flow_terms(view.gaussians, view.cam, self.fields[vi], view.out.weights)
+            found["align"], found["aniso"] = flow_terms(view.gaussians, view.cam, self.fields[vi], view.out.weights)
         t.mark("flow")
-        return terms
+        return {name: found[name] for name in STYLIZE_TERMS if name in found}  # the sum's order is the logged one
+
+    def eager_terms(self, run: Run, view: View, feats: torch.Tensor) -> dict:
+        """The EAGER_ONLY terms that are on, from the step's VGG features ``feats`` [1|2,768,Nc] and the render."""
+        from ..losses import detail_energy  # lazy: imports Warp
+        from ..losses.palette import palette_snap_loss
+
+        tg, on, vi, out = self.tg, self.on, view.index, {}
+        img = over_background(view.out.color, tg.coverage[vi], run.background)
+        if on["style_gram"]:  # texture statistics over the whole view: strokes where matching finds none
+            out["style_gram"] = self.gram_fn(feats[0])
+        if on["style_swd"]:
+            out["style_swd"] = self.swd_fn(self.covered_samples(feats[0], vi, feature_cells=True))
+        if on["style_color"]:
+            out["style_color"] = self.color_fn(feats[1], key=vi)
+        if on["color_swd"]:
+            out["color_swd"] = self.color_swd_fn(self.colour_samples(self.covered_samples(img, vi)))
+        if on["palette"]:
+            out["palette"] = palette_snap_loss(img, tg.colours, tg.coverage[vi])
+        if on["detail"]:
+            out["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
+        return out
 
     def find_covered(self) -> None:
         """Per view, the pixels and the VGG cells the un-stylized scene covered (alpha >= 0.5; a cell by its mean):
