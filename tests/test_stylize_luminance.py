@@ -67,3 +67,30 @@ def test_directional_derivative_by_finite_differences(setup):
     assert abs(float(fd_lum)) < ZERO_TOL
     assert abs(float(fd_rgb)) > RGB_MIN
     assert abs(float(same)) < 1e-12
+
+
+def test_chroma_tv_in_lab_is_opencv_lab_tv():
+    """loss.chroma_tv_space lab: the TV of Lab a*, b* x LAB_TV_SCALE. Oracle: OpenCV's Lab (float path) of the same
+    image, its neighbour differences summed in numpy. Catches L* read instead of a*, b*, a lost scale, the RGB
+    chroma residual read in lab mode; and a grey-axis stripe on a saturated dark blue, whose Lab chroma moves with
+    lightness, costs in Lab and not in RGB (on grey, in neither)."""
+    import cv2
+    import numpy as np
+
+    from tlvg_warp.stylize.pipeline import LAB_TV_SCALE, chroma_tv_loss
+
+    gen = torch.Generator().manual_seed(2)
+    img = torch.rand(9, 11, 3, generator=gen, dtype=torch.float64)
+    ab = cv2.cvtColor(img.numpy().astype(np.float32), cv2.COLOR_RGB2Lab)[..., 1:].astype(np.float64) * LAB_TV_SCALE
+    want = (np.diff(ab, axis=0) ** 2).mean() + (np.diff(ab, axis=1) ** 2).mean()
+    assert float(chroma_tv_loss(img, "lab")) == pytest.approx(want, rel=2e-3)
+
+    def stripes(base):  # alternate columns 0.05 darker along the grey axis
+        out = torch.tensor(base, dtype=torch.float64).expand(6, 6, 3).clone()
+        out[:, ::2] -= 0.05
+        return out
+
+    blue, grey = stripes((0.08, 0.08, 0.45)), stripes((0.45, 0.45, 0.45))
+    assert float(chroma_tv_loss(grey, "lab")) < 1e-9 and float(chroma_tv_loss(grey, "rgb")) < 1e-12
+    # RGB's chroma residual does not see a grey-axis stripe at all; Lab's chroma does, on the saturated blue
+    assert float(chroma_tv_loss(blue, "rgb")) < 1e-12 and float(chroma_tv_loss(blue, "lab")) > 1e-5

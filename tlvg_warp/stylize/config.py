@@ -40,6 +40,9 @@ class StyleLoss:
     w_depth: float = 0.01  # MSE of inverse depth vs the un-stylized scene (reference code)
     w_tv: float = 0.02  # total variation of the render, horizontal + vertical (reference code, corrected)
     w_chroma_tv: float = 0.0  # TV of the render's chroma (RGB minus luminance): clean colour patches (ours; 0: off)
+    chroma_tv_space: str = "rgb"  # where that chroma is read: rgb (RGB minus luminance) | lab (Lab a*, b* / 200,
+    # about the same size on average: a lightness step on a saturated dark colour, which moves a*, b* far more than
+    # R - Y, G - Y, B - Y, costs as much as Lab's chroma says; ours)
     w_palette_snap: float = 0.0  # each pixel's chroma pulled to that of the painting colour nearest to it in RGB
     # (k-means of the painting, palette_colours of them): clean colours of the painting's own palette, a stroke's
     # tone choosing which (ours; 0: off; no effect with keep_colors). At 10 and 40 chroma noise rose on every tuning
@@ -98,7 +101,7 @@ class StyleLoss:
 
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
              "field_source": ("of", "stylize_start", "unstylized"),
-             "luminance_grad": ("of", "luma", "gray"),
+             "luminance_grad": ("of", "luma", "gray"), "chroma_tv_space": ("of", "rgb", "lab"),
              "stroke_along": ("of", "ratio", "bounded"),
              "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1), "lab_where": ("of", "all", "covered"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
