@@ -33,10 +33,11 @@ def _run(inputs, device, *over, config="tlvg.yaml"):
 @pytest.mark.parametrize("config", ["tlvg.yaml", "abcgs.yaml"])  # abcgs: RGB FAST outside, alpha read by no term
 def test_stylize_terms_as_one_cuda_graph_match_eager(inputs, monkeypatch, config):
     """Every logged term of three stylize steps (three views: the graph's per-view constants change between calls)
-    equals the eager run's within float32 round-off, and so do the Gaussians after them (the graph's gradient with
-    respect to colour, alpha and depth reached the rasterizer). One capture, of the terms graph (the VGG pass and
-    the field terms are inside it, not captured on their own). Catches a graph that kept its first view's
-    constants, a gradient lost for alpha or depth, a term dropped or reordered in the packing."""
+    equals the eager run's within float32 round-off (abcgs: within its own run-to-run spread), and so do the
+    Gaussians after them (the graph's gradient with respect to colour, alpha and depth reached the rasterizer). One
+    capture, of the terms graph (the VGG pass and the field terms are inside it, not captured on their own).
+    Catches a graph that kept its first view's constants, a gradient lost for alpha or depth, a term dropped or
+    reordered in the packing."""
     captured = []
     real = graphs.GraphedCall.__init__
 
@@ -50,16 +51,22 @@ def test_stylize_terms_as_one_cuda_graph_match_eager(inputs, monkeypatch, config
     eager = _run(inputs, "cuda", "terms_cuda_graphs=false", config=config)
     assert 3 not in captured[1:]  # the eager run captured only the VGG and field-term graphs
     assert len({row["view"] for row in one.log}) >= 2
+    # beyond round-off, abcgs's GPU steps are not deterministic: measured, two eager runs' style terms differed by up
+    # to 6.9e-4 relative by the third step and their Gaussians by up to 6% of how far the steps moved them (Adam
+    # turns tiny gradient differences into whole steps), the graph against eager by up to 7%; tlvg's runs gave the
+    # same bits. A graph that kept a view's constants or lost a gradient moves terms and Gaussians by far more.
+    rel, drift = (2e-4, 1e-3) if config == "tlvg.yaml" else (3e-3, 0.25)
     for a, b in zip(one.log, eager.log):
         assert a["view"] == b["view"]
         for t in TERMS:
-            assert a[t] == pytest.approx(b[t], rel=2e-4, abs=1e-6), (a["step"], t)
+            assert a[t] == pytest.approx(b[t], rel=rel, abs=1e-6), (a["step"], t)
         assert a["content"] > 0 and a["style"] > 0
         if config == "tlvg.yaml":
             assert a["lab"] > 0 and a["stroke"] > 0
     for f in ("means", "sh", "opacity_logits", "log_scales"):
         x, y = getattr(one.gaussians, f), getattr(eager.gaussians, f)
-        assert torch.allclose(x, y, rtol=1e-3, atol=1e-5), f
+        moved = (y - getattr(inputs.gaussians, f).to(y)).norm()
+        assert (x - y).norm() <= drift * moved + 1e-6, (f, float((x - y).norm() / moved))
     start = inputs.gaussians.sh.to(one.gaussians.sh)
     assert not torch.allclose(one.gaussians.sh, start, atol=1e-4)  # the steps did move the colours
 
