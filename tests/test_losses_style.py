@@ -324,3 +324,26 @@ def test_style_loss_state_dict_resumes_the_cache(cache):
             if (key, call) in ((0, 0), (0, 1), (1, 0)):  # reused matches: not FAST of these features
                 assert got != fast_loss(x, s).item()
     assert b_loss.refreshes == a_loss.refreshes
+
+
+@pytest.mark.parametrize("before", [False, True])
+def test_fast_union_leaves_torch_deterministic_flag_as_it_found_it(before):
+    """_fast_union sums through torch's deterministic path (CUDA's atomic index_add_ made abcgs's GPU runs drift
+    apart) and must hand the process back its own setting, on or off, warn-only kept: a leaked flag would make every
+    later nondeterministic op of a user's process warn or raise. Oracle: the flag read before and after, and the
+    union's sums against the dense U of the test above."""
+    a, s = feats(24, 7, 29), feats(25, 7, 41)
+    st = style_mod.StyleFeatures(torch.from_numpy(s))
+    idx_r, idx_c = style_mod._topk_both(torch.from_numpy(a), st, 5)
+    was = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(before, warn_only=before)
+    try:
+        _, _, us = style_mod._fast_union(idx_r, idx_c, a.shape[1], st)
+        assert torch.are_deterministic_algorithms_enabled() is before
+        assert torch.is_deterministic_algorithms_warn_only_enabled() is before
+    finally:
+        torch.use_deterministic_algorithms(was[0], warn_only=was[1])
+    U = np.zeros((29, 41))
+    U[np.arange(29)[:, None], idx_r.numpy()] = 1
+    U[idx_c.numpy(), np.arange(41)[:, None]] = 1
+    assert np.allclose(us.numpy(), U @ s.T, atol=1e-12)

@@ -11,6 +11,8 @@ projection (``key``/``refresh_every``).
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import torch
 import torch.nn.functional as F
 
@@ -177,6 +179,19 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     return idx_r, idx_c
 
 
+@contextmanager
+def _deterministic_sums():
+    """CUDA's ``index_add_`` sums by atomic adds, in an order that changes from run to run: the sums differ in their
+    last bits and Adam turns that into whole steps (two GPU runs of configs/abcgs.yaml drifted apart by 6% of their
+    motion in three steps). Inside this block it takes torch's deterministic (sorted) path; the flag is restored."""
+    was, warn_only = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(was, warn_only=warn_only)
+
+
 @torch.no_grad()
 def _fast_union(idx_r: torch.Tensor, idx_c: torch.Tensor, nc: int, st: "StyleFeatures"):
     """FAST's U (the union of both top-k passes, each entry once) without building it, and without reading
@@ -192,12 +207,13 @@ def _fast_union(idx_r: torch.Tensor, idx_c: torch.Tensor, nc: int, st: "StyleFea
     kr, kc = idx_r.shape[1], idx_c.shape[1]
     dup = (idx_r[idx_c] == st.cols).any(-1)  # [Ns,kc]
     keep = 1.0 - dup.to(sT.dtype)
-    u1 = torch.full((nc,), float(kr), dtype=sT.dtype, device=sT.device).index_add_(0, idx_c.reshape(-1),
-                                                                                    keep.reshape(-1))
-    us = F.embedding_bag(idx_r, sT, mode="sum")  # the row pass: Σ_k sᵀ[idx_r[i,k]]  [Nc,C]
-    # the column pass, repeats sent to a spare row nc that is dropped
     src = sT.unsqueeze(1).expand(ns, kc, c).reshape(ns * kc, c)
-    us = torch.cat([us, us.new_zeros(1, c)]).index_add_(0, torch.where(dup, nc, idx_c).reshape(-1), src)[:nc]
+    with _deterministic_sums():
+        u1 = torch.full((nc,), float(kr), dtype=sT.dtype, device=sT.device).index_add_(0, idx_c.reshape(-1),
+                                                                                        keep.reshape(-1))
+        us = F.embedding_bag(idx_r, sT, mode="sum")  # the row pass: Σ_k sᵀ[idx_r[i,k]]  [Nc,C]
+        # the column pass, repeats sent to a spare row nc that is dropped
+        us = torch.cat([us, us.new_zeros(1, c)]).index_add_(0, torch.where(dup, nc, idx_c).reshape(-1), src)[:nc]
     return keep, u1, us
 
 
