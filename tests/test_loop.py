@@ -205,6 +205,36 @@ def test_normalized_content_is_the_mse_over_the_photo_features_mean_square(demo)
     assert abs(float((photo ** 2).mean()) - 1) > 0.05
 
 
+def test_content_on_luminance_compares_luminance_features_in_one_pass(demo):
+    """loss.content_on luminance: the content term is the feature MSE of the render's luminance against the photo's
+    (float64 oracle from the stub's pooled pixels, Y = 0.299R + 0.587G + 0.114B on all three channels), and a step's
+    feature pass holds one image instead of two (the style term's luminance pass serves both). Catches the RGB photo
+    features compared with luminance render features, the second pass left in, the option ignored."""
+    net = StubFeatures()
+    run, cfg, tg = _stylize_run(demo, net, **{"loss.content_on": "luminance"})
+    sty = run.phase("stylize")
+    sty.setup(run)
+    view = _view(run, 1)
+    net.calls.clear()
+    terms = sty.terms(run, view)
+    assert [c.shape[0] for c in net.calls] == [1]
+    with torch.no_grad():
+        ro0 = render(demo.gaussians, run.cams[1], run.background)
+    cov = ro0.alpha.double().clamp(0, 1)[..., None]
+    img = cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64)
+    luma = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
+    y = lambda x: (x @ luma)[..., None].expand(*x.shape[:-1], 3)  # noqa: E731
+    pool = lambda x: F.avg_pool2d(x.permute(2, 0, 1)[None], 4).reshape(3, -1)  # noqa: E731
+    want = ((pool(y(img)) - pool(y(demo.photos[1].double()))) ** 2).mean()
+    assert float(terms["content"].detach()) == pytest.approx(float(want), rel=TERM_TOL)
+    rgb, _, _ = _stylize_run(demo, net)
+    rgb_sty = rgb.phase("stylize")
+    rgb_sty.setup(rgb)
+    net.calls.clear()
+    rgb_c = float(rgb_sty.terms(rgb, _view(rgb, 1))["content"].detach())
+    assert [c.shape[0] for c in net.calls] == [2] and abs(rgb_c - float(want)) > 1e-3 * float(want)
+
+
 def test_palette_detail_reaches_the_pre_process_targets(demo):
     """palette_detail: the pre-process targets are the palette transfer with the painting's detail put back
     (match_detail against the painting as given), then the photo's background where the scene was empty; the

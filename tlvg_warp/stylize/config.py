@@ -34,6 +34,9 @@ class StyleLoss:
     # painting's strokes over the whole view, where nearest-neighbour matching leaves flat regions smooth (ours; 0: off)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
+    content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
+    # luminance (their luminance features: with luminance_only the style term's own VGG pass, so a step runs one VGG
+    # pass instead of two; ours)
     content_norm: bool = False  # divide the content MSE by the photo features' mean square, per view (ours): the
     # raw MSE scales with how much texture a scene has (relu3 energy of beer's photos is half fern's), so a
     # weight chosen on one scene keeps photo structure unevenly on another; NNFM and FAST are scale-free already
@@ -102,6 +105,7 @@ class StyleLoss:
     RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
              "field_source": ("of", "stylize_start", "unstylized"),
              "luminance_grad": ("of", "luma", "gray"), "chroma_tv_space": ("of", "rgb", "lab"),
+             "content_on": ("of", "rgb", "luminance"),
              "stroke_along": ("of", "ratio", "bounded"),
              "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1), "lab_where": ("of", "all", "covered"),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
@@ -237,6 +241,11 @@ class StylizeConfig:
         pre = int(round(self.iterations * p[0] / tot))
         post = int(round(self.iterations * p[2] / tot))
         return pre, self.iterations - pre - post, post
+
+    def content_luminance(self) -> bool:
+        """Whether the content term compares luminance features (``loss.content_on`` luminance, which needs the
+        luminance-only style term's pass)."""
+        return self.loss.luminance_only and self.loss.content_on == "luminance"
 
     def style_work_height(self, view_height: int) -> int:
         """The painting's working height for views ``view_height`` pixels high (style_height, stroke_scale)."""

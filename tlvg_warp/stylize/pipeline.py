@@ -298,7 +298,8 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
             inv_depth.append(inverse_depth(ro.depth))
             originals.append(ro.color.clamp(0, 1).cpu())
             coverage.append(ro.alpha.clamp(0, 1)[..., None].contiguous())
-            photo_feats.append(flatten_feats(vgg(photo, scale=cfg.vgg_scale)))  # content: RGB
+            content_in = luminance(photo) if cfg.content_luminance() else photo
+            photo_feats.append(flatten_feats(vgg(content_in, scale=cfg.vgg_scale)))  # content: RGB or luminance
     if cfg.keep_colors:  # the scene's own colours: the photos are the pre-process and Lab targets as they are
         recolored, palette = photos, AffinePalette.identity()
     else:
@@ -529,13 +530,17 @@ class Stylize(Phase):
         img_y = gray_gradient(img) if self.cfg.loss.luminance_grad == "gray" else img
         a = a_rgb = None
         kw = {"graphs": False} if in_graph else {}  # no graph of the pass's own inside this one
-        # luminance_only: the style term sees luminance, the content term RGB, in one batch
-        if self.vgg_on and self.cfg.loss.luminance_only:
+        # luminance_only: the style term sees luminance, the content term RGB, in one batch (or, with content_on
+        # luminance and no term on RGB features, the style term's features alone serve both)
+        lum_content = self.cfg.content_luminance()
+        if self.vgg_on and lum_content and not on["style_color"]:
+            a = self.vgg.features_of([luminance(img_y)], self.cfg.vgg_scale, **kw)[0]
+        elif self.vgg_on and self.cfg.loss.luminance_only:
             a, a_rgb = self.vgg.features_of([luminance(img_y), img], self.cfg.vgg_scale, **kw)
         elif self.vgg_on:
             a = a_rgb = self.vgg.features_of([img], self.cfg.vgg_scale, **kw)[0]
         if on["content"]:
-            out.append(content_loss(a_rgb, photo_feats) * content_scale)
+            out.append(content_loss(a if lum_content else a_rgb, photo_feats) * content_scale)
         if on["depth"]:
             out.append(((inverse_depth(depth) - inv_depth) ** 2).mean())
         if on["tv"]:
