@@ -264,7 +264,7 @@ class Targets:
     recolored: list  # per view [H,W,3]: the photos in the painting's palette (pre-process and Lab targets)
     lab_stats: list  # per view: the Lab term's target statistics (``lab_targets``, once)
     palette: object  # that colour map (losses.palette: AffinePalette or TonePalette; its recolor_sh for Gaussians)
-    photo_feats: list  # per view [768, Nc]: RGB VGG features of the photo (content)
+    photo_feats: list  # per view [768, Nc]: VGG features of the photo, RGB (or luminance: loss.content_on), for content
     inv_depth: list  # per view [H,W]: the un-stylized scene's inverse depth
     originals: list  # per view [H,W,3] (CPU): renders of the un-stylized scene
     coverage: list = field(default_factory=list)  # per view [H,W,1]: the un-stylized scene's alpha (on the device)
