@@ -190,6 +190,7 @@ def test_base_loop_is_an_error(tmp_path):
     (["iterations"], "key=value"),
     (["loss=3"], "section"),
     (["density.phases=[pre, bogus]"], "bogus"),
+    (["loss.content_on=luminance", "loss.luminance_only=false"], "loss.content_on luminance needs"),
 ])
 def test_bad_overrides_are_input_errors(over, msg):
     with pytest.raises(InputError, match=msg):

@@ -243,8 +243,8 @@ class StylizeConfig:
         return pre, self.iterations - pre - post, post
 
     def content_luminance(self) -> bool:
-        """Whether the content term compares luminance features (``loss.content_on`` luminance, which needs the
-        luminance-only style term's pass)."""
+        """Whether the content term compares luminance features (``loss.content_on`` luminance; ``check`` makes
+        sure the luminance-only style term's pass is there to serve it)."""
         return self.loss.luminance_only and self.loss.content_on == "luminance"
 
     def style_work_height(self, view_height: int) -> int:
@@ -258,6 +258,9 @@ class StylizeConfig:
         check_run_settings(self, prefix)
         if not (isinstance(self.vgg_scale, (int, float)) and 0 < self.vgg_scale <= 4):
             raise ConfigError(prefix + "vgg_scale", f"must be in (0, 4], got {self.vgg_scale}")
+        if self.loss.content_on == "luminance" and not self.loss.luminance_only:
+            raise ConfigError(prefix + "loss.content_on", "luminance needs loss.luminance_only: true (it reuses the "
+                                                          "luminance style term's features)")
         unknown = set(self.density.phases) - set(PHASES)
         if unknown:
             raise ConfigError(prefix + "density.phases", f"must name phases among {', '.join(PHASES)}, got "
