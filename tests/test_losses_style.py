@@ -192,6 +192,14 @@ def test_nearest_cell_is_the_float64_argmax(monkeypatch):
             assert np.allclose(sim[np.arange(23), got], sim.max(1), rtol=0, atol=1e-12)
 
 
+def _dense_union(idx_r, idx_c, nc: int, ns: int) -> np.ndarray:
+    """FAST's U built densely [Nc,Ns]: 1 where a render cell's row pass or a style cell's column pass picked the pair."""
+    U = np.zeros((nc, ns))
+    U[np.arange(nc)[:, None], idx_r.numpy()] = 1
+    U[idx_c.numpy(), np.arange(ns)[:, None]] = 1
+    return U
+
+
 def test_topk_both_and_union_against_dense_brute_force(monkeypatch):
     a, s = feats(24, 7, 29), feats(25, 7, 41)  # 29 render cells: padded to 32 in the column product
     an, sn = a / np.linalg.norm(a, axis=0), s / np.linalg.norm(s, axis=0)
@@ -205,9 +213,7 @@ def test_topk_both_and_union_against_dense_brute_force(monkeypatch):
         assert np.array_equal(np.sort(idx_r.numpy(), 1), np.sort(np.argsort(-sim, 1)[:, :5], 1))
         assert np.array_equal(np.sort(idx_c.numpy(), 1), np.sort(np.argsort(-sim.T, 1)[:, :5], 1))
         keep, u1, us = style_mod._fast_union(idx_r, idx_c, a.shape[1], st)
-        U = np.zeros_like(sim)
-        U[np.arange(29)[:, None], idx_r.numpy()] = 1
-        U[idx_c.numpy(), np.arange(41)[:, None]] = 1
+        U = _dense_union(idx_r, idx_c, 29, 41)
         assert float(keep.sum()) + 29 * 5 == U.sum()
         assert np.allclose(u1.numpy(), U.sum(1), atol=1e-12) and np.allclose(us.numpy(), U @ s.T, atol=1e-12)
 
@@ -343,7 +349,4 @@ def test_fast_union_leaves_torch_deterministic_flag_as_it_found_it(before):
         assert torch.is_deterministic_algorithms_warn_only_enabled() is before
     finally:
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
-    U = np.zeros((29, 41))
-    U[np.arange(29)[:, None], idx_r.numpy()] = 1
-    U[idx_c.numpy(), np.arange(41)[:, None]] = 1
-    assert np.allclose(us.numpy(), U @ s.T, atol=1e-12)
+    assert np.allclose(us.numpy(), _dense_union(idx_r, idx_c, 29, 41) @ s.T, atol=1e-12)
