@@ -20,8 +20,8 @@ SCHEDULE_TOL = 1e-12  # the schedule is one affine expression in float64
 ABLATIONS = {
     # the advection branch: flow gradients + moving μ
     "ablation_no_advection": {"geometry.lock_xyz", "loss.w_align", "loss.w_aniso"},
-    # the colour preservation: the style term's input AND the Lab chroma loss
-    "ablation_rgb_loss": {"loss.luminance_only", "loss.w_lab_start", "loss.w_lab_end"},
+    # the colour preservation: the style and content terms' input AND the Lab chroma loss
+    "ablation_rgb_loss": {"loss.luminance_only", "loss.content_on", "loss.w_lab_start", "loss.w_lab_end"},
     "ablation_no_density": {"density.phases"},  # [pre, stylize] -> [pre]
     "ablation_canvas_field": {"loss.field_mapping"},
 }

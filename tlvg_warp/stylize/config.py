@@ -260,7 +260,8 @@ class StylizeConfig:
             raise ConfigError(prefix + "vgg_scale", f"must be in (0, 4], got {self.vgg_scale}")
         if self.loss.content_on == "luminance" and not self.loss.luminance_only:
             raise ConfigError(prefix + "loss.content_on", "luminance needs loss.luminance_only: true (it reuses the "
-                                                          "luminance style term's features)")
+                                                          "luminance style term's features); with an RGB style term "
+                                                          "set loss.content_on=rgb too")
         unknown = set(self.density.phases) - set(PHASES)
         if unknown:
             raise ConfigError(prefix + "density.phases", f"must name phases among {', '.join(PHASES)}, got "
