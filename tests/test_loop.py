@@ -208,7 +208,8 @@ def test_normalized_content_is_the_mse_over_the_photo_features_mean_square(demo)
 def test_content_on_luminance_compares_luminance_features_in_one_pass(demo):
     """loss.content_on luminance: the content term is the feature MSE of the render's luminance against the photo's
     (float64 oracle from the stub's pooled pixels, Y = 0.299R + 0.587G + 0.114B on all three channels), and a step's
-    feature pass holds one image instead of two (the style term's luminance pass serves both). Catches the RGB photo
+    feature pass holds one image instead of two (the style term's luminance pass serves both); with an RGB style term
+    the pass holds the RGB image and its luminance, the content term reading the latter. Catches the RGB photo
     features compared with luminance render features, the second pass left in, the option ignored."""
     net = StubFeatures()
     run, cfg, tg = _stylize_run(demo, net, **{"loss.content_on": "luminance"})
@@ -233,6 +234,14 @@ def test_content_on_luminance_compares_luminance_features_in_one_pass(demo):
     net.calls.clear()
     rgb_c = float(rgb_sty.terms(rgb, _view(rgb, 1))["content"].detach())
     assert [c.shape[0] for c in net.calls] == [2] and abs(rgb_c - float(want)) > 1e-3 * float(want)
+    # an RGB style term (the rgb_loss ablation) with luminance content: the render's RGB image and its luminance in
+    # one batch, the content term on the luminance features
+    abl, _, _ = _stylize_run(demo, net, **{"loss.content_on": "luminance", "loss.luminance_only": False})
+    abl_sty = abl.phase("stylize")
+    abl_sty.setup(abl)
+    net.calls.clear()
+    abl_c = float(abl_sty.terms(abl, _view(abl, 1))["content"].detach())
+    assert [c.shape[0] for c in net.calls] == [2] and abl_c == pytest.approx(float(want), rel=TERM_TOL)
 
 
 def test_palette_detail_reaches_the_pre_process_targets(demo):

@@ -20,8 +20,8 @@ SCHEDULE_TOL = 1e-12  # the schedule is one affine expression in float64
 ABLATIONS = {
     # the advection branch: flow gradients + moving μ
     "ablation_no_advection": {"geometry.lock_xyz", "loss.w_align", "loss.w_aniso"},
-    # the colour preservation: the style and content terms' input AND the Lab chroma loss
-    "ablation_rgb_loss": {"loss.luminance_only", "loss.content_on", "loss.w_lab_start", "loss.w_lab_end"},
+    # the colour preservation: the style term's input AND the Lab chroma loss
+    "ablation_rgb_loss": {"loss.luminance_only", "loss.w_lab_start", "loss.w_lab_end"},
     "ablation_no_density": {"density.phases"},  # [pre, stylize] -> [pre]
     "ablation_canvas_field": {"loss.field_mapping"},
 }
@@ -190,7 +190,7 @@ def test_base_loop_is_an_error(tmp_path):
     (["iterations"], "key=value"),
     (["loss=3"], "section"),
     (["density.phases=[pre, bogus]"], "bogus"),
-    (["loss.content_on=luminance", "loss.luminance_only=false"], "loss.content_on luminance needs"),
+    (["loss.content_on=lum"], "rgb, luminance"),
 ])
 def test_bad_overrides_are_input_errors(over, msg):
     with pytest.raises(InputError, match=msg):

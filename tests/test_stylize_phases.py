@@ -46,21 +46,19 @@ def test_tangential_hook_acts_in_stylize_only(inputs, phases, hook_acts):
             assert torch.equal(getattr(on.gaussians, f), getattr(off.gaussians, f)), f
 
 
-def test_rgb_ablation_changes_only_the_vgg_terms_input(inputs):
-    ours = _run(inputs, "tlvg.yaml", "iterations=1", "phases=[0, 1, 0]")
-    ours_rgb = _run(inputs, "tlvg.yaml", "iterations=1", "phases=[0, 1, 0]", "loss.content_on=rgb")
+def test_content_is_alike_and_rgb_ablation_changes_only_the_style_term(inputs):
+    lum = _run(inputs, "tlvg.yaml", "iterations=1", "phases=[0, 1, 0]")
     rgb = _run(inputs, "ablation_rgb_loss.yaml", "iterations=1", "phases=[0, 1, 0]")
-    a, b, c = ours_rgb.log[0], rgb.log[0], ours.log[0]
-    assert a["view"] == b["view"] == c["view"]
-    assert a["content"] == b["content"] > 0  # RGB content: the ablation's, and ours with the reference code's term
-    assert c["content"] > 0 and c["content"] != a["content"]  # the config's content term sees luminance features
+    a, b = lum.log[0], rgb.log[0]
+    assert a["view"] == b["view"]
+    assert a["content"] == pytest.approx(b["content"], rel=1e-6) and b["content"] > 0  # luminance content in both
     assert a["style"] != b["style"]  # the style term's input differs
     # the paper's colour preservation is the luminance style loss with the Lab statistics: the ablation drops the
     # Lab term and changes nothing else (neither has a second, RGB colour style term)
     assert b["lab"] == 0 < a["lab"] and a["style_color"] == b["style_color"] == 0
     for t in ("depth", "tv", "chroma_tv", "align", "aniso", "opacity_reg", "scale_reg"):
         assert a[t] == b[t], t
-    for fa, fb in zip(ours_rgb.fields, rgb.fields):  # the stroke-field match is the same
+    for fa, fb in zip(lum.fields, rgb.fields):  # the stroke-field match is the same
         assert torch.equal(fa, fb)
 
 

@@ -35,8 +35,8 @@ class StyleLoss:
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
-    # luminance (their luminance features: with luminance_only the style term's own VGG pass, so a step runs one VGG
-    # pass instead of two; ours)
+    # luminance (their luminance features: with luminance_only the style term's own VGG pass serves it, one image a
+    # step instead of two; with an RGB style term the render's luminance joins the batch; ours)
     content_norm: bool = False  # divide the content MSE by the photo features' mean square, per view (ours): the
     # raw MSE scales with how much texture a scene has (relu3 energy of beer's photos is half fern's), so a
     # weight chosen on one scene keeps photo structure unevenly on another; NNFM and FAST are scale-free already
@@ -243,9 +243,9 @@ class StylizeConfig:
         return pre, self.iterations - pre - post, post
 
     def content_luminance(self) -> bool:
-        """Whether the content term compares luminance features (``loss.content_on`` luminance; ``check`` makes
-        sure the luminance-only style term's pass is there to serve it)."""
-        return self.loss.luminance_only and self.loss.content_on == "luminance"
+        """Whether the content term compares luminance features (``loss.content_on`` luminance): the
+        luminance-only style term's own pass serves it, or, with an RGB style term, a luminance image beside it."""
+        return self.loss.content_on == "luminance"
 
     def style_work_height(self, view_height: int) -> int:
         """The painting's working height for views ``view_height`` pixels high (style_height, stroke_scale)."""
@@ -258,10 +258,6 @@ class StylizeConfig:
         check_run_settings(self, prefix)
         if not (isinstance(self.vgg_scale, (int, float)) and 0 < self.vgg_scale <= 4):
             raise ConfigError(prefix + "vgg_scale", f"must be in (0, 4], got {self.vgg_scale}")
-        if self.loss.content_on == "luminance" and not self.loss.luminance_only:
-            raise ConfigError(prefix + "loss.content_on", "luminance needs loss.luminance_only: true (it reuses the "
-                                                          "luminance style term's features); with an RGB style term "
-                                                          "set loss.content_on=rgb too")
         unknown = set(self.density.phases) - set(PHASES)
         if unknown:
             raise ConfigError(prefix + "density.phases", f"must name phases among {', '.join(PHASES)}, got "

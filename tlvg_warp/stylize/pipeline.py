@@ -528,19 +528,27 @@ class Stylize(Phase):
         img = over_background(color, coverage, self.over_bg)
         # what the luminance-only terms see: the same image, its gradient along the grey axis with luminance_grad gray
         img_y = gray_gradient(img) if self.cfg.loss.luminance_grad == "gray" else img
-        a = a_rgb = None
+        a = a_rgb = c = None  # the style term's features; RGB features (style_color's); the content term's
         kw = {"graphs": False} if in_graph else {}  # no graph of the pass's own inside this one
-        # luminance_only: the style term sees luminance, the content term RGB, in one batch (or, with content_on
-        # luminance and no term on RGB features, the style term's features alone serve both)
+        # one VGG batch per step. luminance_only: the style term sees luminance, beside it the RGB image for the
+        # content term or style_color; with content_on luminance and no term on RGB features the style term's
+        # features alone serve both. An RGB style term (the rgb_loss ablation) with content_on luminance: the RGB
+        # image for style, its luminance for content.
         lum_content = self.cfg.content_luminance()
-        if self.vgg_on and lum_content and not on["style_color"]:
+        lum = self.cfg.loss.luminance_only
+        if self.vgg_on and lum and lum_content and not on["style_color"]:
             a = self.vgg.features_of([luminance(img_y)], self.cfg.vgg_scale, **kw)[0]
-        elif self.vgg_on and self.cfg.loss.luminance_only:
+            c = a
+        elif self.vgg_on and lum:
             a, a_rgb = self.vgg.features_of([luminance(img_y), img], self.cfg.vgg_scale, **kw)
+            c = a if lum_content else a_rgb
+        elif self.vgg_on and lum_content and on["content"]:
+            a, c = self.vgg.features_of([img, luminance(img_y)], self.cfg.vgg_scale, **kw)
+            a_rgb = a
         elif self.vgg_on:
-            a = a_rgb = self.vgg.features_of([img], self.cfg.vgg_scale, **kw)[0]
+            a = a_rgb = c = self.vgg.features_of([img], self.cfg.vgg_scale, **kw)[0]
         if on["content"]:
-            out.append(content_loss(a if lum_content else a_rgb, photo_feats) * content_scale)
+            out.append(content_loss(c, photo_feats) * content_scale)
         if on["depth"]:
             out.append(((inverse_depth(depth) - inv_depth) ** 2).mean())
         if on["tv"]:
