@@ -33,11 +33,10 @@ def _run(inputs, device, *over, config="tlvg.yaml"):
 @pytest.mark.parametrize("config", ["tlvg.yaml", "abcgs.yaml"])  # abcgs: RGB FAST outside, alpha read by no term
 def test_stylize_terms_as_one_cuda_graph_match_eager(inputs, monkeypatch, config):
     """Every logged term of three stylize steps (three views: the graph's per-view constants change between calls)
-    equals the eager run's within float32 round-off, and so do the
-    Gaussians after them (the graph's gradient with respect to colour, alpha and depth reached the rasterizer). One
-    capture, of the terms graph (the VGG pass and the field terms are inside it, not captured on their own).
-    Catches a graph that kept its first view's constants, a gradient lost for alpha or depth, a term dropped or
-    reordered in the packing."""
+    equals the eager run's within float32 round-off, and so do the Gaussians after them (the graph's gradient with
+    respect to colour, alpha and depth reached the rasterizer). One capture, of the terms graph (the VGG pass and the
+    field terms are inside it, not captured on their own). Catches a graph that kept its first view's constants, a
+    gradient lost for alpha or depth, a term dropped or reordered in the packing."""
     captured = []
     real = graphs.GraphedCall.__init__
 

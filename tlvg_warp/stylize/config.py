@@ -242,11 +242,6 @@ class StylizeConfig:
         post = int(round(self.iterations * p[2] / tot))
         return pre, self.iterations - pre - post, post
 
-    def content_luminance(self) -> bool:
-        """Whether the content term compares luminance features (``loss.content_on`` luminance): the
-        luminance-only style term's own pass serves it, or, with an RGB style term, a luminance image beside it."""
-        return self.loss.content_on == "luminance"
-
     def style_work_height(self, view_height: int) -> int:
         """The painting's working height for views ``view_height`` pixels high (style_height, stroke_scale)."""
         base = self.style_height or view_height * self.vgg_scale

@@ -406,8 +406,8 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         scores = [d[1] for d in done if d[1] is not None]
         scores_orig = [d[2] for d in done if d[2] is not None]
         fa = float(np.mean(scores)) if scores else 0.0
-        lum = (f"luminance_only=True ({cfg.loss.luminance_grad} gradient), content on {cfg.loss.content_on}"
-               if cfg.loss.luminance_only else "luminance_only=False")
+        lum = (f"luminance_only=True ({cfg.loss.luminance_grad} gradient)" if cfg.loss.luminance_only
+               else "luminance_only=False") + f", content on {cfg.loss.content_on}"
         caption = (f"config: style={cfg.loss.style_loss}, {lum}, "
                    f"lock_xyz={cfg.geometry.lock_xyz}, max_travel={cfg.geometry.max_travel:g}, "
                    f"colour_floor={cfg.colour_floor}, "

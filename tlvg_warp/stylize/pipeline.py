@@ -298,7 +298,7 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
             inv_depth.append(inverse_depth(ro.depth))
             originals.append(ro.color.clamp(0, 1).cpu())
             coverage.append(ro.alpha.clamp(0, 1)[..., None].contiguous())
-            content_in = luminance(photo) if cfg.content_luminance() else photo
+            content_in = luminance(photo) if cfg.loss.content_on == "luminance" else photo
             photo_feats.append(flatten_feats(vgg(content_in, scale=cfg.vgg_scale)))  # content: RGB or luminance
     if cfg.keep_colors:  # the scene's own colours: the photos are the pre-process and Lab targets as they are
         recolored, palette = photos, AffinePalette.identity()
@@ -528,27 +528,18 @@ class Stylize(Phase):
         img = over_background(color, coverage, self.over_bg)
         # what the luminance-only terms see: the same image, its gradient along the grey axis with luminance_grad gray
         img_y = gray_gradient(img) if self.cfg.loss.luminance_grad == "gray" else img
-        a = a_rgb = c = None  # the style term's features; RGB features (style_color's); the content term's
+        # one VGG batch per step, each input once: the style term's first (luminance with luminance_only, else RGB),
+        # then the content term's (loss.content_on) and style_color's RGB where they differ from it
+        style_in = "y" if self.cfg.loss.luminance_only else "rgb"
+        content_in = "y" if self.cfg.loss.content_on == "luminance" else "rgb"
+        need = [style_in] + [content_in] * on["content"] + ["rgb"] * on["style_color"]
+        keys = list(dict.fromkeys(need)) if self.vgg_on else []
         kw = {"graphs": False} if in_graph else {}  # no graph of the pass's own inside this one
-        # one VGG batch per step. luminance_only: the style term sees luminance, beside it the RGB image for the
-        # content term or style_color; with content_on luminance and no term on RGB features the style term's
-        # features alone serve both. An RGB style term (the rgb_loss ablation) with content_on luminance: the RGB
-        # image for style, its luminance for content.
-        lum_content = self.cfg.content_luminance()
-        lum = self.cfg.loss.luminance_only
-        if self.vgg_on and lum and lum_content and not on["style_color"]:
-            a = self.vgg.features_of([luminance(img_y)], self.cfg.vgg_scale, **kw)[0]
-            c = a
-        elif self.vgg_on and lum:
-            a, a_rgb = self.vgg.features_of([luminance(img_y), img], self.cfg.vgg_scale, **kw)
-            c = a if lum_content else a_rgb
-        elif self.vgg_on and lum_content and on["content"]:
-            a, c = self.vgg.features_of([img, luminance(img_y)], self.cfg.vgg_scale, **kw)
-            a_rgb = a
-        elif self.vgg_on:
-            a = a_rgb = c = self.vgg.features_of([img], self.cfg.vgg_scale, **kw)[0]
+        by_input = dict(zip(keys, self.vgg.features_of([luminance(img_y) if k == "y" else img for k in keys],
+                                                       self.cfg.vgg_scale, **kw))) if keys else {}
+        a, a_rgb = by_input.get(style_in), by_input.get("rgb")  # the style term's features; style_color's
         if on["content"]:
-            out.append(content_loss(c, photo_feats) * content_scale)
+            out.append(content_loss(by_input[content_in], photo_feats) * content_scale)
         if on["depth"]:
             out.append(((inverse_depth(depth) - inv_depth) ** 2).mean())
         if on["tv"]:
