@@ -38,6 +38,38 @@ def test_color_transfer_matches_style_moments_when_unclamped():
     assert b.dtype == torch.float32 and b.shape == (2, 30, 40, 3)
 
 
+def _sqrt_psd(c, p):  # float64 numpy c^p for a symmetric positive definite 3x3
+    e, u = np.linalg.eigh(c)
+    return u @ np.diag(e ** p) @ u.T
+
+
+def test_color_transfer_weights_take_the_moments_of_the_covered_pixels():
+    """weights: the content moments are the weighted ones (numpy's np.cov with aweights), the map ARF's closed form
+    on them; pixels of weight 0 do not move the map; all-ones weights are the plain transfer."""
+    rng = np.random.default_rng(3)
+    content = [rng.random((12, 16, 3)) * 0.5 + 0.2 for _ in range(2)]
+    weights = [np.zeros((12, 16, 1)) for _ in range(2)]
+    for w in weights:
+        w[3:10, 4:12] = rng.random((7, 8, 1)) * 0.9 + 0.1  # a soft-edged "object"; the rest is background
+    style = rng.random((10, 14, 3))
+    _, m, t = color_transfer(content, style, 0.004, weights)
+    px = np.concatenate([c.reshape(-1, 3) for c in content])
+    aw = np.concatenate([w.reshape(-1) for w in weights])
+    mu_c, cov_c = np.average(px, axis=0, weights=aw), np.cov(px.T, aweights=aw, bias=True)
+    mu_s, cov_s = _moments(style)
+    m_ref = _sqrt_psd(cov_s, 0.5) @ _sqrt_psd(cov_c + 0.004 * np.eye(3), -0.5)
+    assert np.abs(m.numpy() - m_ref).max() < MOMENT_TOL
+    assert np.abs(t.numpy() - (mu_s - m_ref @ mu_c)).max() < MOMENT_TOL
+    white = [np.where(w > 0, c, 1.0) for c, w in zip(content, weights)]  # the background painted white
+    _, m_white, _ = color_transfer(white, style, 0.004, weights)
+    assert np.abs(m_white.numpy() - m.numpy()).max() < MOMENT_TOL
+    assert np.abs(color_transfer(white, style, 0.004)[1].numpy() - m.numpy()).max() > 0.05  # unweighted, it moves
+    ones = [np.ones((12, 16, 1)) for _ in range(2)]
+    assert np.abs(color_transfer(content, style, 0.0, ones)[1].numpy() - color_transfer(content, style)[1].numpy()).max() < MOMENT_TOL
+    nothing = [np.zeros((12, 16, 1)) for _ in range(2)]  # nothing covered: the plain transfer, no division by zero
+    assert np.abs(color_transfer(content, style, 0.0, nothing)[1].numpy() - color_transfer(content, style)[1].numpy()).max() < MOMENT_TOL
+
+
 def test_color_transfer_clamps():
     rng = np.random.default_rng(1)
     out, _, _ = color_transfer(rng.random((2, 8, 8, 3)), rng.random((8, 8, 3)) * 3 - 1)

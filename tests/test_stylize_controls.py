@@ -118,6 +118,23 @@ def test_palette_floor_reaches_the_transfer(demo):
     assert float((want - plain).abs().max()) > 1e-4  # the floor changes the demo's map
 
 
+def test_palette_where_covered_takes_the_statistics_under_the_scene(demo):
+    """palette_where covered: the targets' ARF map is color_transfer's with the un-stylized alpha as weights; the
+    demo's white background would otherwise move it; an unknown value is a config error."""
+    from tlvg_warp.errors import InputError
+    from tlvg_warp.losses.color import color_transfer
+
+    tg = _targets(demo, _cfg(palette_floor=0.004, palette_where="covered"))
+    photos = [p.to(torch.float32) for p in demo.photos]
+    want = color_transfer(photos, tg.style_work, 0.004, tg.coverage)[1]
+    pooled = color_transfer(photos, tg.style_work, 0.004)[1]
+    torch.testing.assert_close(tg.palette.m, want)
+    assert min(float(c.mean()) for c in tg.coverage) < 0.9  # the premise: the demo's views show background
+    assert float((want - pooled).abs().max()) > 1e-3
+    with pytest.raises(InputError, match="palette_where"):
+        _cfg(palette_where="object")
+
+
 def test_over_background_blends_by_the_unstylized_alpha():
     torch.manual_seed(0)
     img = torch.rand(5, 7, 3, dtype=torch.float64)

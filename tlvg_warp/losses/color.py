@@ -27,20 +27,23 @@ def _sym_pow(cov: torch.Tensor, p: float) -> torch.Tensor:
     return u @ torch.diag(e.clamp(EIG_FLOOR, 1e8) ** p) @ u.T  # [3,3]
 
 
-def _moments(items):
+def _moments(items, weights=None):
     """Pooled mean [3] and population covariance [3,3] (as ARF) of all pixels, float64 on the CPU, summed
-    image by image so a whole dataset is never concatenated."""
-    n, s1, s2 = 0, torch.zeros(3, dtype=torch.float64), torch.zeros(3, 3, dtype=torch.float64)
-    for im in items:
+    image by image so a whole dataset is never concatenated. ``weights`` (one [H,W] or [H,W,1] per image, >= 0):
+    each pixel counts by its weight (None: every pixel once)."""
+    n, s1, s2 = 0.0, torch.zeros(3, dtype=torch.float64), torch.zeros(3, 3, dtype=torch.float64)
+    for i, im in enumerate(items):
         p = _as_torch(im).detach().reshape(-1, 3).double()  # [N,3]
-        n += p.shape[0]
-        s1 += p.sum(0).cpu()
-        s2 += (p.T @ p).cpu()
+        w = None if weights is None else _as_torch(weights[i]).detach().reshape(-1, 1).to(p)  # [N,1]
+        pw = p if w is None else p * w  # [N,3]
+        n += float(p.shape[0] if w is None else w.sum())
+        s1 += pw.sum(0).cpu()
+        s2 += (pw.T @ p).cpu()
     mu = s1 / n
     return mu, s2 / n - torch.outer(mu, mu)
 
 
-def color_transfer(images, style, floor: float = 0.0):
+def color_transfer(images, style, floor: float = 0.0, weights=None):
     """Recolor ``images`` (a list of [H,W,3] or an array [B,H,W,3], floats in [0,1], numpy or torch) to the
     palette of ``style`` [h,w,3]: pool all pixels, whiten with the content covariance, color with the
     style covariance (symmetric square roots, as ARF), shift means, clamp to [0,1].
@@ -49,12 +52,19 @@ def color_transfer(images, style, floor: float = 0.0):
     the photos barely vary along (a grey floor's faint tints, JPEG blocks) is stretched by at most
     sqrt(painting variance / floor) instead of up to 1/sqrt(1e-8).
 
+    ``weights`` (ours; None = ARF): one [H,W] or [H,W,1] weight per image (the scene's alpha), so the content
+    moments are those of the pixels the scene covers: an object on a white background otherwise takes only the
+    dark end of the painting's palette, the background having claimed the bright end. Under one pixel of weight
+    in all: every pixel, as ARF.
+
     Returns ``(recolored, M, t)`` with recolored in the input's container/type and ``x' = M x + t``
     (M [3,3], t [3], float64 torch) so the same map can be reapplied (:func:`apply_color_transform`).
     """
     is_list = isinstance(images, (list, tuple))
     items = list(images) if is_list else [images]
-    mu_c, cov_c = _moments(items)
+    if weights is not None and sum(float(_as_torch(w).sum()) for w in weights) < 1.0:
+        weights = None  # nothing covered: the plain transfer, not a division by zero
+    mu_c, cov_c = _moments(items, weights)
     mu_s, cov_s = _moments([style])
     eye = torch.eye(3, dtype=torch.float64)
     m = _sym_pow(cov_s, 0.5) @ _sym_pow(cov_c + floor * eye, -0.5)  # [3,3]

@@ -142,13 +142,15 @@ def tone_palette(images, style, bins: int = TONE_BINS, coverage=None) -> TonePal
                        knots, torch.stack(tone_chroma))
 
 
-def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0):
+def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0, where: str = "all"):
     """``(recolored, palette)``: the photos (list of [H,W,3]) in the painting's palette by ``mode`` (arf | tone),
     and the map, whose ``recolor_sh`` gives the Gaussians the same palette. ``coverage`` (per view [H,W,1]) limits
-    the tone map's photo statistics to the scene; ARF pools every pixel, as released (the baseline uses it).
-    ``floor``: ARF's variance floor (:func:`color.color_transfer`)."""
+    the tone map's photo statistics to the scene, and ARF's where ``where`` is ``covered``; with ``all`` ARF pools
+    every pixel, as released (the baseline uses it). ``floor``: ARF's variance floor (:func:`color.color_transfer`)."""
+    if where not in ("all", "covered"):
+        raise ValueError(f"palette statistics over all or covered pixels, got {where!r}")
     if mode == "arf":
-        out, m, t = color_transfer(list(images), style, floor)
+        out, m, t = color_transfer(list(images), style, floor, coverage if where == "covered" else None)
         return out, AffinePalette(m, t)
     if mode == "tone":
         pal = tone_palette(images, style, coverage=coverage)

@@ -169,6 +169,10 @@ class StylizeConfig:
     # rank; a grey photo is not blown up into pastel tints; losses/palette.py)
     palette_floor: float = 0.0  # arf: a colour variance added to the photos' covariance before whitening (ours; 0 =
     # ARF): a direction the photos barely vary along is stretched by at most sqrt(painting's variance / this)
+    palette_where: str = "all"  # arf: the photos' colour statistics over all pixels (ARF) | covered: over the pixels
+    # the un-stylized scene covers, weighted by its alpha (ours), so an object on an empty background takes the whole
+    # of the painting's palette instead of its dark end (the background claimed the bright end); same on a capture.
+    # An option: on lego x Starry Night it raised the Gram match but paled the strokes (detail 0.90 -> 0.63; docs/study.md)
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
     style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
     style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3); 0: to the height at
@@ -219,7 +223,7 @@ class StylizeConfig:
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
              "stroke_scale": (">", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
              "stroke_jitter_mode": ("of", "luminance", "palette"), "palette_map": ("of", "arf", "tone"),
-             "palette_floor": (">=", 0),
+             "palette_floor": (">=", 0), "palette_where": ("of", "all", "covered"),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
              "orbit_frames": (">=", 0), "orbit_fps": (">=", 1), "comparison_views": (">=", 0)}

@@ -304,7 +304,7 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
         recolored, palette = photos, AffinePalette.identity()
     else:
         recolored, palette = palette_transfer(photos, style_work.to(device), cfg.palette_map, coverage=coverage,
-                                              floor=cfg.palette_floor)
+                                              floor=cfg.palette_floor, where=cfg.palette_where)
         if cfg.palette_detail:  # the painting's level of luminance detail back into the pre-process targets
             recolored, _ = match_detail(recolored, inp.style.to(device=device, dtype=torch.float32))
         # the background the scene does not cover stays the photo's (a Blender scene's white): a recoloured
@@ -733,7 +733,8 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
             rs = [render(g, cam, bg).color.clamp(0, 1) for cam in cams]
         if cfg.keep_colors:
             return rs
-        rec = color_transfer(rs, tg.style_work.to(device), cfg.palette_floor)[0]
+        rec = color_transfer(rs, tg.style_work.to(device), cfg.palette_floor,
+                             tg.coverage if cfg.palette_where == "covered" else None)[0]
         return [over_background(r, c, x) for r, c, x in zip(rec, tg.coverage, rs)]
 
     dens = set(cfg.density.phases)
