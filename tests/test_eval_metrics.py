@@ -74,7 +74,7 @@ def cases(net):
 @pytest.mark.parametrize("case,metrics", [
     ("sticker", ("consistency_k1", "consistency_k5", "content")),
     ("unstylized", ("style_gram", "style_nnfm", "stroke_scales")),
-    ("blurred", ("detail", "spill")),  # 3x wider splats also paint the empty background around the objects
+    ("blurred", ("detail", "detail_inside", "spill")),  # 3x wider splats also paint the empty background
     ("holed", ("holes_1x", "holes_2x", "consistency_k1")),
 ])
 def test_known_cases_lose_to_a_genuine_stylization(cases, case, metrics):
@@ -284,6 +284,38 @@ def test_paired_says_no_difference_when_interval_contains_zero():
     assert M.paired(base, base + rng.normal(0, 0.01, 30), m)["better"] == "no difference"
     assert M.paired(base, base + 0.5 + rng.normal(0, 0.01, 30), m)["better"] == "a"
     assert M.paired(base + 0.5, base, m)["better"] == "b"
+
+
+def _object_on_white(offset, h=60, w=80, seed=4):
+    """A textured square object (its luminance offset by ``offset``) on a white background, its alpha [H,W,1]."""
+    rng = np.random.default_rng(seed)
+    y = np.ones((h, w), np.float32)
+    alpha = np.zeros((h, w, 1), np.float32)
+    y[15:45, 20:60] = 0.5 + offset + 0.1 * rng.standard_normal((30, 40)).astype(np.float32)
+    alpha[15:45, 20:60] = 1.0
+    return y, alpha
+
+
+def test_detail_inside_leaves_out_the_outline_and_keeps_a_covered_view_whole():
+    """detail_inside: the blur residual over the un-stylized scene's interior, against a direct OpenCV computation
+    over the covered pixels eroded by the kernel's reach (4 sigma); a darker object (a stronger outline, the same texture) moves the
+    whole-view detail but not the inside one; a view covered everywhere is measured whole."""
+    import cv2
+
+    light, alpha = _object_on_white(0.2)
+    dark, _ = _object_on_white(-0.2)
+    inside = M.interior(alpha, light.shape)
+    r = int(round(4 * M.HF_SIGMA))
+    want_mask = np.zeros(light.shape, bool)
+    want_mask[15 + r:45 - r, 20 + r:60 - r] = True
+    np.testing.assert_array_equal(inside, want_mask)
+    res = light - cv2.GaussianBlur(light, (0, 0), M.HF_SIGMA, borderType=cv2.BORDER_REFLECT_101)
+    assert M.hf_energy(light, inside) == pytest.approx(float((res[want_mask] ** 2).mean()), rel=1e-6)
+    assert M.hf_energy(dark, inside) == pytest.approx(M.hf_energy(light, inside), rel=1e-5)  # texture alone
+    assert M.hf_energy(dark) > 1.2 * M.hf_energy(light)  # the whole view counts the stronger outline
+    full = M.interior(np.ones((30, 40)), light.shape)  # a capture: every pixel, the image border not eroded
+    assert full.all() and M.hf_energy(light, full) == M.hf_energy(light)
+    assert M.hf_energy(light, np.zeros(light.shape, bool)) == 0.0  # nothing covered
 
 
 def test_spill_counts_paint_where_the_scene_was_empty():

@@ -28,7 +28,7 @@ def _write_pair(root, scene, painting, comparisons, runs, blind=None):
 
 
 def test_target_table_reads_directions_marks_and_counts(tmp_path):
-    tlvg = _summary(detail=0.7, consistency_k1=0.2)
+    tlvg = _summary(detail=0.7, detail_inside=0.4, consistency_k1=0.2)
     tlvg["gaussians"] = 120
     # pair one: tlvg's flow above abcgs's (higher is better: "tlvg vs abcgs" > 0), its Gram below (lower is
     # better: "tlvg vs abcgs" < 0), its chroma noise above the ablation's (a loss), flow level with the scene
@@ -56,6 +56,7 @@ def test_target_table_reads_directions_marks_and_counts(tmp_path):
     assert fern["chroma vs rgb"] == ("no (-0.090)", "no")
     assert fern["flow vs un-stylized"] == ("tie (+0.010)", "tie")
     assert fern["detail"][1] is True and fern["MV k1 / un-stylized"] == ("2.00", False)
+    assert fern["detail inside"] == ("0.40", False) and lego["detail inside"] == ("-", None)  # the outline left out
     assert fern["Gaussians / input"] == ("1.20", True)
     assert lego["flow vs abcgs"] == ("no (-0.040) †", "no")  # b vs a read as a - b; the mark of a blind metric
     assert lego["chroma vs rgb"] == ("yes (+0.300)", "yes")

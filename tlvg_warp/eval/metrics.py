@@ -72,6 +72,8 @@ METRICS = {m.key: m for m in (
     Metric("consistency_k1", "Multi-view error, neighbouring views (k = 1)", "RMSE of RGB in 0…1", False),
     Metric("consistency_k5", "Multi-view error, views 5 apart (k = 5)", "RMSE of RGB in 0…1", False),
     Metric("detail", "Detail: high-frequency luminance energy vs the painting's", "ratio (1 = painting)", True),
+    Metric("detail_inside", "Detail inside the scene: as detail, over the pixels the un-stylized scene covers, "
+           "its outline excluded", "ratio (1 = painting)", True),
     Metric("holes_1x", "Holes at training size", "fraction of covered pixels", False),
     Metric("holes_2x", "Holes at 2x resolution", "fraction of covered pixels", False),
     Metric("spill", "Spill: painted where the un-stylized scene is empty (splats frayed or strayed)",
@@ -99,6 +101,7 @@ ANCHOR_TO_BEAT = {
     "style_gram": UNSTYLIZED,
     "style_nnfm": UNSTYLIZED,
     "detail": UNSTYLIZED,
+    "detail_inside": UNSTYLIZED,
     "content": STICKER,
     "consistency_k1": STICKER,
     "consistency_k5": STICKER,
@@ -219,10 +222,27 @@ def sticker(painting: np.ndarray, h: int, w: int) -> np.ndarray:
     return cv2.resize(np.ascontiguousarray(p), (w, h), interpolation=interp)
 
 
-def hf_energy(x: np.ndarray) -> float:
-    """Mean squared residual of a σ HF_SIGMA Gaussian blur, over pixels and channels of [H,W] or [H,W,C]."""
+def hf_energy(x: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean squared residual of a σ HF_SIGMA Gaussian blur, over pixels and channels of [H,W] or [H,W,C]; with
+    ``mask`` ([H,W] bool) over the pixels it selects only (0 when it selects none)."""
     x = np.ascontiguousarray(x, np.float32)
-    return float(((x - cv2.GaussianBlur(x, (0, 0), HF_SIGMA, borderType=cv2.BORDER_REFLECT_101)) ** 2).mean())
+    r2 = (x - cv2.GaussianBlur(x, (0, 0), HF_SIGMA, borderType=cv2.BORDER_REFLECT_101)) ** 2
+    if mask is None:
+        return float(r2.mean())
+    return float(r2[mask].mean()) if mask.any() else 0.0
+
+
+def interior(alpha: np.ndarray, shape: tuple) -> np.ndarray:
+    """The pixels of an image of ``shape`` (h, w) inside the scene: the un-stylized alpha ([H,W] or [H,W,1] at
+    training size) resized, >= ALPHA_MIN, eroded by the blur's reach (4 HF_SIGMA, the support of OpenCV's kernel
+    for float images) so the outline against an empty background, which the blur residual sees as a strong edge,
+    does not count as brushwork. The image border does not erode (a capture, covered everywhere, keeps every
+    pixel). [h,w] bool."""
+    a = np.ascontiguousarray(np.asarray(alpha, np.float32).reshape(alpha.shape[0], alpha.shape[1]))
+    h, w = shape
+    covered = (cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA) >= ALPHA_MIN).astype(np.uint8)
+    r = int(round(4 * HF_SIGMA))
+    return cv2.erode(covered, np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0  # border: OpenCV's default, no erosion
 
 
 def luma(img: np.ndarray) -> np.ndarray:
