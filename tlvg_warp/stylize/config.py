@@ -171,9 +171,10 @@ class StylizeConfig:
     # ARF): a direction the photos barely vary along is stretched by at most sqrt(painting's variance / this)
     palette_where: str = "all"  # arf: the photos' colour statistics over all pixels (ARF) | covered: over the pixels
     # the un-stylized scene covers, weighted by its alpha (ours), so an object on an empty background takes the whole
-    # of the painting's palette instead of its dark end (the background claimed the bright end); same on a capture.
-    # An option: on lego it matched the painting's Gram statistics better and lowered chroma noise; the whole-view
-    # detail fell (its outline against the white is fainter), the detail inside the object rose (docs/study.md)
+    # of the painting's palette instead of its dark end (the background claimed the bright end); nearly the same map
+    # on a capture. An option: on lego it matched the painting's Gram statistics better and lowered chroma noise; the
+    # whole-view detail fell (the outline against the white is fainter), the detail inside the object rose
+    # (docs/study.md)
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
     style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
     style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3); 0: to the height at
