@@ -16,9 +16,10 @@ import argparse
 import json
 from pathlib import Path
 
-METRICS = [("flow_alignment", "higher"), ("flow_energy", "higher"), ("stroke_scales", "lower"), ("style_gram", "lower"), ("style_nnfm", "lower"),
-           ("content", "lower"), ("consistency_k1", "lower"), ("detail", "higher"), ("detail_inside", "higher"), ("holes_1x", "lower"),
-           ("holes_2x", "lower"), ("spill", "lower"), ("chroma_noise", "lower")]
+METRICS = [("flow_alignment", "higher"), ("flow_energy", "higher"), ("stroke_scales", "lower"), ("style_gram", "lower"),
+           ("style_nnfm", "lower"), ("content", "lower"), ("consistency_k1", "lower"), ("detail", "higher"),
+           ("detail_inside", "higher"), ("holes_1x", "lower"), ("holes_2x", "lower"), ("spill", "lower"),
+           ("chroma_noise", "lower")]
 
 
 def load(study: Path):

@@ -30,7 +30,7 @@ def _sym_pow(cov: torch.Tensor, p: float) -> torch.Tensor:
 def _moments(items, weights=None):
     """Pooled mean [3] and population covariance [3,3] (as ARF) of all pixels, float64 on the CPU, summed
     image by image so a whole dataset is never concatenated. ``weights`` (one [H,W] or [H,W,1] per image, >= 0):
-    each pixel counts by its weight (None: every pixel once)."""
+    each pixel counts by its weight (None, or under one pixel of weight in all: every pixel once)."""
     n, s1, s2 = 0.0, torch.zeros(3, dtype=torch.float64), torch.zeros(3, 3, dtype=torch.float64)
     for i, im in enumerate(items):
         p = _as_torch(im).detach().reshape(-1, 3).double()  # [N,3]
@@ -39,6 +39,8 @@ def _moments(items, weights=None):
         n += float(p.shape[0] if w is None else w.sum())
         s1 += pw.sum(0).cpu()
         s2 += (pw.T @ p).cpu()
+    if weights is not None and n < 1.0:  # under one pixel of weight in all (nothing covered): every pixel, as ARF
+        return _moments(items)
     mu = s1 / n
     return mu, s2 / n - torch.outer(mu, mu)
 
@@ -62,8 +64,6 @@ def color_transfer(images, style, floor: float = 0.0, weights=None):
     """
     is_list = isinstance(images, (list, tuple))
     items = list(images) if is_list else [images]
-    if weights is not None and sum(float(_as_torch(w).sum()) for w in weights) < 1.0:
-        weights = None  # nothing covered: the plain transfer, not a division by zero
     mu_c, cov_c = _moments(items, weights)
     mu_s, cov_s = _moments([style])
     eye = torch.eye(3, dtype=torch.float64)

@@ -704,7 +704,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
               fresh: bool = True) -> Run:
     """Parameters, one Adam, density control and the three phases. ``fresh``: a new run (not a resume, whose
     checkpoint brings its own Gaussians): the scene's coarse splats are refined to the stroke size first."""
-    from ..losses import color_transfer  # lazy: imports Warp
+    from ..losses.palette import palette_transfer  # lazy: imports Warp
 
     cams = list(inp.cameras)
     bg = tuple(float(v) for v in cfg.background)
@@ -733,8 +733,9 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
             rs = [render(g, cam, bg).color.clamp(0, 1) for cam in cams]
         if cfg.keep_colors:
             return rs
-        rec = color_transfer(rs, tg.style_work.to(device), cfg.palette_floor,
-                             tg.coverage if cfg.palette_where == "covered" else None)[0]
+        # ARF's transfer whatever palette_map (as before), over the pixels palette_where names
+        rec = palette_transfer(rs, tg.style_work.to(device), "arf", coverage=tg.coverage, floor=cfg.palette_floor,
+                               where=cfg.palette_where)[0]
         return [over_background(r, c, x) for r, c, x in zip(rec, tg.coverage, rs)]
 
     dens = set(cfg.density.phases)
