@@ -341,6 +341,26 @@ def test_hooks_and_trainable_groups_per_phase(demo):
     assert [r["phase"] for r in run.log] == ["a"] * 3 + ["b"] * 2 and run.counts["after_a"] == run.params.num
 
 
+@pytest.mark.parametrize("fresh", [False, True])
+def test_a_phase_with_fresh_moments_starts_adam_anew_for_its_groups(demo, fresh):
+    """fresh_moments: the phase's trainable groups start with Adam's state cleared (their step count restarts at
+    the phase), the others keep theirs; off, every group counts on across the phases."""
+    seen = []
+    run = _tiny_run(demo, [_Const("a", 3, seen), _Const("b", 2, seen, trainable=("sh_dc",), fresh_moments=fresh)],
+                    log_every=100)
+    train(run, progress=False)
+    st = run.opt.adam.state
+    assert int(st[run.params.sh_dc]["step"]) == (2 if fresh else 5)
+    assert int(st[run.params.means]["step"]) == 3  # trained in a only, never cleared
+
+
+def test_the_post_process_takes_fresh_moments_from_the_config(demo):
+    for on in (False, True):
+        run, cfg, _ = _stylize_run(demo, StubFeatures(), post_fresh_adam=on)
+        post = [p for p in run.phases if p.name == "post"][0]
+        assert post.fresh_moments is on and cfg.post_fresh_adam is on
+
+
 def test_phase_end_hook_runs_once_after_each_phases_last_step(demo):
     """run.on_phase_end: called once per phase, after its last optimizer step (the step counter and the parameters
     are that step's, as a callback at that step sees them), its values kept in counts as <name>_after_<phase>."""

@@ -272,3 +272,35 @@ def test_colour_floor_hook_lifts_dead_channels_so_the_renderer_passes_them_a_gra
     with torch.no_grad():
         colour_floor_hook()(p3, {})
     assert torch.equal(p3.sh_dc, before)
+
+
+def test_clear_moments_makes_the_next_step_adams_first_for_the_named_groups_only():
+    """Adam's first step is lr * g / |g| elementwise (closed form: both bias-corrected moments are g and g^2). After a
+    history of large gradients a small one does not move sh_dc that way (the old moments dominate the step); after
+    clear_moments(("sh_dc",)) the same small gradient moves it by lr exactly, while the other groups keep their
+    state."""
+    params = GaussianParams(random_gaussians(), 0)
+    opt = GaussianOptimizer(params, LearningRates(), EXTENT)
+    for seed in range(5):  # large gradients: a large second moment
+        fake_grads(params, seed)
+        for f in params.trainable():
+            getattr(params, f).grad.mul_(100.0)
+        opt.step()
+    small = torch.randn(params.sh_dc.shape, generator=torch.Generator().manual_seed(9)) * 1e-3
+
+    def step_of_small():
+        before = params.sh_dc.detach().clone()
+        for f in params.trainable():
+            getattr(params, f).grad = torch.zeros_like(getattr(params, f))
+        params.sh_dc.grad = small.clone()
+        opt.step()
+        return params.sh_dc.detach() - before
+    stale = step_of_small()
+    first_step = -opt.lr("sh_dc") * torch.sign(small)
+    assert not torch.allclose(stale, first_step, rtol=1e-2)
+    quats_step = int(opt.adam.state[params.quats]["step"])
+    opt.clear_moments(("sh_dc",))
+    fresh = step_of_small()
+    assert torch.allclose(fresh, first_step, rtol=1e-4, atol=1e-9)
+    assert int(opt.adam.state[params.sh_dc]["step"]) == 1
+    assert int(opt.adam.state[params.quats]["step"]) == quats_step + 1  # not cleared

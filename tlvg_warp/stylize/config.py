@@ -172,9 +172,10 @@ class StylizeConfig:
     palette_where: str = "all"  # arf: the photos' colour statistics over all pixels (ARF) | covered: over the pixels
     # the un-stylized scene covers, weighted by its alpha (ours), so an object on an empty background takes the whole
     # of the painting's palette instead of its dark end (the background claimed the bright end); nearly the same map
-    # on a capture. An option: on lego it matched the painting's Gram statistics better and lowered chroma noise; the
-    # whole-view detail fell (the outline against the white is fainter), the detail inside the object rose
-    # (docs/study.md)
+    # on a capture (configs/tlvg.yaml sets covered: docs/study.md)
+    post_fresh_adam: bool = False  # the post-process starts Adam's moments for its colours and rotations afresh
+    # (ours). Shared with stylize, whose gradients are far larger, they made the post's colour steps a fraction of
+    # its learning rate, so it barely moved toward its targets (the painting's colour statistics)
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
     style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
     style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3); 0: to the height at

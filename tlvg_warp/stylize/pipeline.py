@@ -747,7 +747,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
               Stylize(n_sty, cfg, tg, vgg, density="stylize" in dens, hooks=hook + floor,  # the tangential hook in
                       trainable=[f for f in FIELDS if not (cfg.geometry.lock_xyz and f == "means")]),  # Stylize only
               Fit("post", n_post, make_targets=post_targets, trainable=POST_TRAINABLE, density="post" in dens,
-                  hooks=floor)]
+                  hooks=floor, fresh_moments=cfg.post_fresh_adam)]
     run = new_run(cfg, params, opt, density, phases, cams, device=device, background=bg, dist=dist, out=out,
                   fmt=CHECKPOINT_FORMAT, extra=lambda: {"config": dataclasses.asdict(cfg),
                                                         "names": list(inp.names), "sources": inp.sources})

@@ -85,9 +85,13 @@ class Phase:
     STAGES: tuple = ()  # stages ``terms`` marks on run.timer (beyond the loop's own)
     render_weights = False  # the terms need Σ αT per Gaussian (RenderOutput.weights)
 
-    def __init__(self, name: str, steps: int, *, trainable=FIELDS, density: bool = False, hooks=(), label=None):
+    def __init__(self, name: str, steps: int, *, trainable=FIELDS, density: bool = False, hooks=(), label=None,
+                 fresh_moments: bool = False):
         self.name, self.steps, self.label = name, int(steps), label or name
         self.trainable, self.density, self.hooks = tuple(trainable), bool(density), list(hooks)
+        # Adam's moments of the trainable groups cleared when the phase starts: a phase whose gradients are far
+        # smaller than the phase before it would otherwise step by a fraction of its learning rate
+        self.fresh_moments = bool(fresh_moments)
 
     def setup(self, run: "Run") -> None:
         """Make what the phase needs (idempotent: a resumed run has it from the checkpoint)."""
@@ -386,6 +390,8 @@ class _Loop:
         if k == 0:
             r.counts[f"before_{phase.name}"] = r.params.num
             r.density.begin_phase(r.params.num)
+            if phase.fresh_moments:
+                r.opt.clear_moments(phase.trainable)
         r.params.set_trainable(phase.trainable)
         r.opt.hooks = list(phase.hooks)
         if self.pbar is not None:

@@ -195,6 +195,14 @@ class GaussianOptimizer:
     def lr(self, name: str) -> float:
         return next(g["lr"] for g in self.adam.param_groups if g["name"] == name)
 
+    def clear_moments(self, fields) -> None:
+        """Forget Adam's state (step count and both moments) of the groups named in ``fields``: their next step
+        starts as Adam's first."""
+        for g in self.adam.param_groups:
+            if g["name"] in fields:
+                for p in g["params"]:
+                    self.adam.state.pop(p, None)
+
     # hooks -----------------------------------------------------------------------------------------
     def register_post_step_hook(self, fn, fields=("means",)):
         """Call ``fn(params, before)`` after each Adam step. Returns a handle with ``.remove()``."""
