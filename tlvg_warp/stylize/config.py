@@ -174,8 +174,9 @@ class StylizeConfig:
     # of the painting's palette instead of its dark end (the background claimed the bright end); nearly the same map
     # on a capture (configs/tlvg.yaml sets covered: docs/study.md)
     post_fresh_adam: bool = False  # the post-process starts Adam's moments for its colours and rotations afresh
-    # (ours). Shared with stylize, whose gradients are far larger, they made the post's colour steps a fraction of
-    # its learning rate, so it barely moved toward its targets (the painting's colour statistics)
+    # (ours). With the stylize phase's moments it barely moves toward its targets (the stylized views in the
+    # painting's colour statistics: lego x the Rhône's mean luminance 0.300 -> 0.297, afresh 0.206); an option, the
+    # Gram distance was worse with it (docs/study.md)
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
     style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
     style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3); 0: to the height at

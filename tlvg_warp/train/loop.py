@@ -89,8 +89,8 @@ class Phase:
                  fresh_moments: bool = False):
         self.name, self.steps, self.label = name, int(steps), label or name
         self.trainable, self.density, self.hooks = tuple(trainable), bool(density), list(hooks)
-        # Adam's moments of the trainable groups cleared when the phase starts: a phase whose gradients are far
-        # smaller than the phase before it would otherwise step by a fraction of its learning rate
+        # Adam's state of the trainable groups cleared when the phase starts: the moments of a phase before it,
+        # built on other terms, would otherwise set this phase's first steps (their direction and size)
         self.fresh_moments = bool(fresh_moments)
 
     def setup(self, run: "Run") -> None:
