@@ -361,6 +361,20 @@ def test_the_post_process_takes_fresh_moments_from_the_config(demo):
         assert post.fresh_moments is on and cfg.post_fresh_adam is on
 
 
+def test_post_chroma_blur_smooths_the_post_targets_colour_and_keeps_their_luminance(demo):
+    """post_chroma_blur: the post-process's targets (made from the same parameters) differ in colour and keep the
+    luminance of the targets without it, pixel for pixel (the chroma blur keeps Y, the background blend is linear)."""
+    w = torch.tensor([0.299, 0.587, 0.114])
+    targets = {}
+    for blur in (0.0, 0.1):
+        run, _, _ = _stylize_run(demo, StubFeatures(), post_chroma_blur=blur)
+        post = [p for p in run.phases if p.name == "post"][0]
+        targets[blur] = [t.detach() for t in post.make_targets(run)]
+    for a, b in zip(targets[0.0], targets[0.1]):
+        assert torch.allclose(a @ w, b @ w, atol=1e-5)
+        assert (a - b).abs().max() > 1e-3
+
+
 def test_phase_end_hook_runs_once_after_each_phases_last_step(demo):
     """run.on_phase_end: called once per phase, after its last optimizer step (the step counter and the parameters
     are that step's, as a callback at that step sees them), its values kept in counts as <name>_after_<phase>."""

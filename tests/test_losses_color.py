@@ -330,3 +330,21 @@ def test_lab_where_covered_reads_only_the_blocks_the_scene_covers():
     assert float(lab_chroma_loss(lab_input(other, 1 / 3, None), target_stats=st)) > 0.5
     assert lab_blocks([torch.ones(12, 16, 1, dtype=torch.float64)], 1 / 3) == [None]
     assert lab_blocks([torch.zeros(12, 16, 1, dtype=torch.float64)], 1 / 3) == [None]  # an empty view: all, not NaN
+
+
+def test_smooth_chroma_blurs_rgb_minus_luminance_as_opencv_and_keeps_the_luminance():
+    """smooth_chroma against OpenCV: the chroma (RGB - Y, BT.601) of a random image blurred by cv2.GaussianBlur in
+    float64 with the same kernel size and reflected border, added back to Y; Y of the output equals Y of the input."""
+    from tlvg_warp.losses.color import smooth_chroma
+
+    rng = np.random.default_rng(3)
+    img = rng.random((23, 31, 3))
+    sigma = 1.7
+    out = smooth_chroma(torch.from_numpy(img), sigma).numpy()
+    w = np.array([0.299, 0.587, 0.114])
+    y = img @ w
+    k = 2 * max(1, int(round(3 * sigma))) + 1
+    chroma = cv2.GaussianBlur(img - y[..., None], (k, k), sigma, borderType=cv2.BORDER_REFLECT_101)
+    np.testing.assert_allclose(out, y[..., None] + chroma, atol=1e-12)
+    np.testing.assert_allclose(out @ w, y, atol=1e-12)
+    assert np.abs(out - img).max() > 0.05  # the chroma did move

@@ -85,6 +85,15 @@ def _blur(y: torch.Tensor, sigma: float) -> torch.Tensor:
     return F.conv2d(F.pad(y, (0, 0, r, r), mode="reflect"), k.view(1, 1, -1, 1))
 
 
+def smooth_chroma(img: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``img`` [H,W,3] with its chroma (RGB minus the luminance Y) Gaussian-blurred by ``sigma`` px (separable,
+    reflected border) and its luminance kept: Y of the output is Y of the input, since the chroma has Y = 0 at every
+    pixel and the blur is linear."""
+    y = luminance(img)  # [H,W,3], Y in every channel
+    c = (img - y).permute(2, 0, 1)[:, None]  # [3,1,H,W]
+    return y + _blur(c, sigma)[:, 0].permute(1, 2, 0)
+
+
 def _highpass(img: torch.Tensor, sigma: float) -> torch.Tensor:
     """Y minus its σ-blur [H,W] of an [H,W,3] image, in the image's dtype (differentiable)."""
     y = luminance(img)[..., :1].permute(2, 0, 1)[None]  # [1,1,H,W]

@@ -704,6 +704,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
               fresh: bool = True) -> Run:
     """Parameters, one Adam, density control and the three phases. ``fresh``: a new run (not a resume, whose
     checkpoint brings its own Gaussians): the scene's coarse splats are refined to the stroke size first."""
+    from ..losses.color import smooth_chroma
     from ..losses.palette import palette_transfer  # lazy: imports Warp
 
     cams = list(inp.cameras)
@@ -736,6 +737,8 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
         # ARF's transfer whatever palette_map (as before), over the pixels palette_where names
         rec = palette_transfer(rs, tg.style_work.to(device), "arf", coverage=tg.coverage, floor=cfg.palette_floor,
                                where=cfg.palette_where)[0]
+        if cfg.post_chroma_blur > 0:
+            rec = [smooth_chroma(r, cfg.post_chroma_blur * r.shape[0]) for r in rec]
         return [over_background(r, c, x) for r, c, x in zip(rec, tg.coverage, rs)]
 
     dens = set(cfg.density.phases)
