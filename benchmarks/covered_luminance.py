@@ -12,6 +12,7 @@ import argparse
 
 import torch
 
+from tlvg_warp.config_io import read_yaml_mapping
 from tlvg_warp.eval.engine import load_run, resolve_scene
 from tlvg_warp.losses.palette import palette_transfer
 from tlvg_warp.renderer import render
@@ -53,8 +54,9 @@ def main(argv=None) -> None:
                torch.cat([o.alpha.reshape(-1).cpu() for o in st])[covered]))
     on_white = [o.color + (1 - o.alpha[..., None]) for o in un]  # as the pipeline sees the photos' renders
     coverage = [o.alpha[..., None] for o in un]
+    floor = float(read_yaml_mapping(run["dir"] / "config.yaml").get("palette_floor", 0.0))  # the run's own
     for where in ("all", "covered"):
-        rec, _ = palette_transfer(on_white, painting.to(dev), "arf", coverage=coverage, floor=0.004, where=where)
+        rec, _ = palette_transfer(on_white, painting.to(dev), "arf", coverage=coverage, floor=floor, where=where)
         print(line(f"ARF ({where}) of un-stylized", pixels(rec)))
 
 

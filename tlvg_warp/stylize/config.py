@@ -178,8 +178,9 @@ class StylizeConfig:
     # painting's colour statistics: lego x the Rhône's mean luminance 0.300 -> 0.297, afresh 0.206); an option, the
     # Gram distance was worse with it (docs/study.md)
     post_chroma_blur: float = 0.0  # the post-process's targets with their chroma blurred by this fraction of the view's
-    # height, luminance kept (ours; 0: off): ARF's map of each stylized view carries its colour noise, which a
-    # post-process that reaches its targets (post_fresh_adam) would paint back
+    # height, luminance kept (ours; 0: off, at most 0.1 so the blur's reflected border fits in a portrait view): ARF's
+    # map of each stylized view carries its colour noise, which a post-process that reaches its targets
+    # (post_fresh_adam) would paint back
     fit_iterations: int = 7000  # reconstruction steps when only --data is given (the scene is fitted first)
     style: str | None = None  # the painting's path (None: the built-in Starry Night); --style sets it
     style_height: int = 256  # the painting is resized to this height before VGG (SPEC §3); 0: to the height at
@@ -230,7 +231,7 @@ class StylizeConfig:
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
              "stroke_scale": (">", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
              "stroke_jitter_mode": ("of", "luminance", "palette"), "palette_map": ("of", "arf", "tone"),
-             "palette_floor": (">=", 0), "palette_where": ("of", "all", "covered"), "post_chroma_blur": (">=", 0),
+             "palette_floor": (">=", 0), "palette_where": ("of", "all", "covered"), "post_chroma_blur": ("in", 0, 0.1),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
              "orbit_frames": (">=", 0), "orbit_fps": (">=", 1), "comparison_views": (">=", 0)}

@@ -734,7 +734,7 @@ def build_run(inp: StylizeInputs, cfg: StylizeConfig, tg: Targets, vgg, device, 
             rs = [render(g, cam, bg).color.clamp(0, 1) for cam in cams]
         if cfg.keep_colors:
             return rs
-        # ARF's transfer whatever palette_map (as before), over the pixels palette_where names
+        # ARF's transfer whatever palette_map (a global re-match of the stylized views), over palette_where's pixels
         rec = palette_transfer(rs, tg.style_work.to(device), "arf", coverage=tg.coverage, floor=cfg.palette_floor,
                                where=cfg.palette_where)[0]
         if cfg.post_chroma_blur > 0:
