@@ -95,8 +95,8 @@ EOF
     for s in $SCENES; do echo "$s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" | tail -n 2 | tr '\n' ' ')"; done
     ls -la "$F"
     ;;
-  study)  # launch the study in the background once the fits exist: two queues side by side (tuning, validation),
-          # each pair stylized then evaluated on its first MAX_VIEWS views; `PART=wait` collects
+  study)  # launch the study in the background: two queues side by side (tuning, validation), each pair stylized
+          # (once its scene's fit exists) then evaluated on its first MAX_VIEWS views; `PART=wait` collects
     mkdir -p "$R/pairs" "$R/seeds/pairs"
     # a second study on the same machine: the first one's end markers and queue logs would make `PART=wait` return
     # at once and list the first study's pairs as done (its runs and evaluations stay where they are)
@@ -106,6 +106,7 @@ EOF
       local V=(); for v in $vs; do V+=(--variant "$v"); done
       for spec in "$@"; do
         IFS=: read -r s d ds st <<< "$spec"
+        wait_for "$F/$s.spz"  # this pair's fit only: a queue of lego pairs starts while fern still fits
         for try in 1 2; do  # a pair that failed runs once more (tune.py skips the runs it finished): one lost pair
           # cost a second machine
           OMP_NUM_THREADS=${QUEUE_THREADS:-6} python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" \
@@ -130,11 +131,11 @@ EOF
     for q in C D E; do  # more queues, one per list given (the GPU has room when each run is host-bound)
       pv=PAIRS_$q
       if [ -n "${!pv:-}" ]; then
-        setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue q$q '$SV' ${!pv}" > /dev/null 2>&1 &
+        setsid nohup bash -c "$(declare -f wait_for); queue q$q '$SV' ${!pv}" > /dev/null 2>&1 &
       else touch "$R/pairs/queue_q$q.done"; fi
     done
-    setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue tuning '$SV' $T" > /dev/null 2>&1 &
-    setsid nohup bash -c "$(declare -f wait_for); wait_for $FITS; queue validation '$SV' $V;
+    setsid nohup bash -c "$(declare -f wait_for); queue tuning '$SV' $T" > /dev/null 2>&1 &
+    setsid nohup bash -c "$(declare -f wait_for); queue validation '$SV' $V;
       [ '$SP' = none ] || R=$R/seeds queue seeds '$SEEDV' $SP" > /dev/null 2>&1 &
     echo "study launched"
     ;;
