@@ -14,16 +14,13 @@ import torch
 
 from tlvg_warp.config_io import read_yaml_mapping
 from tlvg_warp.eval.engine import load_run, resolve_scene
+from tlvg_warp.losses.color import luminance
 from tlvg_warp.losses.palette import palette_transfer
 from tlvg_warp.renderer import render
 
 
-def luma(x: torch.Tensor) -> torch.Tensor:  # [...,3] -> [...]
-    return 0.299 * x[..., 0] + 0.587 * x[..., 1] + 0.114 * x[..., 2]
-
-
 def line(name: str, px: torch.Tensor, alpha: torch.Tensor | None = None) -> str:  # px [N,3]
-    y = luma(px)
+    y = luminance(px)[:, 0]  # [N]
     s = f"{name:30s} mean RGB {px.mean(0).numpy().round(3)} luminance {float(y.mean()):.3f} spread {float(y.std()):.3f}"
     if alpha is not None:
         s += f" alpha mean {float(alpha.mean()):.3f} 10th percentile {float(alpha.quantile(0.1)):.3f}"
