@@ -68,7 +68,7 @@ def test_stylize_terms_against_closed_forms(demo):
                                               "loss.w_orient": 0.5, "loss.w_stroke": 0.8,
                                               "loss.w_palette_snap": 0.35, "loss.w_style_swd": 0.45,
                                               "loss.w_color_swd": 0.55, "loss.swd_projections": 5,
-                                              "loss.color_swd_projections": 4})
+                                              "loss.color_swd_projections": 4, "loss.w_style_coarse": 0.65})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -112,9 +112,10 @@ def test_stylize_terms_against_closed_forms(demo):
     bgc = torch.tensor(run.background, dtype=torch.float64)
     img = cov * view.out.color.detach().double() + (1 - cov) * bgc
     # the style term saw luminance (R = G = B), the content term RGB, in one batch
-    (batch,) = net.calls  # [2,3,H,W]
+    batch, coarse = net.calls  # [2,3,H,W], then the coarse style term's pass of the luminance alone [1,3,H,W]
     y = (img * torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)).sum(-1)
     assert torch.allclose(batch[0].double(), y.expand(3, -1, -1), atol=1e-6)
+    assert torch.equal(coarse[0], batch[0])
     assert torch.allclose(batch[1].double(), img.permute(2, 0, 1), atol=1e-6)
     pool = lambda x: F.avg_pool2d(x.permute(2, 0, 1)[None], 4).reshape(3, -1)  # noqa: E731
     photo = demo.photos[2].double()
@@ -178,6 +179,59 @@ def test_stylize_terms_against_closed_forms(demo):
     w0, w_last = sty.weights(0), sty.weights(sty.steps - 1)
     assert (w0["lab"], w_last["lab"]) == pytest.approx((cfg.loss.w_lab_start, cfg.loss.w_lab_end), abs=1e-12)
     assert all(isinstance(v, float) for v in w0.values()) and w0["style"] == cfg.loss.w_style
+
+
+class OctaveStub(StubFeatures):
+    """The stub with a scale: average pooling over blocks of 4 / scale pixels, so features at half the scale are
+    the image's 8x8 block means (a closed form for the coarse style term). ``scales`` keeps the scales asked for."""
+
+    def __init__(self):
+        super().__init__()
+        self.scales = []
+
+    def forward(self, img, scale=1.0):
+        self.scales.append(scale)
+        x = img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img
+        self.calls.append(x.detach())
+        return F.avg_pool2d(x.float(), round(4 / scale))
+
+
+def _blocks(img: np.ndarray, n: int) -> np.ndarray:
+    """[H,W,3] -> [3, cells]: the means of its n x n blocks (rows, then columns; a partial block left out)."""
+    h, w = img.shape[0] // n, img.shape[1] // n
+    return img[:h * n, :w * n].reshape(h, n, w, n, 3).mean(axis=(1, 3)).reshape(-1, 3).T
+
+
+def _nnfm(a: np.ndarray, s: np.ndarray) -> float:
+    """ARF's NNFM by brute force: per render cell the smallest cosine distance to a painting cell, averaged."""
+    an, sn = a / np.linalg.norm(a, axis=0), s / np.linalg.norm(s, axis=0)
+    return float((1 - an.T @ sn).min(axis=1).mean())
+
+
+def test_coarse_style_term_matches_both_at_half_the_working_size(demo):
+    """loss.w_style_coarse: a second NNFM term between the render and the painting each at half the style term's
+    working size (float64 oracle: 8x8 block means where the style term sees 4x4 ones), through the packed features
+    of one terms call, with a gradient; the painting's coarse features are its own, not the fine ones again."""
+    net = OctaveStub()
+    run, cfg, tg = _stylize_run(demo, net, **{"loss.luminance_only": False, "loss.style_loss": "nnfm",
+                                              "loss.w_style_coarse": 0.5})
+    sty = run.phase("stylize")
+    sty.setup(run)
+    net.calls.clear(), net.scales.clear()
+    view = _view(run, 1)
+    terms = sty.terms(run, view)
+    assert net.scales == [cfg.vgg_scale, cfg.vgg_scale * 0.5]  # the step's pass, then the coarse one
+    with torch.no_grad():
+        ro0 = render(demo.gaussians, run.cams[1], run.background)
+    cov = ro0.alpha.double().clamp(0, 1)[..., None]
+    img = (cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64))
+    paint = tg.style_work.double().numpy()
+    fine, coarse = _nnfm(_blocks(img.numpy(), 4), _blocks(paint, 4)), _nnfm(_blocks(img.numpy(), 8), _blocks(paint, 8))
+    assert abs(fine - coarse) > 0.5 * min(fine, coarse) > 0  # the octaves differ here: the checks tell them apart
+    assert float(terms["style"].detach()) == pytest.approx(fine, rel=TERM_TOL, abs=1e-7)
+    assert float(terms["style_coarse"].detach()) == pytest.approx(coarse, rel=TERM_TOL, abs=1e-7)
+    assert terms["style_coarse"].requires_grad
+    assert sty.weights(0)["style_coarse"] == 0.5 * cfg.loss.strength
 
 
 def test_normalized_content_is_the_mse_over_the_photo_features_mean_square(demo):

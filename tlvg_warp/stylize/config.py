@@ -32,6 +32,11 @@ class StyleLoss:
     w_style_color: float = 0.0  # a second style term on RGB features: the painting's colour texture (ours; 0: off)
     w_style_gram: float = 0.0  # a Gram (texture statistics) term on the style term's features: it asks for the
     # painting's strokes over the whole view, where nearest-neighbour matching leaves flat regions smooth (ours; 0: off)
+    w_style_coarse: float = 0.0  # a second style term (the same kind, on the same input) one octave coarser: the
+    # render and the painting both at half the style term's working size, so VGG's relu3 cells, each about 40 of its
+    # pixels wide, span twice as much of the view and the painting; the strokes keep their size relative to the view,
+    # while the term sees the painting's larger arrangements of them (swirls, waves) (ours; 0: off; --strength
+    # multiplies it)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
@@ -111,7 +116,7 @@ class StyleLoss:
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
              "color_swd_projections": (">=", 1), "color_swd_space": ("of", "rgb", "chroma"),
-             **{w: (">=", 0) for w in ("w_style", "w_style_gram", "w_style_color", "w_chroma_tv", "w_palette_snap",
+             **{w: (">=", 0) for w in ("w_style", "w_style_coarse", "w_style_gram", "w_style_color", "w_chroma_tv", "w_palette_snap",
                                        "w_style_swd", "w_color_swd",
                                        "w_coverage", "w_silhouette", "w_detail", "w_stroke", "w_orient",
                                        "w_content", "w_depth", "w_tv",

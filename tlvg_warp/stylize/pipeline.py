@@ -56,11 +56,12 @@ from ..types import SH_C0, Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_gram", "style_swd", "style_color", "color_swd", "content", "depth", "tv", "chroma_tv",
+STYLIZE_TERMS = ("style", "style_coarse", "style_gram", "style_swd", "style_color", "color_swd", "content", "depth", "tv", "chroma_tv",
                  "palette", "detail", "stroke", "coverage", "silhouette", "opacity_reg", "scale_reg", "lab", "orient",
                  "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
+COARSE = 0.5  # the coarse style term's working size against the style term's (loss.w_style_coarse)
 REFINE_UNCAPPED = 2.0  # the refinement's Gaussian count limit (x the input) when density control has no budget
 POST_TRAINABLE = ("quats", "sh_dc", "sh_rest")  # the post-process fits colors and rotations only
 RUN_FILES = ("checkpoint.pt", "stylized.ply", "metrics.json", "log.jsonl", "config.yaml", "sources.json")
@@ -272,6 +273,8 @@ class Targets:
     # 1 / the photo features' mean square with loss.content_norm)
     colours: torch.Tensor | None = None  # [K,3] on the device: the painting's dominant colours (the snap term's)
     lab_index: list = field(default_factory=list)  # per view: the Lab term's blocks (``lab_blocks``) or None: all
+    style_feats_coarse: torch.Tensor | None = None  # [768, Ns/4] the style term's painting features one octave
+    # coarser (loss.w_style_coarse), or None
 
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
@@ -287,6 +290,9 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
         need_rgb = not cfg.loss.luminance_only or cfg.loss.w_style_color > 0
         sf_rgb = vgg(style_work.to(device), scale=1.0) if need_rgb else None
         sf = sf_lum if cfg.loss.luminance_only else sf_rgb
+        # the coarse style term's: the same input at half the working size (the render's side: vgg_scale / 2)
+        sf_coarse = (vgg(luminance(style_work.to(device)) if cfg.loss.luminance_only else style_work.to(device),
+                         scale=COARSE) if cfg.loss.w_style_coarse > 0 else None)
     s_theta, s_coh, s_doubled = stroke_field(style_work.numpy())
     cells = torch.from_numpy(field_at_cells(s_doubled, tuple(sf_lum.shape[-2:]))).to(device)
     photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
@@ -319,7 +325,8 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
                    palette, photo_feats, inv_depth, originals, coverage,
                    [content_scale(f, cfg.loss.content_norm) for f in photo_feats],
                    painting_colours(style_work, cfg.loss.palette_colours, cfg.seed).to(device)
-                   if cfg.loss.w_palette_snap > 0 and not cfg.keep_colors else None, lab_index=lab_index)
+                   if cfg.loss.w_palette_snap > 0 and not cfg.keep_colors else None, lab_index=lab_index,
+                   style_feats_coarse=None if sf_coarse is None else flatten_feats(sf_coarse).contiguous())
 
 
 def content_scale(photo_feats: torch.Tensor, normalized: bool) -> float:
@@ -378,6 +385,8 @@ class Stylize(Phase):
         self.style_fn = StyleLoss(tg.style_feats, kind=w.style_loss, refresh_every=w.fast_refresh,
                                   cache=w.fast_cache)  # the painting's side computed once
         self.gram_fn = StyleLoss(tg.style_feats, kind="gram") if w.w_style_gram else None
+        self.coarse_fn = None if tg.style_feats_coarse is None else StyleLoss(  # prepare makes them when it is on
+            tg.style_feats_coarse, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         self.color_fn = None if tg.style_feats_rgb is None else StyleLoss(  # prepare makes them when the term is on
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         # the sliced Wasserstein terms: the painting's feature cells [Ns,768] and its pixels [M,3]
@@ -389,7 +398,8 @@ class Stylize(Phase):
         self.fields = None  # per view [H,W,3] on the device
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
         self.stroke_target = None  # the painting's (E_across, E_along) at the views' height (the stroke hinge's)
-        self.const = {"style": w.w_style * w.strength, "style_color": w.w_style_color * w.strength,
+        self.const = {"style": w.w_style * w.strength, "style_coarse": w.w_style_coarse * w.strength,
+                      "style_color": w.w_style_color * w.strength,
                       "style_gram": w.w_style_gram * w.strength,
                       "style_swd": w.w_style_swd * w.strength, "color_swd": w.w_color_swd,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
@@ -403,8 +413,9 @@ class Stylize(Phase):
         self.on = {t: v != 0 for t, v in self.const.items()}
         self.on["lab"] = w.w_lab_start != 0 or w.w_lab_end != 0
         self.on["style_color"] = self.color_fn is not None and self.const["style_color"] != 0
+        self.on["style_coarse"] = self.coarse_fn is not None and self.const["style_coarse"] != 0
         self.vgg_on = (self.on["style"] or self.on["content"] or self.on["style_color"] or self.on["style_gram"]
-                       or self.on["style_swd"])
+                       or self.on["style_swd"] or self.on["style_coarse"])
         self.render_weights = self.on["align"] or self.on["aniso"]
         self.field_terms = None  # the orientation and stroke terms as one call (made in setup, with the targets)
         self.terms_graph = None  # on CUDA: image_terms as one graph (made in setup)
@@ -564,6 +575,9 @@ class Stylize(Phase):
         if on["orient"]:
             out.append(orient)
         feats = [] if a is None else [a.reshape(-1)] + ([a_rgb.reshape(-1)] if on["style_color"] else [])
+        if on["style_coarse"]:  # the style term's input once more, one octave coarser (a pass of a quarter the cells)
+            coarse_in = luminance(img_y) if style_in == "y" else img
+            feats.append(self.vgg.features_of([coarse_in], self.cfg.vgg_scale * COARSE, **kw)[0].reshape(-1))
         return torch.cat([torch.stack(out) if out else img.new_zeros(0), *feats])
 
     def terms(self, run: Run, view: View) -> dict:
@@ -574,12 +588,15 @@ class Stylize(Phase):
         packed = self.graphed_terms(args) if o.color.is_cuda and torch.is_grad_enabled() else None
         if packed is None:
             packed = self.image_terms(*args, lab_index=tg.lab_index[vi])
-        n = len(self.image_names)
+        n, c, nc = len(self.image_names), *tg.photo_feats[vi].shape
         found = dict(zip(self.image_names, packed[:n].unbind()))
-        feats = packed[n:].view(-1, *tg.photo_feats[vi].shape)  # [1|2,768,Nc]: luminance (and RGB) features
+        k = 1 + on["style_color"]
+        feats = packed[n:n + k * c * nc].view(-1, c, nc)  # [1|2,768,Nc]: luminance (and RGB) features
         t.mark("vgg")
         if on["style"]:
             found["style"] = self.style_fn(feats[0], key=vi)  # the key: a view's match may be reused (fast_refresh)
+        if on["style_coarse"]:  # [768, ~Nc/4] after them
+            found["style_coarse"] = self.coarse_fn(packed[n + k * c * nc:].view(c, -1), key=vi)
         t.mark("style")
         if any(on[name] for name in self.EAGER_ONLY):
             found.update(self.eager_terms(run, view, feats))
@@ -654,6 +671,7 @@ class Stylize(Phase):
         return {"fields": [f.cpu() for f in self.fields] if self.fields is not None else None,
                 "style_cache": self.style_fn.state_dict(),  # the reused FAST matches (loss.fast_refresh > 1)
                 "color_cache": self.color_fn.state_dict() if self.color_fn is not None else None,
+                "coarse_cache": self.coarse_fn.state_dict() if self.coarse_fn is not None else None,
                 "swd_draws": [f.calls if f is not None else 0 for f in (self.swd_fn, self.color_swd_fn)]}
 
     def load_state_dict(self, sd: dict, device=None) -> None:
@@ -663,6 +681,8 @@ class Stylize(Phase):
             self.style_fn.load_state_dict(sd["style_cache"], device)
         if sd.get("color_cache") is not None and self.color_fn is not None:
             self.color_fn.load_state_dict(sd["color_cache"], device)
+        if sd.get("coarse_cache") is not None and self.coarse_fn is not None:
+            self.coarse_fn.load_state_dict(sd["coarse_cache"], device)
         for f, calls in zip((self.swd_fn, self.color_swd_fn), sd.get("swd_draws") or ()):
             if f is not None:
                 f.calls = int(calls)
