@@ -6,7 +6,9 @@
 #   PART=stage2  carry .gpu/b and .carry/d2 (styles, beer): `source .gpu/b/setup.sh` first; starts beer's fit
 #   PART=fit     carry .carry/d3 (fern, lego at 400 px): fits fern and lego (7000 iterations), waits for all three
 #   PART=study   launch the study in the background (two queues of pairs: tuning, validation; PAIRS_A and PAIRS_B
-#                replace them, PAIRS_C, PAIRS_D and PAIRS_E add queues); PART=wait collects it
+#                replace them, PAIRS_C, PAIRS_D and PAIRS_E add queues); PART=wait collects it. A pair whose scene's
+#                fit failed is skipped ("skipped ... (no fit)" and the fit's last log lines in the wait's output):
+#                `SCENES=name PART=fit` fits it again, then a study of those pairs alone
 #   PART=scene   SCENE=name:dataset:downscale STYLES=a.jpg,b.jpg VARIANTS="name:k=v;k=v ..." (benchmarks/tune.py's
 #                form): the variants of one scene in one process, evaluated with the anchors
 # Later calls on a warm machine: `source /tmp/tlvg-gpu/env.sh && PART=... bash benchmarks/device_paint.sh`.
@@ -64,6 +66,19 @@ wait_for() {  # wait_for FILE... : until every file exists (or the call's time r
   for f in "$@"; do while [ ! -f "$f" ]; do sleep 2; done; done
 }
 
+fit_of() {  # fit_of NAME: until NAME's fit exists (0), or its process ended without it (1: the fit failed, e.g. an
+  # unreadable photo; the last lines of its log go to stderr), so that a queue moves on instead of waiting for a file
+  # no process will make
+  local spz=$F/$1.spz started=$R/fit_$1.started
+  while [ ! -f "$spz" ]; do
+    if [ -f "$started" ] && ! kill -0 "$(cat "$started")" 2>/dev/null; then
+      [ -f "$spz" ] && return 0  # it ended just now, after writing the file
+      echo "fit of $1 failed: $(tail -n 2 "$R/fit_$1.log" 2>/dev/null | tr '\n' ' ')" >&2; return 1
+    fi
+    sleep 2
+  done
+}
+
 case "${PART:-pairs}" in
   stage1)
     bash .gpu/a/stage.sh
@@ -78,7 +93,7 @@ EOF
   stage2) fit_bg beer_colmap beer; sleep 5; tail -2 "$R/fit_beer.log" ;;
   scene)  # SCENE=name:dataset:downscale STYLES=a.jpg,b.jpg VARIANTS=...: one process, after that scene's fit
     IFS=: read -r s d ds <<< "$SCENE"
-    timeout 300 bash -c "$(declare -f wait_for); wait_for $F/$s.spz"; grep -h PSNR "$R/fit_$s.log"
+    export F R; timeout 300 bash -c "$(declare -f fit_of); fit_of $s" || exit 2; grep -h PSNR "$R/fit_$s.log"
     V=(); for v in $VARIANTS; do V+=(--variant "$v"); done
     OMP_NUM_THREADS=8 python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" --downscale "$ds" \
       --styles "$(echo "$STYLES" | tr ',' '\n' | sed "s|^|$D/styles/|" | paste -sd, -)" --out "$R/scene/$s" "${V[@]}" \
@@ -106,7 +121,8 @@ EOF
       local V=(); for v in $vs; do V+=(--variant "$v"); done
       for spec in "$@"; do
         IFS=: read -r s d ds st <<< "$spec"
-        wait_for "$F/$s.spz"  # this pair's fit only: a queue of lego pairs starts while fern still fits
+        # this pair's fit only: a queue of lego pairs starts while fern still fits; a failed fit skips its pairs
+        fit_of "$s" 2>> "$R/pairs/queue_$name.log" || { echo "skipped $spec (no fit)" >> "$R/pairs/queue_$name.log"; continue; }
         for try in 1 2; do  # a pair that failed runs once more (tune.py skips the runs it finished): one lost pair
           # cost a second machine
           OMP_NUM_THREADS=${QUEUE_THREADS:-6} python3 benchmarks/tune.py --scene "$F/$s.spz" --data "$D/scenes/$d" \
@@ -131,11 +147,11 @@ EOF
     for q in C D E; do  # more queues, one per list given (the GPU has room when each run is host-bound)
       pv=PAIRS_$q
       if [ -n "${!pv:-}" ]; then
-        setsid nohup bash -c "$(declare -f wait_for); queue q$q '$SV' ${!pv}" > /dev/null 2>&1 &
+        setsid nohup bash -c "$(declare -f wait_for fit_of); queue q$q '$SV' ${!pv}" > /dev/null 2>&1 &
       else touch "$R/pairs/queue_q$q.done"; fi
     done
-    setsid nohup bash -c "$(declare -f wait_for); queue tuning '$SV' $T" > /dev/null 2>&1 &
-    setsid nohup bash -c "$(declare -f wait_for); queue validation '$SV' $V;
+    setsid nohup bash -c "$(declare -f wait_for fit_of); queue tuning '$SV' $T" > /dev/null 2>&1 &
+    setsid nohup bash -c "$(declare -f wait_for fit_of); queue validation '$SV' $V;
       [ '$SP' = none ] || R=$R/seeds queue seeds '$SEEDV' $SP" > /dev/null 2>&1 &
     echo "study launched"
     ;;
@@ -146,7 +162,7 @@ EOF
       [ ! -f "$R/seeds/pairs/queue_seeds.done" ]; }; do sleep 5; done
     # the fits ran in the background (PART=fit FIT_LIMIT=1 returns at once): their held-out PSNR and size, here
     for s in $SCENES; do echo "fit $s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" 2>/dev/null | tail -n 2 | tr '\n' ' ')"; done
-    grep -h "^done\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log "$R"/seeds/pairs/queue_*.log 2>/dev/null | tail -n 60
+    grep -h "^done\|^skipped\|^fit of\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log "$R"/seeds/pairs/queue_*.log 2>/dev/null | tail -n 60
     (cd "$R" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d {pairs,seeds/pairs}/*/*/evaluation/evaluation.json {pairs,seeds/pairs}/*/*/*/metrics.json pairs/*.jpg \
       {pairs,seeds/pairs}/queue_*.log 2>/dev/null))  # the queue logs: a pair that failed says why
     ;;
