@@ -33,8 +33,8 @@ class StyleLoss:
     w_style_gram: float = 0.0  # a Gram (texture statistics) term on the style term's features: it asks for the
     # painting's strokes over the whole view, where nearest-neighbour matching leaves flat regions smooth (ours; 0: off)
     w_style_coarse: float = 0.0  # a second style term (the same kind, on the same input) one octave coarser: the
-    # render and the painting both at half the style term's working size, so VGG's relu3 cells, each about 40 of its
-    # pixels wide, span twice as much of the view and the painting; the strokes keep their size relative to the view,
+    # render and the painting both at half the style term's working size, so VGG's relu3 cells (each sees about 40 of
+    # its pixels) span twice as much of the view and the painting; the strokes keep their size relative to the view,
     # while the term sees the painting's larger arrangements of them (swirls, waves) (ours; 0: off; --strength
     # multiplies it)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
