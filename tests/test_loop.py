@@ -234,6 +234,25 @@ def test_coarse_style_term_matches_both_at_half_the_working_size(demo):
     assert sty.weights(0)["style_coarse"] == 0.5 * cfg.loss.strength
 
 
+def test_field_canvas_mixes_the_matched_and_the_canvas_fields(demo):
+    """loss.field_canvas f: each view's target field is (1 - f) x the matched field + f x the painting's field laid
+    over the view (doubled-angle vectors, float64 oracle from the two runs at the ends), its third channel the
+    mixed vector's length; at f = 1 with the matched mapping it is the canvas field."""
+    fields = {}
+    for name, over in (("matched", {}), ("canvas", {"loss.field_mapping": "canvas"}),
+                       ("mixed", {"loss.field_canvas": 0.25}), ("all", {"loss.field_canvas": 1.0})):
+        run, _, _ = _stylize_run(demo, StubFeatures(), **{"loss.field_source": "unstylized", **over})
+        sty = run.phase("stylize")
+        sty.setup(run)
+        fields[name] = [f.double() for f in sty.fields]
+    for m, c, x, a in zip(fields["matched"], fields["canvas"], fields["mixed"], fields["all"]):
+        assert float((m[..., :2] - c[..., :2]).abs().mean()) > 0.05  # the two ends differ on the demo
+        want = 0.75 * m[..., :2] + 0.25 * c[..., :2]
+        assert torch.allclose(x[..., :2], want, atol=1e-6)
+        assert torch.allclose(x[..., 2], want.norm(dim=-1), atol=1e-6)
+        assert torch.allclose(a, c, atol=1e-6)
+
+
 def test_normalized_content_is_the_mse_over_the_photo_features_mean_square(demo):
     """loss.content_norm: the content term is the raw feature MSE divided by that view's photo features' mean
     square (float64 oracle from the stub's pooled pixels), so a scene's texture no longer sets its weight."""

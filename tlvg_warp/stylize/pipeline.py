@@ -478,13 +478,19 @@ class Stylize(Phase):
 
         tg, out, w = self.tg, [], self.cfg.loss
         g = run.params.gaussians()
+        painting_field = torch.from_numpy(tg.style_field[2]).to(run.device)  # [hs,ws,2] doubled angle
         for i, cam in enumerate(run.cams):
+            canvas = None
+            if w.field_mapping == "canvas" or w.field_canvas > 0:
+                canvas = map_field_canvas(painting_field, cam.height, cam.width)[2]  # [H,W,2]
             if w.field_mapping == "canvas":
-                _, _, d = map_field_canvas(torch.from_numpy(tg.style_field[2]).to(run.device), cam.height, cam.width)
+                d = canvas
             else:
                 img = (tg.originals[i].to(run.device) if w.field_source == "unstylized"
                        else render(g, cam, run.background).color)
                 d = matched_view_field(self.vgg, img, tg.match_feats, tg.style_doubled_cells, self.cfg.vgg_scale)
+                if canvas is not None:  # doubled-angle vectors mix as orientations do; coherence weighs each side
+                    d = (1 - w.field_canvas) * d + w.field_canvas * canvas.to(d)
             out.append(flow_field_tensor(d.to(device=run.device, dtype=torch.float32)))
         return out
 
