@@ -100,8 +100,8 @@ class StyleLoss:
     w_align: float = 2.0  # flow-alignment energy weight (paper eq. 1, ours; configs/tlvg.yaml sets the tuned 8.0)
     w_aniso: float = 0.2  # anisotropy energy weight (across-stroke footprint energy + λmin/λmax, ours)
     field_mapping: str = "matched"  # the flow terms' target: matched (FAST match carries the painting's field) | canvas
-    field_canvas: float = 0.0  # with field_mapping matched: the share of the painting's own field, laid over the view as
-    # the canvas mapping lays it, in each view's target field (the doubled-angle vectors mixed), so that strokes
+    field_canvas: float = 0.0  # with field_mapping matched: the share of the painting's own field, laid over the view
+    # as the canvas mapping lays it, in each view's target field (the doubled-angle vectors mixed), so that strokes
     # follow the scene's edges less and the painting's directions more; 0: the matched field alone (the paper), 1:
     # the canvas field (ours)
     field_source: str = "stylize_start"  # what "matched" matches against the painting: the render at the start of
@@ -116,7 +116,8 @@ class StyleLoss:
              "luminance_grad": ("of", "luma", "gray"), "chroma_tv_space": ("of", "rgb", "lab"),
              "content_on": ("of", "rgb", "luminance"),
              "stroke_along": ("of", "ratio", "bounded"),
-             "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1), "field_canvas": ("in", 0, 1), "lab_where": ("of", "all", "covered"),
+             "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1), "lab_where": ("of", "all", "covered"),
+             "field_canvas": ("in", 0, 1),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
              "color_swd_projections": (">=", 1), "color_swd_space": ("of", "rgb", "chroma"),
