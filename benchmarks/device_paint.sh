@@ -2,7 +2,9 @@
 # The paintings study on one GPU: every (scene, painting) pair stylized by each configuration and evaluated with the
 # anchors. Two queues run side by side (6 CPU threads each: more processes starve the evaluation of CPU); quality
 # figures are unaffected, wall times are not speed figures.
-#   PART=stage1  carry .gpu/a and .carry/d1 (VGG-16 conv1-4, fp16): stage warp part one and the weights
+#   PART=stage1  carry .gpu/a and .carry/d1 (VGG-16 conv1-4, fp16): stage warp part one and the weights. With the
+#                working tree these come to about 66 MB, at the 64 MiB a call carries: if the call is refused, move
+#                docs/*.jpg out of the working tree for the staging calls and `git checkout -- docs` after
 #   PART=stage2  carry .gpu/b and .carry/d2 (styles, beer): `source .gpu/b/setup.sh` first; starts beer's fit
 #   PART=fit     carry .carry/d3 (fern, lego at 400 px): fits fern and lego (7000 iterations), waits for all three
 #   PART=study   launch the study in the background (two queues of pairs: tuning, validation; PAIRS_A and PAIRS_B
