@@ -286,13 +286,15 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     view_h = int(np.median([c.height for c in inp.cameras]))
     style_work = torch.from_numpy(resize_style(style_np, cfg.style_work_height(view_h))).contiguous()  # [hs,ws,3]
     with torch.no_grad():
-        sf_lum = vgg(luminance(style_work.to(device)), scale=1.0)  # [1,768,fh,fw]: the field match
+        style_rgb = style_work.to(device)
+        style_lum = luminance(style_rgb)
+        sf_lum = vgg(style_lum, scale=1.0)  # [1,768,fh,fw]: the field match
         need_rgb = not cfg.loss.luminance_only or cfg.loss.w_style_color > 0
-        sf_rgb = vgg(style_work.to(device), scale=1.0) if need_rgb else None
+        sf_rgb = vgg(style_rgb, scale=1.0) if need_rgb else None
         sf = sf_lum if cfg.loss.luminance_only else sf_rgb
         # the coarse style term's: the same input at half the working size (the render's side: vgg_scale / 2)
-        sf_coarse = (vgg(luminance(style_work.to(device)) if cfg.loss.luminance_only else style_work.to(device),
-                         scale=COARSE) if cfg.loss.w_style_coarse > 0 else None)
+        sf_coarse = (vgg(style_lum if cfg.loss.luminance_only else style_rgb, scale=COARSE)
+                     if cfg.loss.w_style_coarse > 0 else None)
     s_theta, s_coh, s_doubled = stroke_field(style_work.numpy())
     cells = torch.from_numpy(field_at_cells(s_doubled, tuple(sf_lum.shape[-2:]))).to(device)
     photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
