@@ -71,11 +71,12 @@ wait_for() {  # wait_for FILE... : until every file exists (or the call's time r
 fit_of() {  # fit_of NAME: until NAME's fit exists (0), or its process ended without it (1: the fit failed, e.g. an
   # unreadable photo; the last lines of its log go to stderr), so that a queue moves on instead of waiting for a file
   # no process will make
-  local spz=$F/$1.spz started=$R/fit_$1.started
+  local runs=${FIT_RUNS:-$R}  # the fits' folder (the seeds queue runs with R pointing elsewhere)
+  local spz=$F/$1.spz started=$runs/fit_$1.started
   while [ ! -f "$spz" ]; do
     if [ -f "$started" ] && ! kill -0 "$(cat "$started")" 2>/dev/null; then
       [ -f "$spz" ] && return 0  # it ended just now, after writing the file
-      echo "fit of $1 failed: $(tail -n 2 "$R/fit_$1.log" 2>/dev/null | tr '\n' ' ')" >&2; return 1
+      echo "fit of $1 failed: $(tail -n 2 "$runs/fit_$1.log" 2>/dev/null | tr '\n' ' ')" >&2; return 1
     fi
     sleep 2
   done
@@ -136,7 +137,7 @@ EOF
       done
       touch "$R/pairs/queue_$name.done"
     }
-    export -f queue; export F D R QUEUE_THREADS=${QUEUE_THREADS:-6}
+    export -f queue; export F D R FIT_RUNS=$R QUEUE_THREADS=${QUEUE_THREADS:-6}
     # queue one: the five tuning pairs and lego x The Shipwreck; queue two: the other six validation pairs, then the
     # seeds of one pair (SEEDS_PAIR, in its own folder $R/seeds) to set run-to-run spread against the view intervals
     T="beer:beer_colmap:2:starry_night.jpg beer:beer_colmap:2:shipwreck.jpg fern:fern_llff:0:starry_night.jpg fern:fern_llff:0:shipwreck.jpg lego:lego_blender:0:starry_night.jpg lego:lego_blender:0:shipwreck.jpg"
@@ -149,11 +150,11 @@ EOF
     for q in C D E; do  # more queues, one per list given (the GPU has room when each run is host-bound)
       pv=PAIRS_$q
       if [ -n "${!pv:-}" ]; then
-        setsid nohup bash -c "$(declare -f wait_for fit_of); queue q$q '$SV' ${!pv}" > /dev/null 2>&1 &
+        setsid nohup bash -c "$(declare -f fit_of); queue q$q '$SV' ${!pv}" > /dev/null 2>&1 &
       else touch "$R/pairs/queue_q$q.done"; fi
     done
-    setsid nohup bash -c "$(declare -f wait_for fit_of); queue tuning '$SV' $T" > /dev/null 2>&1 &
-    setsid nohup bash -c "$(declare -f wait_for fit_of); queue validation '$SV' $V;
+    setsid nohup bash -c "$(declare -f fit_of); queue tuning '$SV' $T" > /dev/null 2>&1 &
+    setsid nohup bash -c "$(declare -f fit_of); queue validation '$SV' $V;
       [ '$SP' = none ] || R=$R/seeds queue seeds '$SEEDV' $SP" > /dev/null 2>&1 &
     echo "study launched"
     ;;
