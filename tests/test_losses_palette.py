@@ -110,7 +110,7 @@ def test_affine_palette_identity_keeps_sh():
 
 
 def test_unknown_palette_mode_is_refused():
-    with pytest.raises(ValueError, match="arf or tone"):
+    with pytest.raises(ValueError, match="arf, arf_rank or tone"):
         palette_transfer([torch.zeros(2, 2, 3)], torch.zeros(2, 2, 3), "lut")
 
 
@@ -276,3 +276,87 @@ def test_palette_snap_pulls_a_teal_wash_to_the_paintings_blue_and_yellow():
     assert went_yellow[-1] and not went_yellow[0] and 0 < went_yellow.sum() < len(y)
     assert (to(yellow)[went_yellow] < 1e-3).all() and (to(blue)[~went_yellow] < 1e-3).all()
     np.testing.assert_allclose(out.mean(1), img[0].mean(1), atol=1e-12)  # no grey moved: each pixel's level stays
+
+
+# --- arf_rank: ARF's map, then luminance by rank (RankPalette) -----------------------------------------------------
+def _capture_like(seed, n=3, h=20, w=24):
+    """Bright, low-contrast photos with a dark tail (a can, its shadow): the luminance distribution whose dark end
+    ARF's affine map puts under 0."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        p = 0.7 + 0.05 * rng.random((h, w, 3))
+        dark = rng.random((h, w)) < 0.1  # ~10% dark pixels, each of its own colour
+        p[dark] = rng.random((int(dark.sum()), 3)) * 0.15
+        out.append(p)
+    return out
+
+
+def _arf_map(photos, style, floor):
+    """ARF's map by its definition in numpy float64 (pooled moments, symmetric square roots, no clamp)."""
+    x = np.concatenate([p.reshape(-1, 3) for p in photos])
+    s = style.reshape(-1, 3).astype(np.float64)
+
+    def root(c, e):
+        v, u = np.linalg.eigh(c)
+        return u @ np.diag(np.clip(v, 1e-8, 1e8) ** e) @ u.T
+    m = root(np.cov(s.T, bias=True), 0.5) @ root(np.cov(x.T, bias=True) + floor * np.eye(3), -0.5)
+    return m, s.mean(0) - m @ x.mean(0)
+
+
+def test_arf_rank_gives_the_photos_the_paintings_luminance_by_rank_and_keeps_arfs_hue():
+    photos = _capture_like(10)
+    style = np.random.default_rng(11).random((40, 50, 3)) ** 1.5 * np.array([0.7, 0.8, 1.0])
+    got, pal = palette_transfer([torch.from_numpy(p) for p in photos], torch.from_numpy(style), "arf_rank", floor=0.004)
+    m, t = _arf_map(photos, style, 0.004)
+    arf = [p.reshape(-1, 3) @ m.T + t for p in photos]  # unclamped
+    assert min(a.min() for a in arf) < -0.05  # the case the map exists for: ARF puts the dark tail under 0
+    out = np.concatenate([g.numpy().reshape(-1, 3) for g in got])
+    a = np.concatenate(arf)
+    y_out, y_arf, y_s = out @ LUMA, a @ LUMA, style.reshape(-1, 3) @ LUMA
+    assert out.min() >= 0.0 and out.max() <= 1.0
+    q = np.linspace(0.05, 0.95, 19)  # the painting's luminance distribution, rank for rank (256 bins: 1/256 apart)
+    np.testing.assert_allclose(np.quantile(y_out, q), np.quantile(y_s, q), atol=0.01)
+    order = np.argsort(y_arf, kind="stable")  # a monotone map of ARF's luminance
+    assert np.all(np.diff(y_out[order]) >= -1e-9)
+    # the chroma is ARF's, scaled by a factor in [0, 1] (hue kept; a per-channel clamp would turn it)
+    c_out, c_arf = out - y_out[:, None], a - y_arf[:, None]
+    k = (c_out * c_arf).sum(1) / np.maximum((c_arf * c_arf).sum(1), 1e-24)
+    np.testing.assert_allclose(c_out, k[:, None] * c_arf, atol=1e-9)
+    assert k.min() >= -1e-9 and k.max() <= 1 + 1e-9 and np.mean(k > 1 - 1e-9) > 0.5  # most colours untouched
+    # the plain ARF map on the same photos: its clamp cuts the luminance spread
+    clamped = np.clip(a, 0, 1) @ LUMA
+    assert clamped.std() < 0.9 * y_s.std() and abs(y_out.std() - y_s.std()) < 0.02 * y_s.std()
+
+
+def test_arf_rank_recolors_the_gaussians_base_colour_like_a_pixel_and_the_bands_by_arfs_matrix():
+    rng = np.random.default_rng(12)
+    photos = _capture_like(13)
+    style = rng.random((30, 40, 3))
+    _, pal = palette_transfer([torch.from_numpy(p) for p in photos], torch.from_numpy(style), "arf_rank")
+    sh = torch.from_numpy(rng.normal(0, 0.5, (50, 4, 3)))  # degree 1
+    out = pal.recolor_sh(sh)
+    base = (SH_C0 * sh[:, 0] + 0.5).clamp(0, 1)
+    np.testing.assert_allclose((SH_C0 * out[:, 0] + 0.5).numpy(), pal.apply(base).numpy(), atol=1e-9)
+    m, _ = _arf_map(photos, style, 0.0)
+    np.testing.assert_allclose(out[:, 1:].numpy(), sh[:, 1:].numpy() @ m.T, atol=1e-9)
+
+
+def test_arf_rank_takes_its_statistics_over_the_covered_pixels():
+    """With ``where='covered'`` both ARF's moments and the luminance ranks come from the pixels the scene covers: a
+    white background outside them changes nothing."""
+    photos = _capture_like(14)
+    style = np.random.default_rng(15).random((30, 40, 3))
+    cover = [np.zeros(p.shape[:2] + (1,)) for p in photos]
+    for c in cover:
+        c[:, :12] = 1.0
+    framed = [p.copy() for p in photos]
+    for p in framed:
+        p[:, 12:] = 1.0  # white where nothing is covered
+    pt = lambda xs: [torch.from_numpy(x) for x in xs]
+    a, _ = palette_transfer(pt(photos), torch.from_numpy(style), "arf_rank", coverage=pt(cover), where="covered")
+    b, _ = palette_transfer(pt(framed), torch.from_numpy(style), "arf_rank", coverage=pt(cover), where="covered")
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x[:, :12].numpy(), y[:, :12].numpy(), atol=1e-9)
+    c, _ = palette_transfer(pt(framed), torch.from_numpy(style), "arf_rank")  # all pixels: the white moves the map
+    assert np.abs(c[0][:, :12].numpy() - b[0][:, :12].numpy()).max() > 0.02
