@@ -62,6 +62,12 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      on the CPU: the training field against `evaluate`'s common field (benchmarks/field_vs_ruler.py).
   backbone-probe     on the CPU: does the VGG-16 backbone see brushstrokes? (benchmarks/backbone_probe.py;
                      docs/study.md).
+  tone-spread RUN PAINTING
+                     on the CPU: a run's luminance spread over all pixels, whole regions and strokes against the
+                     painting's (benchmarks/tone_spread.py; docs/study.md).
+  match-texture RUN PAINTING
+                     on the CPU: how textured the painting cells are that a run's view matches (benchmarks/
+                     match_texture.py; docs/study.md).
   footprints SCENE DATASET [--downscale F]
                      on the CPU: the share of the views that coarse splats paint, before and after the stroke-size
                      refinement (benchmarks/footprints.py; docs/study.md).
@@ -169,6 +175,8 @@ case "$cmd" in
     python3 -c "import pstats, sys; s = pstats.Stats(sys.argv[1]); s.sort_stats('cumulative').print_stats(70)" \
       "$OUT/setup.prof" | grep -v "^$" | cut -c1-170;;
   ssim) exec python3 benchmarks/ssim_check.py;;
+  tone-spread) exec python3 benchmarks/tone_spread.py "$@";;
+  match-texture) exec python3 benchmarks/match_texture.py "$@";;
   fit-vs-gsplat) gpu; TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16} exec python3 \
     benchmarks/gsplat_trainer.py "$D/fern_llff" --images images_4 --iterations 7000 --raster ours,gsplat --out "$OUT" "$@";;
   paint) PART=${1:?paint needs a PART} exec bash benchmarks/device_paint.sh;;
