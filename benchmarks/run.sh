@@ -65,6 +65,9 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   tone-spread RUN PAINTING
                      on the CPU: a run's luminance spread over all pixels, whole regions and strokes against the
                      painting's (benchmarks/tone_spread.py; docs/study.md).
+  palette-clamp RUN PAINTING [FLOOR]
+                     on the CPU: how much of the painting's luminance spread ARF's clamp takes from a run's photos,
+                     and what arf_rank keeps (benchmarks/palette_clamp.py; docs/study.md).
   match-texture RUN PAINTING
                      on the CPU: how textured the painting cells are that a run's view matches (benchmarks/
                      match_texture.py; docs/study.md).
@@ -177,6 +180,7 @@ case "$cmd" in
   ssim) exec python3 benchmarks/ssim_check.py;;
   tone-spread) exec python3 benchmarks/tone_spread.py "$@";;
   match-texture) exec python3 benchmarks/match_texture.py "$@";;
+  palette-clamp) exec python3 benchmarks/palette_clamp.py "$@";;
   fit-vs-gsplat) gpu; TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16} exec python3 \
     benchmarks/gsplat_trainer.py "$D/fern_llff" --images images_4 --iterations 7000 --raster ours,gsplat --out "$OUT" "$@";;
   paint) PART=${1:?paint needs a PART} exec bash benchmarks/device_paint.sh;;

@@ -125,7 +125,7 @@ class RankPalette:
     Why: ARF matches the painting's colour covariance with an affine map, so the photos keep the shape of their own
     luminance distribution. A capture's bright floor with a dark tail (a can, shadows) maps that tail below 0, and the
     clamp to [0,1] takes a quarter of the painting's luminance spread back and lifts the mean: beer x The Shipwreck,
-    8% of the pixels under 0 and a luminance spread of 0.126 where the painting has 0.181. Matching luminance by rank
+    9% of the pixels under 0 and a luminance spread of 0.126 where the painting has 0.181 (benchmarks/palette_clamp.py). Matching luminance by rank
     gives the recoloured photos the painting's luminance distribution itself, with nothing under 0, and keeps ARF's
     chroma (x' minus its luminance) pixel for pixel, scaled down only where the colour would leave [0,1]."""
 
