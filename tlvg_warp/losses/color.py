@@ -64,13 +64,18 @@ def color_transfer(images, style, floor: float = 0.0, weights=None):
     """
     is_list = isinstance(images, (list, tuple))
     items = list(images) if is_list else [images]
-    mu_c, cov_c = _moments(items, weights)
-    mu_s, cov_s = _moments([style])
-    eye = torch.eye(3, dtype=torch.float64)
-    m = _sym_pow(cov_s, 0.5) @ _sym_pow(cov_c + floor * eye, -0.5)  # [3,3]
-    t = mu_s - m @ mu_c  # [3]
+    m, t = color_map(items, style, floor, weights)
     out = [apply_color_transform(im, m, t) for im in items]
     return (out if is_list else out[0]), m, t
+
+
+def color_map(images: list, style, floor: float = 0.0, weights=None) -> tuple:
+    """ARF's map alone: ``(M [3,3], t [3])`` float64 of :func:`color_transfer` (same arguments, ``images`` a list),
+    without applying it."""
+    mu_c, cov_c = _moments(images, weights)
+    mu_s, cov_s = _moments([style])
+    m = _sym_pow(cov_s, 0.5) @ _sym_pow(cov_c + floor * torch.eye(3, dtype=torch.float64), -0.5)  # [3,3]
+    return m, mu_s - m @ mu_c
 
 
 DETAIL_SIGMA = 2.0  # px: the blur whose residual is "detail" (the evaluation's detail measure uses the same σ)

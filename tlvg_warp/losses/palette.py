@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from ..types import SH_C0
-from .color import LUMA, _as_torch, _blur, _luma, chroma, color_transfer, recolor_sh
+from .color import LUMA, _as_torch, _blur, _luma, apply_color_transform, chroma, color_map, color_transfer, recolor_sh
 
 TONE_BINS = 32  # luminance bins of the painting's chroma table (equal pixel counts)
 TONE_MAX_BOOST = 2.0  # a bin's mean chroma is scaled back up to its pixels' mean saturation, by at most this
@@ -138,7 +138,7 @@ class RankPalette:
         """An image [H,W,3] (or colours [...,3]) in [0,1], numpy or torch, under the map, clamped to [0,1]; type and
         dtype kept."""
         x = _as_torch(img)
-        xa = x.double() @ self.m.to(x.device).T + self.t.to(x.device)  # [...,3] ARF's, unclamped
+        xa = apply_color_transform(x.double(), self.m, self.t, clamp=False)  # [...,3] ARF's, unclamped
         y = _luma64(xa)
         y2 = _interp(y, self.knots.to(x.device), self.values.to(x.device))[..., 0].clamp(0.0, 1.0)
         out = (y2[..., None] + _fit_gamut(xa - y[..., None], y2)).clamp(0.0, 1.0).to(x.dtype)  # (the clamp: rounding)
@@ -158,8 +158,8 @@ def rank_palette(images, style, floor: float = 0.0, coverage=None, bins: int = R
     """The arf_rank map from the photos (list of [H,W,3] in [0,1]) to the painting ``style`` [h,w,3]: ARF's map over
     the pixels ``coverage`` marks (None: all; as ``palette_transfer``'s ``covered``), then the quantiles of its
     luminance there against the painting's."""
-    _, m, t = color_transfer(list(images), style, floor, coverage)
-    mapped = [_as_torch(im).detach().double().cpu() @ m.T + t for im in images]  # unclamped
+    m, t = color_map(list(images), style, floor, coverage)
+    mapped = [apply_color_transform(_as_torch(im).detach().double().cpu(), m, t, clamp=False) for im in images]
     y_c = _pooled_luma(mapped, coverage)
     y_s = _luma64(_as_torch(style).detach().cpu().double().reshape(-1, 3))
     q = (torch.arange(bins, dtype=torch.float64) + 0.5) / bins
