@@ -90,16 +90,23 @@ def test_a_grey_photos_tints_are_not_blown_up_into_colour():
     assert tint_noise(tone) < 0.5 * tint_noise(arf)
 
 
-def test_recolor_sh_maps_each_gaussians_base_colour_like_the_images():
-    rng = np.random.default_rng(6)
-    photos = _random_images(7)
+def _recolored_like_pixels(mode, photos, seed):
+    """A palette of ``mode`` from ``photos`` to a random painting, 50 random degree-1 Gaussians and their recolour,
+    once it is checked that each one's base colour (DC term) went through the map as a pixel of that colour does.
+    Returns (palette, sh, recoloured sh, painting)."""
+    rng = np.random.default_rng(seed)
     style = rng.random((30, 40, 3))
-    _, pal = palette_transfer([torch.from_numpy(p) for p in photos], torch.from_numpy(style), "tone")
+    _, pal = palette_transfer([torch.from_numpy(p) for p in photos], torch.from_numpy(style), mode)
     sh = torch.from_numpy(rng.normal(0, 0.5, (50, 4, 3)))  # degree 1
     out = pal.recolor_sh(sh)
     colours = (SH_C0 * sh[:, 0] + 0.5).clamp(0, 1)
     want = pal.apply(colours.numpy())  # the map on the colours as an image of 50 pixels
     np.testing.assert_allclose((SH_C0 * out[:, 0] + 0.5).numpy(), want, atol=1e-9)
+    return pal, sh, out, style
+
+
+def test_recolor_sh_maps_each_gaussians_base_colour_like_the_images():
+    pal, sh, out, _ = _recolored_like_pixels("tone", _random_images(7), 6)
     band_y = sh[:, 1:].numpy() @ LUMA  # view-dependent bands: their luminance, scaled as luminance is, on grey
     np.testing.assert_allclose(out[:, 1:].numpy(), np.repeat((band_y * pal.y_scale)[..., None], 3, -1), atol=1e-12)
 
@@ -161,15 +168,21 @@ def test_tone_statistics_come_from_the_covered_pixels_only():
     np.testing.assert_allclose(m_small.knots.numpy(), np.quantile(y_obj, (np.arange(32) + 0.5) / 32), atol=1e-6)
 
 
-def _arf_reference(photos, style, floor):
-    """ARF's transfer with a variance floor, in numpy float64: M = S^1/2 (C + floor I)^-1/2, t = mu_s - M mu_c."""
+def _arf_map(photos, style, floor):
+    """ARF's map with a variance floor, in numpy float64: M = S^1/2 (C + floor I)^-1/2, t = mu_s - M mu_c (pooled
+    moments, symmetric square roots, no clamp)."""
     def sym_pow(c, p):
         e, u = np.linalg.eigh(c)
         return u @ np.diag(np.clip(e, 1e-8, 1e8) ** p) @ u.T
     x = np.concatenate([p.reshape(-1, 3) for p in photos])
-    s = style.reshape(-1, 3)
+    s = style.reshape(-1, 3).astype(np.float64)
     m = sym_pow(np.cov(s.T, bias=True), 0.5) @ sym_pow(np.cov(x.T, bias=True) + floor * np.eye(3), -0.5)
-    t = s.mean(0) - m @ x.mean(0)
+    return m, s.mean(0) - m @ x.mean(0)
+
+
+def _arf_reference(photos, style, floor):
+    """ARF's transfer: the map of :func:`_arf_map` on the photos, clamped to [0,1]; and M."""
+    m, t = _arf_map(photos, style, floor)
     return [np.clip(p @ m.T + t, 0, 1) for p in photos], m
 
 
@@ -292,18 +305,6 @@ def _capture_like(seed, n=3, h=20, w=24):
     return out
 
 
-def _arf_map(photos, style, floor):
-    """ARF's map by its definition in numpy float64 (pooled moments, symmetric square roots, no clamp)."""
-    x = np.concatenate([p.reshape(-1, 3) for p in photos])
-    s = style.reshape(-1, 3).astype(np.float64)
-
-    def root(c, e):
-        v, u = np.linalg.eigh(c)
-        return u @ np.diag(np.clip(v, 1e-8, 1e8) ** e) @ u.T
-    m = root(np.cov(s.T, bias=True), 0.5) @ root(np.cov(x.T, bias=True) + floor * np.eye(3), -0.5)
-    return m, s.mean(0) - m @ x.mean(0)
-
-
 def test_arf_rank_gives_the_photos_the_paintings_luminance_by_rank_and_keeps_arfs_hue():
     photos = _capture_like(10)
     style = np.random.default_rng(11).random((40, 50, 3)) ** 1.5 * np.array([0.7, 0.8, 1.0])
@@ -330,14 +331,8 @@ def test_arf_rank_gives_the_photos_the_paintings_luminance_by_rank_and_keeps_arf
 
 
 def test_arf_rank_recolors_the_gaussians_base_colour_like_a_pixel_and_the_bands_by_arfs_matrix():
-    rng = np.random.default_rng(12)
     photos = _capture_like(13)
-    style = rng.random((30, 40, 3))
-    _, pal = palette_transfer([torch.from_numpy(p) for p in photos], torch.from_numpy(style), "arf_rank")
-    sh = torch.from_numpy(rng.normal(0, 0.5, (50, 4, 3)))  # degree 1
-    out = pal.recolor_sh(sh)
-    base = (SH_C0 * sh[:, 0] + 0.5).clamp(0, 1)
-    np.testing.assert_allclose((SH_C0 * out[:, 0] + 0.5).numpy(), pal.apply(base).numpy(), atol=1e-9)
+    _, sh, out, style = _recolored_like_pixels("arf_rank", photos, 12)
     m, _ = _arf_map(photos, style, 0.0)
     np.testing.assert_allclose(out[:, 1:].numpy(), sh[:, 1:].numpy() @ m.T, atol=1e-9)
 
