@@ -554,8 +554,9 @@ class Stylize(Phase):
         need = [style_in] + [content_in] * on["content"] + ["rgb"] * on["style_color"]
         keys = list(dict.fromkeys(need)) if self.vgg_on else []
         kw = {"graphs": False} if in_graph else {}  # no graph of the pass's own inside this one
-        by_input = dict(zip(keys, self.vgg.features_of([luminance(img_y) if k == "y" else img for k in keys],
-                                                       self.cfg.vgg_scale, **kw))) if keys else {}
+        inputs = {"y": luminance(img_y) if "y" in keys else None, "rgb": img}  # each once (the coarse pass reuses it)
+        by_input = (dict(zip(keys, self.vgg.features_of([inputs[k] for k in keys], self.cfg.vgg_scale, **kw)))
+                    if keys else {})
         a, a_rgb = by_input.get(style_in), by_input.get("rgb")  # the style term's features; style_color's
         if on["content"]:
             out.append(content_loss(by_input[content_in], photo_feats) * content_scale)
@@ -584,8 +585,7 @@ class Stylize(Phase):
             out.append(orient)
         feats = [] if a is None else [a.reshape(-1)] + ([a_rgb.reshape(-1)] if on["style_color"] else [])
         if on["style_coarse"]:  # the style term's input once more, one octave coarser (a pass of a quarter the cells)
-            coarse_in = luminance(img_y) if style_in == "y" else img
-            feats.append(self.vgg.features_of([coarse_in], self.cfg.vgg_scale * COARSE, **kw)[0].reshape(-1))
+            feats.append(self.vgg.features_of([inputs[style_in]], self.cfg.vgg_scale * COARSE, **kw)[0].reshape(-1))
         return torch.cat([torch.stack(out) if out else img.new_zeros(0), *feats])
 
     def terms(self, run: Run, view: View) -> dict:
