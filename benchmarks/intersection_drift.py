@@ -27,8 +27,8 @@ current = {"view": None, "phase": None}
 def _record_counts():
     real_count = autograd.count_intersections
 
-    def counting(K, pr, width, height, all_tiles=False):
-        order = real_count(K, pr, width, height, all_tiles)
+    def counting(K, pr, width, height, all_tiles=False, capacity=None):
+        order = real_count(K, pr, width, height, all_tiles)  # every render counted exactly (no capacity)
         if current["view"] is not None:  # a training render (the loop's; inside the autograd op grad mode is off)
             records.append((current["phase"], current["view"], order.total))
         return order

@@ -10,7 +10,8 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
 
   fit [NAME ...]     fit scenes with `reconstruct` (7000 iterations) and keep each as $FITS/NAME.spz: fern
                      (fern_llff, images_4), beer (beer_colmap), lego (lego_blender); default: those whose data is
-                     present. Reproduces: fit time and held-out PSNR (performance.md, "Scene fitting").
+                     present; FIT_ARGS go to each `reconstruct` (e.g. "--set render_headroom=0"). Reproduces: fit
+                     time and held-out PSNR (performance.md, "Scene fitting").
   raster             `bench raster` on the fitted fern, beer and lego (every view) and a random 1M scene against
                      gsplat, REPS processes (default 2), each with gsplat in it. Reproduces: "Rasterizer on fitted
                      scenes" (ours / gsplat, peak memory, GPU time per stage, list lengths).
@@ -104,7 +105,7 @@ fit_one() {  # NAME DATASET [reconstruct arguments]
   local name=$1 data=$2; shift 2
   [ -d "$D/$data" ] || { echo "$name: $D/$data missing, skipped"; return; }
   /usr/bin/time -f "fit $name wall %e s" python3 -m tlvg_warp reconstruct "$D/$data" "$@" --iterations 7000 \
-    --out "$R/fit_$name" --overwrite --quiet > "$R/fit_$name.log" 2>&1; tail -n 1 "$R/fit_$name.log"
+    --out "$R/fit_$name" --overwrite --quiet ${FIT_ARGS:-} > "$R/fit_$name.log" 2>&1; tail -n 1 "$R/fit_$name.log"
   metrics "$R/fit_$name/metrics.json" psnr ssim num_gaussians train_time_s wall_time_s
   python3 -c "import sys; from tlvg_warp.io.ply import load_ply; from tlvg_warp.io.splat_formats import save_spz; \
 save_spz(load_ply(sys.argv[1]), sys.argv[2])" "$R/fit_$name/point_cloud.ply" "$F/$name.spz"

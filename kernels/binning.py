@@ -312,6 +312,7 @@ def emit_keys_kernel(
     width: int,
     height: int,
     all_tiles: int,
+    cap: int,  # key slots: the total, or a capacity sized from a view's last count (keys past it are not written)
     keys: wp.array(dtype=wp.int32),  # [2M] out tile id (radix sort needs 2x room)
     values: wp.array(dtype=wp.int32),  # [2M] out Gaussian index
 ):
@@ -330,6 +331,7 @@ def emit_keys_kernel(
         geo, rect, items = bin_setup(means2d[g], radii[g], conic[g], opacity[g], tiles_x, tiles_y, all_tiles)
         stop = ends[rank[g]]
         start = stop - counts[g]
+        stop = wp.min(stop, cap)  # a capacity below the total drops the last keys in depth order, nothing else
     chunks = chunks_of(rect)
     k = start
     if items <= SOLO_ITEMS:

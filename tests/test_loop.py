@@ -846,3 +846,25 @@ def test_the_chroma_colour_term_compares_rgb_minus_luminance_and_ignores_a_grey_
     assert got == pytest.approx(want, rel=TERM_TOL)
     assert term("chroma", 0.05)[0] == pytest.approx(got, rel=1e-4)  # a grey offset has no chroma
     assert abs(term("rgb", 0.05)[0] - term("rgb", 0.0)[0]) > 1e-3 * term("rgb", 0.0)[0]
+
+
+def test_renders_sized_from_each_views_last_count_train_the_same_scene(demo):
+    """The loop with an IntersectionBudget (``render_headroom`` > 1 on a GPU) against the same run counting every
+    render exactly: the same parameters bit for bit after a stylize run that visits each view six times; each view's
+    first render counts exactly, the later ones are sized (a change of the number of Gaussians, which sends a
+    render back to counting, is tested with the raster)."""
+    from tlvg_warp.raster import IntersectionBudget
+
+    runs = []
+    for budget in (None, IntersectionBudget(1.25)):
+        run, _, _ = _stylize_run(demo, StubFeatures(), iterations=24, phases=[8, 8, 8])
+        assert run.budget is None  # the CPU counts exactly whatever the headroom
+        run.budget = budget
+        train(run, progress=False, quiet=True)
+        runs.append(run)
+    exact, sized = (r.params.detached() for r in runs)
+    for f in exact.FIELDS:
+        assert torch.equal(getattr(exact, f), getattr(sized, f)), f
+    counts = runs[1].render_counts()
+    assert counts == {"exact": VIEWS, "sized": 24 - VIEWS, "over_capacity": 0}
+    assert runs[0].render_counts() is None

@@ -705,3 +705,73 @@ def test_the_cpu_blending_split_over_two_threads_equals_one_thread(monkeypatch, 
     names = (["weights"] if weights else []) + list(FIELDS)
     for name, a, b in zip(names, got[0][1], got[2][1]):  # the same terms, summed in another order
         assert_close(a, b, 1e-5 if dtype == torch.float32 else 1e-12, name)
+
+
+# --- key buffers sized from a view's last count (IntersectionBudget) --------------------------------------------
+def _tile_lists(cap) -> list:
+    """Each tile's Gaussian ids, in list order, from a captured binning."""
+    ranges, ids = cap["ranges"].cpu(), cap["ids"].cpu()
+    return [ids[a:b].tolist() for a, b in ranges.tolist()]
+
+
+def test_a_sized_render_equals_the_counted_one_and_reads_its_total_later():
+    """A capacity above the total: the same image, depth and gradients, bit for bit, as the render that counted
+    exactly (the sentinel-filled slots sort after every real key); the true total reaches the budget on the view's
+    next render, and its capacity is the headroom times that."""
+    from tlvg_warp.raster import IntersectionBudget, capture_binning
+
+    g, cam = fitted_like_scene(dtype=torch.float32), camera(61, 45)
+    g0, g1 = leafs(g), leafs(g)
+    with capture_binning() as exact_cap:
+        exact = render(g0, cam)
+    budget = IntersectionBudget(1.25)
+    budget.known["v"] = (g.num, 0, exact_cap["total"])  # as if an earlier render of the view had counted it
+    cap_slots = budget.capacity("v", g.num)
+    assert cap_slots == math.ceil(1.25 * exact_cap["total"])
+    with capture_binning() as sized_cap:
+        sized = render(g1, cam, budget=budget, budget_key="v")
+    assert budget.sized == 1 and budget.exact == 0 and "v" in budget.pending  # the total is on its way
+    for k in ("color", "alpha", "depth"):
+        assert torch.equal(getattr(sized, k), getattr(exact, k)), k
+    assert _tile_lists(sized_cap) == _tile_lists(exact_cap)
+    ups = upstream(exact)
+    for name, a, b in zip(FIELDS + ("means2d",), loss_grads(g1, sized, ups), loss_grads(g0, exact, ups)):
+        assert torch.equal(a, b), name
+    assert budget.capacity("v", g.num) == math.ceil(1.25 * exact_cap["total"])  # the total, read back
+    assert budget.counts() == {"exact": 0, "sized": 1, "over_capacity": 0}
+    assert budget.capacity("v", g.num + 1) is None  # the Gaussians changed (density control): count exactly
+    budget.scene = 1
+    assert budget.capacity("v", g.num) is None  # ... or the caller marked a structural change
+
+
+def test_a_render_over_its_capacity_drops_the_deepest_keys_and_is_counted():
+    """A capacity below the total: the render keeps the first keys in depth order, so each tile's list is a
+    prefix of the exact one and the kept keys number the capacity; the budget counts the overflow, and the view's
+    next render, sized from the true total, is the exact render again."""
+    from tlvg_warp.raster import IntersectionBudget, capture_binning
+
+    g, cam = fitted_like_scene(dtype=torch.float32), camera(61, 45)
+    with capture_binning() as exact_cap:
+        exact = render(g, cam)
+    short = exact_cap["total"] * 2 // 3
+    budget = IntersectionBudget(1.25)
+    budget.known["v"] = (g.num, 0, math.floor(short / 1.25))
+    assert budget.capacity("v", g.num) <= short
+    with capture_binning() as low_cap:
+        low = render(g, cam, budget=budget, budget_key="v")
+    kept, full = _tile_lists(low_cap), _tile_lists(exact_cap)
+    assert sum(map(len, kept)) == budget.pending["v"][2] < exact_cap["total"]
+    assert all(k == f[:len(k)] for k, f in zip(kept, full))
+    assert any(len(k) < len(f) for k, f in zip(kept, full))
+    assert torch.isfinite(low.color).all() and not torch.equal(low.color, exact.color)
+    again = render(g, cam, budget=budget, budget_key="v")
+    assert budget.overflows == 1 and budget.counts()["over_capacity"] == 1
+    assert torch.equal(again.color, exact.color) and torch.equal(again.alpha, exact.alpha)
+
+
+def test_headroom_must_exceed_one():
+    from tlvg_warp.raster import IntersectionBudget
+
+    for bad in (1.0, 0.5, float("nan")):
+        with pytest.raises(ValueError):
+            IntersectionBudget(bad)

@@ -125,3 +125,31 @@ def test_cuda_render_on_a_side_stream_and_warp_state_restored():
     assert torch.equal(again.color, ref.color)
     assert wp.get_device(str(g.device)).stream.cuda_stream == torch.cuda.current_stream().cuda_stream  # and back
     assert wp.get_device() == before_dev and core.wp_cuda_context_get_current() == before_ctx
+
+
+def test_cuda_sized_render_reads_its_total_without_waiting_and_matches_the_counted_one():
+    """On the GPU the budget's total travels to pinned memory behind a CUDA event: a render sized from the view's
+    last count gives the counted render's image (the blending is deterministic) and gradients (atomic sums: to
+    float32 rounding), and the next render of the view is sized from the total read back; one below it overflows
+    and is counted."""
+    import math
+
+    from tlvg_warp.raster import IntersectionBudget, capture_binning
+
+    g = fitted_like_scene(dtype=torch.float32).to("cuda")
+    cam = camera(61, 45)
+    g0, g1 = leafs(g), leafs(g)
+    budget = IntersectionBudget(1.25)
+    with capture_binning() as cap:
+        exact = render(g0, cam, budget=budget, budget_key=0)  # the view's first render: counted exactly
+    sized = render(g1, cam, budget=budget, budget_key=0)
+    assert budget.counts() == {"exact": 1, "sized": 1, "over_capacity": 0}
+    assert budget.capacity(0, g.num) == math.ceil(1.25 * cap["total"])
+    for k in ("color", "alpha", "depth"):
+        assert torch.equal(getattr(sized, k), getattr(exact, k)), k
+    ups = [u.cuda() for u in upstream(exact)]
+    for name, a, b in zip(FIELDS + ("means2d",), loss_grads(g1, sized, ups), loss_grads(g0, exact, ups)):
+        assert_close(a, b, F32_TOL, f"d/d{name}")
+    budget.known[0] = (g.num, 0, cap["total"] // 2)
+    render(g, cam, budget=budget, budget_key=0)
+    assert budget.counts()["over_capacity"] == 1

@@ -13,11 +13,21 @@ from tlvg_warp.train.session import Session, loop_settings
 
 def test_loop_settings_take_the_keys_each_config_has():
     rc = ReconstructConfig(log_every=7, checkpoint_every=3, checkpoint_seconds=5.0, views_per_step=2,
-                           timing_every=9, final_checkpoint=False)
-    assert loop_settings(rc) == LoopSettings(7, 3, 5.0, 2, 9, False)
-    sc = StylizeConfig(log_every=11, checkpoint_every=4, checkpoint_seconds=6.0, views_per_step=3)
+                           timing_every=9, final_checkpoint=False, render_headroom=1.5)
+    assert loop_settings(rc) == LoopSettings(7, 3, 5.0, 2, 9, False, 1.5)
+    sc = StylizeConfig(log_every=11, checkpoint_every=4, checkpoint_seconds=6.0, views_per_step=3, render_headroom=0)
     # stylize has no timing_every / final_checkpoint keys: the loop's defaults
-    assert loop_settings(sc) == LoopSettings(11, 4, 6.0, 3)
+    assert loop_settings(sc) == LoopSettings(11, 4, 6.0, 3, render_headroom=0)
+
+
+@pytest.mark.parametrize("cls", [ReconstructConfig, StylizeConfig])
+@pytest.mark.parametrize("bad", [1.0, 0.5, -1, 17, float("nan"), "2"])
+def test_render_headroom_is_zero_or_above_one(cls, bad):
+    from tlvg_warp.config_io import ConfigError
+
+    with pytest.raises(ConfigError, match="render_headroom"):
+        cls(device="cpu", render_headroom=bad).validate()
+    assert cls(device="cpu", render_headroom=0).validate().render_headroom == 0
 
 
 @pytest.mark.parametrize("cfg", [ReconstructConfig(device="cpu"), StylizeConfig(device="cpu")],

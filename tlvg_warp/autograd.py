@@ -74,8 +74,12 @@ class RasterizeFn(torch.autograd.Function):
             args = [input_ct(t, ty) for t, ty in zip((means, quats, log_scales, opacity_logits),
                                                       (K.vec3, K.vec4, K.vec3, None))] + [ct(colors, K.vec3)]
             pr = project(K, args, colors, cam_arg, n, means.dtype, device)
-            color, alpha, depth, weights, first = blend(
-                K, pr, count_intersections(K, pr, cam.width, cam.height, settings["all_tiles"]), cam, settings)
+            budget, key = settings.get("budget"), settings.get("budget_key")  # (IntersectionBudget, view)
+            cap = budget.capacity(key, n) if budget is not None else None
+            order = count_intersections(K, pr, cam.width, cam.height, settings["all_tiles"], capacity=cap)
+            if budget is not None:
+                budget.observe(key, n, order)
+            color, alpha, depth, weights, first = blend(K, pr, order, cam, settings)
         ctx.state = {"proj": pr, "blend": first, "n": n, "dtype": means.dtype, "device": device, "args": args,
                      "cam": cam, "cam_arg": cam_arg, "settings": settings}
         # the inputs are read by the adjoints: saving them lets autograd refuse a backward after an in-place

@@ -291,11 +291,14 @@ def validate(cfg, prefix: str = ""):
 
 
 def check_run_settings(cfg, prefix: str = "") -> None:
-    """The settings every command shares: ``device`` and ``background``."""
+    """The settings every command shares: ``device``, ``background`` and ``render_headroom``."""
     if cfg.device not in ("auto", "cpu", "cuda") and not str(cfg.device).startswith("cuda:"):
         raise ConfigError(prefix + "device", f"must be auto, cpu or cuda, got {cfg.device!r}")
     if cfg.background is not None and len(cfg.background) != 3:
         raise ConfigError(prefix + "background", f"must be 3 numbers, got {cfg.background!r}")
+    h = getattr(cfg, "render_headroom", 0)
+    if not (isinstance(h, (int, float)) and (h == 0 or 1 < h <= 16)):
+        raise ConfigError(prefix + "render_headroom", f"must be 0 (exact counts) or in (1, 16], got {h!r}")
 
 
 # --- writing ----------------------------------------------------------------------------------------------------

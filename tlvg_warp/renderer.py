@@ -58,14 +58,17 @@ def _zero_pair(dtype, device) -> torch.Tensor:
 
 
 def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None = None,
-           return_weights: bool = False, all_tiles: bool = False, depth: bool = True) -> RenderOutput:
+           return_weights: bool = False, all_tiles: bool = False, depth: bool = True, budget=None,
+           budget_key=None) -> RenderOutput:
     """Rasterize ``g`` into ``cam`` on the device of ``g``'s tensors, differentiably.
 
     sh_degree: evaluate SH only up to this degree (default: all stored coefficients).
     return_weights: also return Σ αT per Gaussian (costs one atomic add per contribution).
     all_tiles: bin every visible Gaussian into every tile (the brute-force check of the binning).
     depth: also blend the expected depth (default); False skips it (``RenderOutput.depth`` is None), which
-    saves a little blending time when a caller reads only color and alpha."""
+    saves a little blending time when a caller reads only color and alpha.
+    budget, budget_key: a ``raster.IntersectionBudget`` and the view's key in it: the key buffers are sized from
+    the view's last render instead of reading this one's count back (a training loop's renders; no host wait)."""
     # lazy: these import Warp, which this module does not need
     from .autograd import RasterizeFn, ShadeFn
     from .launch import kernels_for
@@ -78,7 +81,7 @@ def render(g: Gaussians, cam: Camera, background=None, *, sh_degree: int | None 
     # a stride-0 broadcast zero: an [N, 2] leaf that owns 2 scalars; its .grad is the [N, 2] gradient
     probe = _zero_pair(g.dtype, g.device).expand(g.num, 2).detach().requires_grad_(True)
     settings = {"background": bg, "weights": bool(return_weights), "all_tiles": bool(all_tiles),
-                "depth": bool(depth)}
+                "depth": bool(depth), "budget": budget, "budget_key": budget_key}
     cam_arg = camera_arg(kernels_for(g.dtype), cam)  # the kernels' camera struct, built once for both ops
     colors = ShadeFn.apply(g.means, g.sh, cam_arg, degree)  # [N, 3]
     color, alpha, depth, radii, weights = RasterizeFn.apply(

@@ -227,6 +227,7 @@ class StylizeConfig:
     keep_sh: bool = False  # keep view-dependent SH bands in stylized.ply (default: degree 0, ~3.6x smaller)
     background: list[float] | None = None  # render background RGB; None: the dataset's (white for the demo)
     views_per_step: int = 1  # training views per step (per rank under torchrun); the loss is their mean
+    render_headroom: float = 0.0  # > 1: on a GPU, a training render's key buffers take this x the view's last intersection count, so the host never waits for the count (0: count every render exactly; no faster over a whole run as measured, docs/performance.md)
     log_every: int = 50  # host reads (log flush, progress bar, NaN check, last-good snapshot) every N iterations
     checkpoint_every: int = 0  # also write checkpoint.pt every N iterations (0: by time only, below)
     checkpoint_seconds: float = 60.0  # ... and at the first log point this long after the last one (0: off); a killed run loses about this much; log.jsonl is written at the same point

@@ -42,6 +42,7 @@ import torch
 
 from ..distributed import Dist
 from ..fileio import save_torch, write_text
+from ..raster import IntersectionBudget
 from ..renderer import render
 from ..runs import Interrupt, StageTimer, plain_data
 from ..progress import Progress
@@ -64,6 +65,7 @@ class LoopSettings:
     views_per_step: int = 1  # views per rank per step (the loss is their mean)
     timing_every: int = 20  # sample the per-stage time split every N steps
     final_checkpoint: bool = True  # write checkpoint.pt at the end (lets --resume extend a run)
+    render_headroom: float = 0.0  # > 1, on a GPU: key buffers sized from a view's last count x this (0: exact counts)
 
 
 @dataclass
@@ -205,6 +207,10 @@ class Run:
                                               *STAGES[1:]), settings.timing_every)
         self.loop_time = 0.0  # this process's seconds in the loop
         self.on_phase_end = None  # callable(run, phase) -> {name: number}, kept in counts as "<name>_after_<phase>"
+        # render_headroom > 1: on a GPU the training renders size their key buffers from each view's last count (no
+        # host wait a step); on the CPU the count costs no wait, and every render counts exactly
+        h = settings.render_headroom
+        self.budget = IntersectionBudget(h) if h and self.device.type == "cuda" else None
         density.views_per_step = settings.views_per_step * self.dist.world
 
     # --- phases and views --------------------------------------------------------------------------------
@@ -296,7 +302,12 @@ class Run:
                 "resumed_from": start_step or None,
                 "time_per_phase_s": {p: round(t, 3) for p, t in self.phase_time.items()},
                 "train_time_s": round(sum(self.phase_time.values()), 3), "stage_split": self.timer.summary(),
-                "densify_events": list(self.density.events)}
+                "densify_events": list(self.density.events), "render_counts": self.render_counts()}
+
+    def render_counts(self) -> dict | None:
+        """How this process's training renders sized their key buffers (``IntersectionBudget.counts``); None where
+        every render counts exactly (the CPU, or ``render_headroom`` 0)."""
+        return self.budget.counts() if self.budget is not None else None
 
 
 def _note_views(was: dict, now: dict) -> None:
@@ -459,9 +470,12 @@ class _Loop:
         dens = phase.density and r.density.accumulating(k + 1)
         want_w = phase.render_weights or (dens and r.density.wants_weights(k + 1))
         n, rows = len(mine), []
+        if r.budget is not None:  # a densify step may keep the count and move every view's: count exactly after one
+            r.budget.scene = len(r.density.events)
         for vi, bg in mine:
             cam = r.cams[vi]
-            view = View(vi, cam, bg, render(g, cam, bg, sh_degree=phase.sh_degree(step), return_weights=want_w), g)
+            view = View(vi, cam, bg, render(g, cam, bg, sh_degree=phase.sh_degree(step), return_weights=want_w,
+                                            budget=r.budget, budget_key=vi), g)
             t.mark("render")
             terms = phase.terms(r, view)
             loss = self.weight_table(phase).loss(terms, k)

@@ -77,6 +77,7 @@ class ReconstructConfig:
     seed: int = 0  # seeds view order, init subsampling, split sampling, random background
     device: str = "auto"  # cuda, cpu or auto (cuda when available)
     views_per_step: int = 1  # training views per step (per rank under torchrun); the loss is their mean
+    render_headroom: float = 0.0  # > 1: on a GPU, a training render's key buffers take this x the view's last intersection count, so the host never waits for the count (0: count every render exactly; no faster over a whole run as measured, docs/performance.md)
     log_every: int = 50  # host reads (log rows, progress bar, NaN check, snapshot) every this many iterations
     timing_every: int = 20  # sample the per-stage time split every this many iterations
     checkpoint_every: int = 0  # also write checkpoint.pt every this many iterations (0: by time only, below)
@@ -268,7 +269,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
         "num_train_views": len(train_idx), "num_test_views": len(test_idx), "device": str(device),
         "loss_history": [[r["step"], round(r["loss"], 6)] for r in run.log
                          if r["step"] % every == 0 or r["step"] == cfg.iterations],
-        "densify_events": list(density.events),
+        "densify_events": list(density.events), "render_counts": run.render_counts(),
     }
     if out is not None and dist.is_main:
         metrics["ply_bytes"] = _save_ply_checked(final, out / "point_cloud.ply")
