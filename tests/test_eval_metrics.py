@@ -333,3 +333,46 @@ def test_spill_counts_paint_where_the_scene_was_empty():
     assert M.spill(base, base) == 0.0
     assert M.spill(np.ones((4, 4)), np.ones((4, 4))) == 0.0  # nothing empty (a capture): nothing to spill into
     assert M.spill(np.ones((4, 4)), base) == 0.5  # a sticker over an object scene: all of its empty half
+
+
+def test_gram_inside_takes_the_cells_inside_the_scene_against_a_float64_oracle():
+    """style_gram_inside's matrices: over the feature cells whose area is at least half inside the mask, against a
+    numpy float64 Gram of the cells chosen by block means (the map is the mask's size over 4 and 8, so a cell is a
+    4x4 or 8x8 block); a mask covering everything gives the whole-view matrices exactly, an empty one falls back
+    to them."""
+    gen = torch.Generator().manual_seed(3)
+    hh, ww = 32, 48
+    f = {k: torch.rand(2, 5, hh // s, ww // s, generator=gen) for k, s in zip(M.GRAM_LAYERS, (4, 4, 8, 8))}
+    f |= {k: torch.rand(2, 5, hh // 8, ww // 8, generator=gen) for k in ("relu3_1", "relu3_2")}
+    mask = np.zeros((hh, ww), bool)
+    mask[5:27, 9:40] = True
+    got = M._feats_of(f, 1, mask)
+    for k, s in zip(M.GRAM_LAYERS, (4, 4, 8, 8)):
+        blocks = mask.reshape(hh // s, s, ww // s, s).mean(axis=(1, 3)).reshape(-1) >= 0.5
+        a = f[k][1].double().numpy().reshape(5, -1)[:, blocks]
+        np.testing.assert_allclose(got["grams_inside"][k].numpy(), a @ a.T / a.shape[1], rtol=1e-6)
+        assert not np.allclose(got["grams_inside"][k].numpy(), got["grams"][k].numpy(), rtol=1e-3)
+    whole = M._feats_of(f, 1, np.ones((hh, ww), bool))
+    empty = M._feats_of(f, 1, np.zeros((hh, ww), bool))
+    for k in M.GRAM_LAYERS:
+        assert torch.equal(whole["grams_inside"][k], whole["grams"][k])
+        assert torch.equal(empty["grams_inside"][k], empty["grams"][k])
+    assert M._feats_of(f, 1)["grams_inside"] is None
+
+
+def test_an_image_seen_twice_reuses_its_features_only_where_its_masks_agree():
+    """vgg_feats_batch's reuse (a sticker is the same image on every view): the same image under two masks gets
+    two inside Gram matrices, each the one its own pass gives; under one mask, one pass."""
+    from tlvg_warp.losses.vgg import load_vgg
+
+    net = load_vgg("random")
+    img = np.random.default_rng(0).random((40, 56, 3), dtype=np.float32)
+    a, b = np.zeros((40, 56), bool), np.zeros((40, 56), bool)
+    a[:, :28], b[:, 28:] = True, True
+    fa, fb, fa2 = M.vgg_feats_batch(net, [img, img, img], [a, b, a])
+    assert fa2 is fa  # the same image and mask: reused
+    for k in M.GRAM_LAYERS:
+        assert torch.equal(fa["grams"][k], fb["grams"][k])
+        assert not torch.allclose(fa["grams_inside"][k], fb["grams_inside"][k])
+        alone = M.vgg_feats_batch(net, [img], [b])[0]["grams_inside"][k]  # a batch of one: float32 rounding apart
+        assert torch.allclose(fb["grams_inside"][k], alone, rtol=1e-4, atol=1e-7)

@@ -80,7 +80,8 @@ def test_reference_cache_is_written_once_and_reused(both):
 def test_random_weights_report_not_measured(runs, tmp_path):
     rc, out = _evaluate(tmp_path, "rnd", runs[0], weights="random", extra=("--max-views", "6"))
     res = json.loads((out / "evaluation.json").read_text())
-    assert rc == 0 and set(res["not_measured"]) == {"flow_alignment", "flow_energy", "style_gram", "style_nnfm", "content"}
+    assert rc == 0 and set(res["not_measured"]) == {"flow_alignment", "flow_energy", "style_gram", "style_gram_inside",
+                                                      "style_nnfm", "content"}
     s = res["runs"][0]["summary"]
     assert all(s[k] is None for k in res["not_measured"])
     assert np.isfinite(s["consistency_k1"]["mean"])

@@ -65,6 +65,8 @@ METRICS = {m.key: m for m in (
            "mean 1-D Wasserstein of coherence + ¼ log10 anisotropic energy", False),
     Metric("style_gram", "Style distance, Gram (relu1_2, 2_2, 3_3, 4_3)", "relative Frobenius norm", False,
            pretrained=True),
+    Metric("style_gram_inside", "Style distance, Gram over the feature cells inside the scene (the un-stylized "
+           "coverage, its outline excluded, as detail_inside)", "relative Frobenius norm", False, pretrained=True),
     Metric("style_nnfm", "Style distance, nearest-neighbour features (relu3)", "mean 1 − cos, 0…2", False,
            pretrained=True),
     Metric("content", "Content distance to the photos (relu3_3, relu4_3, RGB)", "relative MSE", False,
@@ -99,6 +101,7 @@ ANCHOR_TO_BEAT = {
     "flow_energy": UNSTYLIZED,
     "stroke_scales": UNSTYLIZED,
     "style_gram": UNSTYLIZED,
+    "style_gram_inside": UNSTYLIZED,
     "style_nnfm": UNSTYLIZED,
     "detail": UNSTYLIZED,
     "detail_inside": UNSTYLIZED,
@@ -261,13 +264,29 @@ VGG_LAYERS = tuple(dict.fromkeys(GRAM_LAYERS + ("relu3_1", "relu3_2") + CONTENT_
 VGG_BATCH = 8  # images per VGG pass in vgg_feats_batch (on a CPU a batch costs ~0.4x per image of single passes)
 
 
-def _feats_of(f: dict, b: int) -> dict:
-    grams = {}
+def cells_inside(mask: np.ndarray, h: int, w: int) -> np.ndarray:
+    """The cells of an [h,w] feature map inside a pixel mask [H,W] (bool): those whose area is at least half
+    inside (the mask's mean over the cell, OpenCV's area resize). [h*w] bool, row-major like the features."""
+    m = cv2.resize(np.ascontiguousarray(mask, np.float32), (w, h), interpolation=cv2.INTER_AREA)
+    return (m >= 0.5).reshape(-1)
+
+
+def _gram(a: torch.Tensor) -> torch.Tensor:
+    return (a @ a.T / a.shape[1]).double()  # [C, N] -> [C, C]
+
+
+def _feats_of(f: dict, b: int, mask: np.ndarray | None = None) -> dict:
+    """One image's metric features from a batch's VGG maps; with ``mask`` (its pixels inside the scene) also the
+    Gram matrices over the cells inside it ("grams_inside"; a layer where no cell is inside counts every cell)."""
+    grams, inside = {}, {}
     for k in GRAM_LAYERS:
         a = f[k][b].reshape(f[k].shape[1], -1)  # [C, N]
-        grams[k] = (a @ a.T / a.shape[1]).double()
+        grams[k] = _gram(a)
+        if mask is not None:
+            keep = torch.from_numpy(cells_inside(mask, *f[k].shape[2:])).to(a.device)
+            inside[k] = _gram(a[:, keep]) if bool(keep.any()) else grams[k]
     r3 = torch.cat([f["relu3_1"][b], f["relu3_2"][b], f["relu3_3"][b]], 0)
-    return {"grams": grams, "relu3": r3.reshape(r3.shape[0], -1),
+    return {"grams": grams, "grams_inside": inside or None, "relu3": r3.reshape(r3.shape[0], -1),
             "content": {k: f[k][b:b + 1].contiguous() for k in CONTENT_LAYERS}}
 
 
@@ -277,15 +296,20 @@ def vgg_feats(net, img: np.ndarray) -> dict:
     return vgg_feats_batch(net, [img])[0]
 
 
-def vgg_feats_batch(net, imgs) -> list:
+def vgg_feats_batch(net, imgs, masks=None) -> list:
     """vgg_feats of several [H,W,3] images: same-size ones go through VGG together (VGG_BATCH at a time), and an
-    image equal to an earlier one (a sticker is the same on every view) reuses its features."""
+    image equal to an earlier one (a sticker is the same on every view) reuses its features. ``masks``: per image
+    its pixels inside the scene ([H,W] bool), for the Gram matrices inside it (an image reuses another's features
+    only where their masks agree too)."""
     dev = next(net.parameters()).device
+    masks = list(masks) if masks is not None else [None] * len(imgs)
     out, seen, todo = [None] * len(imgs), {}, {}
     for i, im in enumerate(imgs):
         a = np.ascontiguousarray(im, np.float32)
-        key = (a.shape, hash(a.tobytes()))
-        if key in seen and np.array_equal(imgs[seen[key]], a):
+        m = masks[i]
+        key = (a.shape, hash(a.tobytes()), None if m is None else hash(np.packbits(m).tobytes()))
+        if key in seen and np.array_equal(imgs[seen[key]], a) and (
+                m is None or np.array_equal(masks[seen[key]], m)):
             continue
         seen[key] = i
         todo.setdefault(a.shape, []).append(i)
@@ -296,11 +320,11 @@ def vgg_feats_batch(net, imgs) -> list:
             with torch.no_grad():
                 f = net.layers(x.permute(0, 3, 1, 2), VGG_LAYERS)
             for b, i in enumerate(chunk):
-                out[i] = _feats_of(f, b)
+                out[i] = _feats_of(f, b, masks[i])
     for i, im in enumerate(imgs):
         if out[i] is None:
-            a = np.ascontiguousarray(im, np.float32)
-            out[i] = out[seen[(a.shape, hash(a.tobytes()))]]
+            a, m = np.ascontiguousarray(im, np.float32), masks[i]
+            out[i] = out[seen[(a.shape, hash(a.tobytes()), None if m is None else hash(np.packbits(m).tobytes()))]]
     return out
 
 

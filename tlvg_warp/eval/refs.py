@@ -200,13 +200,14 @@ def score_views(views: list, alpha2x: list, refs: Refs, net) -> dict:
     imgs = [np.ascontiguousarray(v["color"], np.float32) for v in views]
     evs = [M.resize_to_height(img, refs.eval_height) for img in imgs]
     measured = refs.pretrained and not net.is_random
-    feats = M.vgg_feats_batch(net, evs) if measured else [None] * n
+    # each view's pixels inside the scene at the evaluation size: an object's outline is not brushwork
+    insides = [M.interior(refs.base[i]["alpha"], evs[i].shape[:2]) for i in range(n)]
+    feats = M.vgg_feats_batch(net, evs, insides) if measured else [None] * n
     for i, v in enumerate(views):
-        img, ev, f = imgs[i], evs[i], feats[i]
+        img, ev, f, inside = imgs[i], evs[i], feats[i], insides[i]
         per["stroke_scales"].append(M.stroke_distance(M.stroke_descriptor(img, refs.base[i]["alpha"]),
                                                       ps["strokes"]))
         per["detail"].append(M.hf_energy(M.luma(ev)) / max(ps["hf"], 1e-12))
-        inside = M.interior(refs.base[i]["alpha"], ev.shape[:2])  # an object's outline is not brushwork
         per["detail_inside"].append(M.hf_energy(M.luma(ev), inside) / max(ps["hf"], 1e-12))
         per["holes_1x"].append(M.holes(v["alpha"], refs.base[i]["alpha"]))
         per["holes_2x"].append(M.holes(alpha2x[i], refs.alpha2x[i]))
@@ -216,6 +217,7 @@ def score_views(views: list, alpha2x: list, refs: Refs, net) -> dict:
             per["flow_alignment"].append(M.flow_alignment(img, refs.fields[i]))
             per["flow_energy"].append(M.flow_energy(img, refs.fields[i]))
             per["style_gram"].append(M.style_gram(f["grams"], ps["grams"]))
+            per["style_gram_inside"].append(M.style_gram(f["grams_inside"], ps["grams"]))
             per["style_nnfm"].append(M.style_nnfm(f["relu3"], ps["relu3"]))
             per["content"].append(M.content(f["content"], refs.photo_feats[i]))
     for k in M.KS:
