@@ -42,7 +42,6 @@ import torch
 
 from ..distributed import Dist
 from ..fileio import save_torch, write_text
-from ..raster import IntersectionBudget
 from ..renderer import render
 from ..runs import Interrupt, StageTimer, plain_data
 from ..progress import Progress
@@ -209,8 +208,11 @@ class Run:
         self.on_phase_end = None  # callable(run, phase) -> {name: number}, kept in counts as "<name>_after_<phase>"
         # render_headroom > 1: on a GPU the training renders size their key buffers from each view's last count (no
         # host wait a step); on the CPU the count costs no wait, and every render counts exactly
-        h = settings.render_headroom
-        self.budget = IntersectionBudget(h) if h and self.device.type == "cuda" else None
+        self.budget = None
+        if settings.render_headroom and self.device.type == "cuda":
+            from ..raster import IntersectionBudget  # lazy: imports Warp, which this module does not need
+
+            self.budget = IntersectionBudget(settings.render_headroom)
         density.views_per_step = settings.views_per_step * self.dist.world
 
     # --- phases and views --------------------------------------------------------------------------------
