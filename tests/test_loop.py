@@ -105,7 +105,8 @@ def test_stylize_terms_against_closed_forms(demo):
     # OpenCV energy makes it active, and the term then equals (1 - E/(2.5 E_opencv))^2 only if its E is OpenCV's
     sty.detail_target = 2.5 * e_oracle
     terms = sty.terms(run, view)
-    assert tuple(terms) == STYLIZE_TERMS  # every term, in the summation order
+    # every term, in the summation order, but the deep style term (not beside the coarse one: its own test below)
+    assert tuple(terms) == tuple(t for t in STYLIZE_TERMS if t != "style_deep")
     with torch.no_grad():  # the terms see the render over the background where the un-stylized scene was empty
         ro0 = render(demo.gaussians, run.cams[2], run.background)
     cov = ro0.alpha.double().clamp(0, 1)[..., None]
@@ -232,6 +233,48 @@ def test_coarse_style_term_matches_both_at_half_the_working_size(demo):
     assert float(terms["style_coarse"].detach()) == pytest.approx(coarse, rel=TERM_TOL, abs=1e-7)
     assert terms["style_coarse"].requires_grad
     assert sty.weights(0)["style_coarse"] == 0.5 * cfg.loss.strength
+
+
+class DeepStub(StubFeatures):
+    """The stub with a conv4 block of its own: ``deep_features`` gives the 8x8 block means of the image and of its
+    square (6 channels, so the term's channel count is the painting's, not the style term's 3)."""
+
+    def deep_features(self, img, scale=1.0):
+        x = (img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img).float()
+        return F.avg_pool2d(torch.cat([x, x * x], 1), 8)
+
+
+def _blocks6(img: np.ndarray, n: int) -> np.ndarray:
+    return np.concatenate([_blocks(img, n), _blocks(img * img, n)], 0)  # [6, cells]
+
+
+def test_deep_style_term_matches_the_conv4_features(demo):
+    """loss.w_style_deep: a second NNFM term on the network's deep features of the style term's input and the
+    painting (float64 oracle: 8x8 block means of the image and its square, 6 channels), through the packed features
+    of one terms call, with a gradient and its own weight; it may not run beside the coarse term."""
+    from tlvg_warp.config_io import ConfigError
+
+    net = DeepStub()
+    run, cfg, tg = _stylize_run(demo, net, **{"loss.luminance_only": False, "loss.style_loss": "nnfm",
+                                              "loss.w_style_deep": 0.7})
+    assert tuple(tg.style_feats_deep.shape[:1]) == (6,)
+    sty = run.phase("stylize")
+    sty.setup(run)
+    view = _view(run, 1)
+    terms = sty.terms(run, view)
+    with torch.no_grad():
+        ro0 = render(demo.gaussians, run.cams[1], run.background)
+    cov = ro0.alpha.double().clamp(0, 1)[..., None]
+    img = (cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64))
+    paint = tg.style_work.double().numpy()
+    fine, deep = _nnfm(_blocks(img.numpy(), 4), _blocks(paint, 4)), _nnfm(_blocks6(img.numpy(), 8), _blocks6(paint, 8))
+    assert abs(fine - deep) > 0.1 * min(fine, deep) > 0  # the two differ here: the checks tell them apart
+    assert float(terms["style"].detach()) == pytest.approx(fine, rel=TERM_TOL, abs=1e-7)
+    assert float(terms["style_deep"].detach()) == pytest.approx(deep, rel=TERM_TOL, abs=1e-7)
+    assert terms["style_deep"].requires_grad
+    assert sty.weights(0)["style_deep"] == 0.7 * cfg.loss.strength
+    with pytest.raises(ConfigError, match="w_style_deep"):
+        stylize_config({"loss.w_style_deep": 1.0, "loss.w_style_coarse": 1.0}).validate()
 
 
 def test_field_canvas_mixes_the_matched_and_the_canvas_fields(demo):

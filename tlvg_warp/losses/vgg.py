@@ -163,6 +163,12 @@ class VGG16Features(nn.Module):
         f = self.layers(img, ("relu3_1", "relu3_2", "relu3_3"), scale)
         return torch.cat([f["relu3_1"], f["relu3_2"], f["relu3_3"]], dim=1)
 
+    def deep_features(self, img: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+        """relu4_1|relu4_2|relu4_3 concatenated [B,1536,h/8,w/8]: the conv4 block, one pooling coarser than the
+        losses' relu3 features (the deep style term, ``loss.w_style_deep``)."""
+        f = self.layers(img, ("relu4_1", "relu4_2", "relu4_3"), scale)
+        return torch.cat([f["relu4_1"], f["relu4_2"], f["relu4_3"]], dim=1)
+
     def features_of(self, images, scale: float = 1.0, graphs: bool = True) -> list[torch.Tensor]:
         """Loss features [768, h*w] of several same-size images in ONE pass (a batch): the stylize step's
         luminance render (style term) and RGB render (content term) cost one VGG forward and backward

@@ -37,6 +37,9 @@ class StyleLoss:
     # its pixels) span twice as much of the view and the painting; the strokes keep their size relative to the view,
     # while the term sees the painting's larger arrangements of them (swirls, waves) (ours; 0: off; --strength
     # multiplies it)
+    w_style_deep: float = 0.0  # a second style term (the same kind, on the same input) on the conv4 block's features
+    # (relu4_1-4_3) instead of the conv3 block's: the painting's statistics at the scale of the Gram distance's deepest
+    # layer, which the style term does not see (ours; 0: off; --strength multiplies it)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
@@ -121,7 +124,7 @@ class StyleLoss:
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
              "color_swd_projections": (">=", 1), "color_swd_space": ("of", "rgb", "chroma"),
-             **{w: (">=", 0) for w in ("w_style", "w_style_coarse", "w_style_gram", "w_style_color", "w_chroma_tv",
+             **{w: (">=", 0) for w in ("w_style", "w_style_coarse", "w_style_deep", "w_style_gram", "w_style_color", "w_chroma_tv",
                                        "w_palette_snap", "w_style_swd", "w_color_swd",
                                        "w_coverage", "w_silhouette", "w_detail", "w_stroke", "w_orient",
                                        "w_content", "w_depth", "w_tv",
@@ -275,6 +278,9 @@ class StylizeConfig:
         if len(self.phases) != 3 or any(not (x >= 0 and math.isfinite(x)) for x in self.phases) or sum(self.phases) <= 0:
             raise ConfigError(prefix + "phases", f"must be 3 non-negative numbers (pre, stylize, post), got {self.phases}")
         check_run_settings(self, prefix)
+        if self.loss.w_style_coarse > 0 and self.loss.w_style_deep > 0:
+            raise ConfigError(prefix + "loss.w_style_deep", "is a second style term like loss.w_style_coarse: set one "
+                                                             "of the two")
         if not (isinstance(self.vgg_scale, (int, float)) and 0 < self.vgg_scale <= 4):
             raise ConfigError(prefix + "vgg_scale", f"must be in (0, 4], got {self.vgg_scale}")
         unknown = set(self.density.phases) - set(PHASES)

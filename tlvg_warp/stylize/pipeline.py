@@ -56,7 +56,7 @@ from ..types import SH_C0, Gaussians
 from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
-STYLIZE_TERMS = ("style", "style_coarse", "style_gram", "style_swd", "style_color", "color_swd", "content", "depth",
+STYLIZE_TERMS = ("style", "style_coarse", "style_deep", "style_gram", "style_swd", "style_color", "color_swd", "content", "depth",
                  "tv", "chroma_tv", "palette", "detail", "stroke", "coverage", "silhouette", "opacity_reg", "scale_reg",
                  "lab", "orient", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
@@ -275,6 +275,7 @@ class Targets:
     lab_index: list = field(default_factory=list)  # per view: the Lab term's blocks (``lab_blocks``) or None: all
     style_feats_coarse: torch.Tensor | None = None  # [768, Ns/4] the style term's painting features one octave
     # coarser (loss.w_style_coarse), or None
+    style_feats_deep: torch.Tensor | None = None  # [1536, Ns/4] the painting's conv4 features (loss.w_style_deep)
 
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
@@ -295,6 +296,9 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
         # the coarse style term's: the same input at half the working size (the render's side: vgg_scale / 2)
         sf_coarse = (vgg(style_lum if cfg.loss.luminance_only else style_rgb, scale=COARSE)
                      if cfg.loss.w_style_coarse > 0 else None)
+        # the deep style term's: the same input's conv4 block
+        sf_deep = (vgg.deep_features(style_lum if cfg.loss.luminance_only else style_rgb)
+                   if cfg.loss.w_style_deep > 0 else None)
     s_theta, s_coh, s_doubled = stroke_field(style_work.numpy())
     cells = torch.from_numpy(field_at_cells(s_doubled, tuple(sf_lum.shape[-2:]))).to(device)
     photos = [p.to(device=device, dtype=torch.float32).contiguous() for p in inp.photos]
@@ -328,7 +332,8 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
                    [content_scale(f, cfg.loss.content_norm) for f in photo_feats],
                    painting_colours(style_work, cfg.loss.palette_colours, cfg.seed).to(device)
                    if cfg.loss.w_palette_snap > 0 and not cfg.keep_colors else None, lab_index=lab_index,
-                   style_feats_coarse=None if sf_coarse is None else flatten_feats(sf_coarse).contiguous())
+                   style_feats_coarse=None if sf_coarse is None else flatten_feats(sf_coarse).contiguous(),
+                   style_feats_deep=None if sf_deep is None else flatten_feats(sf_deep).contiguous())
 
 
 def content_scale(photo_feats: torch.Tensor, normalized: bool) -> float:
@@ -389,6 +394,8 @@ class Stylize(Phase):
         self.gram_fn = StyleLoss(tg.style_feats, kind="gram") if w.w_style_gram else None
         self.coarse_fn = None if tg.style_feats_coarse is None else StyleLoss(  # prepare makes them when it is on
             tg.style_feats_coarse, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
+        self.deep_fn = None if tg.style_feats_deep is None else StyleLoss(  # likewise
+            tg.style_feats_deep, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         self.color_fn = None if tg.style_feats_rgb is None else StyleLoss(  # prepare makes them when the term is on
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         # the sliced Wasserstein terms: the painting's feature cells [Ns,768] and its pixels [M,3]
@@ -401,6 +408,7 @@ class Stylize(Phase):
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
         self.stroke_target = None  # the painting's (E_across, E_along) at the views' height (the stroke hinge's)
         self.const = {"style": w.w_style * w.strength, "style_coarse": w.w_style_coarse * w.strength,
+                      "style_deep": w.w_style_deep * w.strength,
                       "style_color": w.w_style_color * w.strength,
                       "style_gram": w.w_style_gram * w.strength,
                       "style_swd": w.w_style_swd * w.strength, "color_swd": w.w_color_swd,
@@ -416,8 +424,9 @@ class Stylize(Phase):
         self.on["lab"] = w.w_lab_start != 0 or w.w_lab_end != 0
         self.on["style_color"] = self.color_fn is not None and self.const["style_color"] != 0
         self.on["style_coarse"] = self.coarse_fn is not None and self.const["style_coarse"] != 0
+        self.on["style_deep"] = self.deep_fn is not None and self.const["style_deep"] != 0
         self.vgg_on = (self.on["style"] or self.on["content"] or self.on["style_color"] or self.on["style_gram"]
-                       or self.on["style_swd"] or self.on["style_coarse"])
+                       or self.on["style_swd"] or self.on["style_coarse"] or self.on["style_deep"])
         self.render_weights = self.on["align"] or self.on["aniso"]
         self.field_terms = None  # the orientation and stroke terms as one call (made in setup, with the targets)
         self.terms_graph = None  # on CUDA: image_terms as one graph (made in setup)
@@ -586,6 +595,8 @@ class Stylize(Phase):
         feats = [] if a is None else [a.reshape(-1)] + ([a_rgb.reshape(-1)] if on["style_color"] else [])
         if on["style_coarse"]:  # the style term's input once more, one octave coarser (a pass of a quarter the cells)
             feats.append(self.vgg.features_of([inputs[style_in]], self.cfg.vgg_scale * COARSE, **kw)[0].reshape(-1))
+        if on["style_deep"]:  # the style term's input through the conv4 block (config: not with the coarse term)
+            feats.append(self.vgg.deep_features(inputs[style_in], self.cfg.vgg_scale).reshape(-1))
         return torch.cat([torch.stack(out) if out else img.new_zeros(0), *feats])
 
     def terms(self, run: Run, view: View) -> dict:
@@ -605,6 +616,9 @@ class Stylize(Phase):
             found["style"] = self.style_fn(feats[0], key=vi)  # the key: a view's match may be reused (fast_refresh)
         if on["style_coarse"]:  # [768, ~Nc/4] after them
             found["style_coarse"] = self.coarse_fn(packed[n + k * c * nc:].view(c, -1), key=vi)
+        if on["style_deep"]:  # [1536, ~Nc/4] after them (the coarse term is off: the config allows one of the two)
+            found["style_deep"] = self.deep_fn(packed[n + k * c * nc:].view(self.tg.style_feats_deep.shape[0], -1),
+                                               key=vi)
         t.mark("style")
         if any(on[name] for name in self.EAGER_ONLY):
             found.update(self.eager_terms(run, view, feats))
@@ -680,6 +694,7 @@ class Stylize(Phase):
                 "style_cache": self.style_fn.state_dict(),  # the reused FAST matches (loss.fast_refresh > 1)
                 "color_cache": self.color_fn.state_dict() if self.color_fn is not None else None,
                 "coarse_cache": self.coarse_fn.state_dict() if self.coarse_fn is not None else None,
+                "deep_cache": self.deep_fn.state_dict() if self.deep_fn is not None else None,
                 "swd_draws": [f.calls if f is not None else 0 for f in (self.swd_fn, self.color_swd_fn)]}
 
     def load_state_dict(self, sd: dict, device=None) -> None:
@@ -691,6 +706,8 @@ class Stylize(Phase):
             self.color_fn.load_state_dict(sd["color_cache"], device)
         if sd.get("coarse_cache") is not None and self.coarse_fn is not None:
             self.coarse_fn.load_state_dict(sd["coarse_cache"], device)
+        if sd.get("deep_cache") is not None and self.deep_fn is not None:
+            self.deep_fn.load_state_dict(sd["deep_cache"], device)
         for f, calls in zip((self.swd_fn, self.color_swd_fn), sd.get("swd_draws") or ()):
             if f is not None:
                 f.calls = int(calls)
