@@ -35,11 +35,11 @@ prof = profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA],
 
 def host_split(timer) -> dict:
     """Patch ``timer`` (the run's StageTimer) to also sum the host's perf_counter time per stage, every step."""
-    host, last = {}, [0.0, "_start"]
+    host, last = {}, [0.0]  # stage -> seconds; the time of the last mark
     begin, mark = timer.begin, timer.mark
 
     def begin_(step):
-        last[:] = [time.perf_counter(), "_start"]
+        last[0] = time.perf_counter()
         begin(step)
 
     def mark_(stage):
@@ -102,7 +102,8 @@ api = {e.key: e.count for e in avg if e.key in launch_names}
 print(f"wall per step (no profiler, steps {WARM}..{WARM + TIMED}): {state.get('wall_ms', float('nan')):.2f} ms")
 stamps = state.get("stamps", [])
 if TIMELINE and len(stamps) > 1:  # ms a step per stretch of TIMELINE steps (host clock, no sync: the host runs a
-    # few steps ahead at most), and the slowest single steps; the profiled and cProfiled steps are marked
+    # few steps ahead at most), and the slowest single steps (the profiled and cProfiled steps after WARM + TIMED are
+    # slow by their profilers)
     step_of = {s: t for s, t in stamps}
     rows = []
     for a in range(stamps[0][0], stamps[-1][0] - TIMELINE + 1, TIMELINE):
