@@ -59,6 +59,15 @@ def _view(run, vi):
     return View(vi, cam, run.background, render(g, cam, run.background, return_weights=True), g)
 
 
+def _shown(demo, run, view) -> tuple:
+    """(image, coverage) in float64: what the stylize terms see of ``view``'s render, the render over the run's
+    background where the un-stylized scene (rendered here again) was empty ([H,W,3], [H,W,1])."""
+    with torch.no_grad():
+        ro0 = render(demo.gaussians, view.cam, run.background)
+    cov = ro0.alpha.double().clamp(0, 1)[..., None]
+    return cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64), cov
+
+
 # --- each phase's terms ----------------------------------------------------------------------------------------
 def test_stylize_terms_against_closed_forms(demo):
     net = StubFeatures()
@@ -222,10 +231,7 @@ def test_coarse_style_term_matches_both_at_half_the_working_size(demo):
     view = _view(run, 1)
     terms = sty.terms(run, view)
     assert net.scales == [cfg.vgg_scale, cfg.vgg_scale * 0.5]  # the step's pass, then the coarse one
-    with torch.no_grad():
-        ro0 = render(demo.gaussians, run.cams[1], run.background)
-    cov = ro0.alpha.double().clamp(0, 1)[..., None]
-    img = (cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64))
+    img, cov = _shown(demo, run, view)
     paint = tg.style_work.double().numpy()
     fine, coarse = _nnfm(_blocks(img.numpy(), 4), _blocks(paint, 4)), _nnfm(_blocks(img.numpy(), 8), _blocks(paint, 8))
     assert abs(fine - coarse) > 0.5 * min(fine, coarse) > 0  # the octaves differ here: the checks tell them apart
@@ -262,10 +268,7 @@ def test_deep_style_term_matches_the_conv4_features(demo):
     sty.setup(run)
     view = _view(run, 1)
     terms = sty.terms(run, view)
-    with torch.no_grad():
-        ro0 = render(demo.gaussians, run.cams[1], run.background)
-    cov = ro0.alpha.double().clamp(0, 1)[..., None]
-    img = (cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64))
+    img, cov = _shown(demo, run, view)
     paint = tg.style_work.double().numpy()
     fine, deep = _nnfm(_blocks(img.numpy(), 4), _blocks(paint, 4)), _nnfm(_blocks6(img.numpy(), 8), _blocks6(paint, 8))
     assert abs(fine - deep) > 0.1 * min(fine, deep) > 0  # the two differ here: the checks tell them apart
@@ -305,10 +308,7 @@ def test_normalized_content_is_the_mse_over_the_photo_features_mean_square(demo)
     sty.setup(run)
     view = _view(run, 1)
     terms = sty.terms(run, view)
-    with torch.no_grad():
-        ro0 = render(demo.gaussians, run.cams[1], run.background)
-    cov = ro0.alpha.double().clamp(0, 1)[..., None]
-    img = cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64)
+    img, cov = _shown(demo, run, view)
     pool = lambda x: F.avg_pool2d(x.permute(2, 0, 1)[None], 4).reshape(3, -1)  # noqa: E731
     photo = pool(demo.photos[1].double())
     want = ((pool(img) - photo) ** 2).mean() / (photo ** 2).mean()
@@ -335,10 +335,7 @@ def test_content_on_luminance_compares_luminance_features_in_one_pass(demo):
     net.calls.clear()
     terms = sty.terms(run, view)
     assert [c.shape[0] for c in net.calls] == [1]
-    with torch.no_grad():
-        ro0 = render(demo.gaussians, run.cams[1], run.background)
-    cov = ro0.alpha.double().clamp(0, 1)[..., None]
-    img = cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64)
+    img, cov = _shown(demo, run, view)
     luma = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
     y = lambda x: (x @ luma)[..., None].expand(*x.shape[:-1], 3)  # noqa: E731
     pool = lambda x: F.avg_pool2d(x.permute(2, 0, 1)[None], 4).reshape(3, -1)  # noqa: E731
@@ -874,10 +871,7 @@ def test_the_chroma_colour_term_compares_rgb_minus_luminance_and_ignores_a_grey_
         return float(sty.terms(run, view)["color_swd"].detach()), run, cfg, tg, view
 
     got, run, cfg, tg, view = term("chroma", 0.0)
-    with torch.no_grad():
-        ro0 = render(demo.gaussians, run.cams[2], run.background)
-    cov = ro0.alpha.double().clamp(0, 1)[..., None]
-    img = cov * view.out.color.detach().double() + (1 - cov) * torch.tensor(run.background, dtype=torch.float64)
+    img, cov = _shown(demo, run, view)
     luma = np.array([0.299, 0.587, 0.114])
     chroma = lambda x: x - (x @ luma)[:, None]  # noqa: E731
     x = chroma(img.numpy().reshape(-1, 3)[cov.numpy().reshape(-1) >= 0.5])

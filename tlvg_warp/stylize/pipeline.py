@@ -57,8 +57,8 @@ from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
 STYLIZE_TERMS = ("style", "style_coarse", "style_deep", "style_gram", "style_swd", "style_color", "color_swd",
-                 "content", "depth", "tv", "chroma_tv", "palette", "detail", "stroke", "coverage", "silhouette", "opacity_reg", "scale_reg",
-                 "lab", "orient", "align", "aniso")
+                 "content", "depth", "tv", "chroma_tv", "palette", "detail", "stroke", "coverage", "silhouette",
+                 "opacity_reg", "scale_reg", "lab", "orient", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
 COARSE = 0.5  # the coarse style term's working size against the style term's (loss.w_style_coarse)
