@@ -280,6 +280,35 @@ def test_deep_style_term_matches_the_conv4_features(demo):
         stylize_config({"loss.w_style_deep": 1.0, "loss.w_style_coarse": 1.0}).validate()
 
 
+def _layered_gram(a: np.ndarray, s: np.ndarray, layers: int = 3) -> float:
+    """Per layer (equal row blocks) ||G - G_p||^2 / ||G_p||^2 of the cell-normalized Gram matrices, averaged."""
+    def g(x):
+        return x @ x.T / x.shape[1]
+    return float(np.mean([((g(x) - g(y)) ** 2).sum() / (g(y) ** 2).sum()
+                          for x, y in zip(np.split(a, layers), np.split(s, layers))]))
+
+
+def test_deep_gram_term_compares_each_conv4_layers_gram_matrix(demo):
+    """loss.deep_loss gram: the deep term is each layer's Gram distance (three equal channel blocks of the deep
+    features, float64 oracle on the stub's 8x8 block means), not the NNFM of the same features, and it carries a
+    gradient to the splats' colours (the loss's own gradient: tests/test_losses_style.py)."""
+    net = DeepStub()
+    run, cfg, tg = _stylize_run(demo, net, **{"loss.luminance_only": False, "loss.style_loss": "nnfm",
+                                              "loss.w_style_deep": 0.7, "loss.deep_loss": "gram"})
+    sty = run.phase("stylize")
+    sty.setup(run)
+    view = _view(run, 1)
+    terms = sty.terms(run, view)
+    img, cov = _shown(demo, run, view)
+    paint = tg.style_work.double().numpy()
+    a, s = _blocks6(img.numpy(), 8), _blocks6(paint, 8)
+    want = _layered_gram(a, s)
+    assert abs(want - _nnfm(a, s)) > 0.1 * want > 0  # the Gram and the NNFM of these features differ
+    assert float(terms["style_deep"].detach()) == pytest.approx(want, rel=TERM_TOL, abs=1e-7)
+    (g,) = torch.autograd.grad(terms["style_deep"], run.params.sh_dc)
+    assert torch.isfinite(g).all() and float(g.abs().sum()) > 0
+
+
 def test_field_canvas_mixes_the_matched_and_the_canvas_fields(demo):
     """loss.field_canvas f: each view's target field is (1 - f) x the matched field + f x the painting's field laid
     over the view (doubled-angle vectors, float64 oracle from the two runs at the ends), its third channel the

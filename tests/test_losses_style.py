@@ -236,6 +236,32 @@ def test_cosine_distance_backward_matches_autograd_and_dead_rows():
     assert torch.autograd.gradcheck(lambda t: style_mod.cosine_distance_to_fixed(t, y[:4, :7], dim=1), (x,))
 
 
+def test_layered_gram_against_outer_products_and_finite_differences():
+    """gram_layers: per block of rows (a layer), ||G - G_p||^2 / ||G_p||^2 with G the mean of the cells' outer
+    products, averaged over the three blocks; a block's scale does not change its share (the loss is scale-free per
+    layer), and the analytic gradient agrees with finite differences (float64)."""
+    a, s = feats(31, 6, 12), feats(32, 6, 20)
+
+    def oracle(a, s):
+        out = []
+        for b in range(3):
+            x, y = a[2 * b:2 * b + 2], s[2 * b:2 * b + 2]
+            gx = sum(np.outer(x[:, i], x[:, i]) for i in range(x.shape[1])) / x.shape[1]
+            gy = sum(np.outer(y[:, i], y[:, i]) for i in range(y.shape[1])) / y.shape[1]
+            out.append(((gx - gy) ** 2).sum() / (gy ** 2).sum())
+        return float(np.mean(out))
+
+    fn = style_mod.StyleLoss(torch.from_numpy(s), "gram_layers")
+    assert abs(fn(torch.from_numpy(a)).item() - oracle(a, s)) < ORACLE_TOL
+    scaled_a, scaled_s = a.copy(), s.copy()
+    scaled_a[4:] *= 50.0
+    scaled_s[4:] *= 50.0  # one layer's features 50x larger in both: the same loss
+    assert abs(style_mod.StyleLoss(torch.from_numpy(scaled_s), "gram_layers")(torch.from_numpy(scaled_a)).item()
+               - oracle(a, s)) < ORACLE_TOL
+    x = torch.from_numpy(a).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: fn(t), (x,))
+
+
 def test_style_features_precomputed_give_the_same_losses():
     a, s = torch.from_numpy(feats(26, 8, 40)), torch.from_numpy(feats(27, 8, 33))
     st = style_mod.StyleFeatures(s)

@@ -66,6 +66,7 @@ class StyleFeatures:
         self._unitT: dict = {}
         self._sT = None
         self._gram = None
+        self._layer_grams = None
         self._cols = None
 
     @property
@@ -111,6 +112,12 @@ class StyleFeatures:
         if self._gram is None:
             self._gram = gram(self.s)
         return self._gram
+
+    def layer_grams(self, layers: int) -> list:
+        """The Gram matrix of each of ``layers`` equal channel blocks of ``s`` (its layers, concatenated)."""
+        if self._layer_grams is None or len(self._layer_grams) != layers:
+            self._layer_grams = [gram(b) for b in self.s.chunk(layers, dim=0)]
+        return self._layer_grams
 
     def like(self, ref: torch.Tensor) -> "StyleFeatures":
         """This painting on ``ref``'s dtype and device (itself when they already agree)."""
@@ -376,6 +383,15 @@ def gram_loss(render_feats: torch.Tensor, style_feats) -> torch.Tensor:
     return F.mse_loss(torch.mm(a, a.T) * (1.0 / a.shape[1]), gs.to(a))
 
 
+def layered_gram_loss(render_feats: torch.Tensor, style_grams: list) -> torch.Tensor:
+    """Mean over the layers concatenated in ``render_feats`` [L*C, N] (L = len(style_grams) equal channel blocks) of
+    ‖G − G_p‖²_F / ‖G_p‖²_F, each G pixel-normalized [C, C]: every layer counts the same whatever the size of its
+    features, as in the evaluation's Gram distance, and the weight needs no scale of its own."""
+    blocks = render_feats.chunk(len(style_grams), dim=0)
+    return torch.stack([((gram(a) - gp.to(a)) ** 2).sum() / (gp.to(a) ** 2).sum().clamp_min(1e-12)
+                        for a, gp in zip(blocks, style_grams)]).mean()  # L (3) layers: no loop over pixels
+
+
 def content_loss(render_feats: torch.Tensor, photo_feats: torch.Tensor) -> torch.Tensor:
     """Mean squared difference of features (any matching shapes)."""
     return F.mse_loss(render_feats, photo_feats.to(render_feats).detach())
@@ -399,7 +415,8 @@ class StyleLoss:
         loss = style(render_feats, key=view_index)                      # [C,Nc] of this step's render
 
     Everything that depends only on the painting (unit columns, sᵀ, the Gram matrix) is computed once.
-    ``kind``: "fast" | "nnfm" | "gram". ``solve``: FAST's solve (:func:`fast_projection`).
+    ``kind``: "fast" | "nnfm" | "gram" | "gram_layers" (:func:`layered_gram_loss` over the LAYERS blocks the
+    network's feature calls concatenate). ``solve``: FAST's solve (:func:`fast_projection`).
 
     Match caching (optional; off by default): with ``refresh_every = R > 1`` and a ``key`` per call (the view
     index), FAST's costly part is computed on the first call of a key and then on every R-th call of that key;
@@ -410,7 +427,8 @@ class StyleLoss:
     top-k indices [Nc,k] (the stroke field's match); ``reset()`` drops the cache. The reused P is a C x C map,
     valid whatever the render's cell count (density control may change the scene between calls)."""
 
-    KINDS = ("fast", "nnfm", "gram")
+    KINDS = ("fast", "nnfm", "gram", "gram_layers")
+    LAYERS = 3  # the features are three layers of one VGG block, concatenated (relu3_1-3_3 or relu4_1-4_3)
     CACHES = ("projection", "match")
 
     def __init__(self, style_feats, kind: str = "fast", k: int = K_CROSS, refresh_every: int = 1,
@@ -459,6 +477,8 @@ class StyleLoss:
         st = self.style.like(a)
         if self.kind == "gram":
             return gram_loss(a, st)
+        if self.kind == "gram_layers":
+            return layered_gram_loss(a, st.layer_grams(self.LAYERS))
         ad = a.detach()
         if self.kind == "nnfm":
             idx = self._cached(key, lambda: {"idx": _topk_both(ad, st, 1, need_cols=False)})["idx"]

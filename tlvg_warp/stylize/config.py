@@ -40,6 +40,9 @@ class StyleLoss:
     w_style_deep: float = 0.0  # a second style term (the same kind, on the same input) on the conv4 block's features
     # (relu4_1-4_3) instead of the conv3 block's: the painting's statistics at the scale of the Gram distance's deepest
     # layer, which the style term does not see (ours; 0: off; --strength multiplies it)
+    deep_loss: str = "same"  # what that deep term measures: same (the style term's kind) | gram (each conv4 layer's
+    # Gram matrix against the painting's, ‖G − G_p‖² / ‖G_p‖² averaged over the three layers: the layers' texture
+    # statistics over the whole view instead of a match per cell; ours)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
@@ -114,7 +117,8 @@ class StyleLoss:
     # fern 3000 iterations 7 s faster on the GPU, every metric within its interval, docs/performance.md; 1: every step, as the paper)
     fast_cache: str = "projection"  # what fast_refresh reuses: projection (the top-k cells and the solve) | match (cells only)
 
-    RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "field_mapping": ("of", "matched", "canvas"),
+    RULES = {"style_loss": ("of", "fast", "nnfm", "gram"), "deep_loss": ("of", "same", "gram"),
+             "field_mapping": ("of", "matched", "canvas"),
              "field_source": ("of", "stylize_start", "unstylized"),
              "luminance_grad": ("of", "luma", "gray"), "chroma_tv_space": ("of", "rgb", "lab"),
              "content_on": ("of", "rgb", "luminance"),

@@ -395,7 +395,8 @@ class Stylize(Phase):
         self.coarse_fn = None if tg.style_feats_coarse is None else StyleLoss(  # prepare makes them when it is on
             tg.style_feats_coarse, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         self.deep_fn = None if tg.style_feats_deep is None else StyleLoss(  # likewise
-            tg.style_feats_deep, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
+            tg.style_feats_deep, kind=w.style_loss if w.deep_loss == "same" else "gram_layers",
+            refresh_every=w.fast_refresh, cache=w.fast_cache)
         self.color_fn = None if tg.style_feats_rgb is None else StyleLoss(  # prepare makes them when the term is on
             tg.style_feats_rgb, kind=w.style_loss, refresh_every=w.fast_refresh, cache=w.fast_cache)
         # the sliced Wasserstein terms: the painting's feature cells [Ns,768] and its pixels [M,3]
