@@ -281,10 +281,10 @@ def test_deep_style_term_matches_the_conv4_features(demo):
 
 
 def _layered_gram(a: np.ndarray, s: np.ndarray, layers: int = 3) -> float:
-    """Per layer (equal row blocks) ||G - G_p||^2 / ||G_p||^2 of the cell-normalized Gram matrices, averaged."""
+    """Per layer (equal row blocks) ||G - G_p|| / ||G_p|| (Frobenius) of the cell-normalized Gram matrices, averaged."""
     def g(x):
         return x @ x.T / x.shape[1]
-    return float(np.mean([((g(x) - g(y)) ** 2).sum() / (g(y) ** 2).sum()
+    return float(np.mean([np.sqrt(((g(x) - g(y)) ** 2).sum() / (g(y) ** 2).sum())
                           for x, y in zip(np.split(a, layers), np.split(s, layers))]))
 
 

@@ -237,7 +237,7 @@ def test_cosine_distance_backward_matches_autograd_and_dead_rows():
 
 
 def test_layered_gram_against_outer_products_and_finite_differences():
-    """gram_layers: per block of rows (a layer), ||G - G_p||^2 / ||G_p||^2 with G the mean of the cells' outer
+    """gram_layers: per block of rows (a layer), ||G - G_p|| / ||G_p|| (Frobenius) with G the mean of the cells' outer
     products, averaged over the three blocks; a block's scale does not change its share (the loss is scale-free per
     layer), and the analytic gradient agrees with finite differences (float64)."""
     a, s = feats(31, 6, 12), feats(32, 6, 20)
@@ -248,7 +248,7 @@ def test_layered_gram_against_outer_products_and_finite_differences():
             x, y = a[2 * b:2 * b + 2], s[2 * b:2 * b + 2]
             gx = sum(np.outer(x[:, i], x[:, i]) for i in range(x.shape[1])) / x.shape[1]
             gy = sum(np.outer(y[:, i], y[:, i]) for i in range(y.shape[1])) / y.shape[1]
-            out.append(((gx - gy) ** 2).sum() / (gy ** 2).sum())
+            out.append(np.sqrt(((gx - gy) ** 2).sum() / (gy ** 2).sum()))
         return float(np.mean(out))
 
     fn = style_mod.StyleLoss(torch.from_numpy(s), "gram_layers")

@@ -385,10 +385,12 @@ def gram_loss(render_feats: torch.Tensor, style_feats) -> torch.Tensor:
 
 def layered_gram_loss(render_feats: torch.Tensor, style_grams: list) -> torch.Tensor:
     """Mean over the layers concatenated in ``render_feats`` [L*C, N] (L = len(style_grams) equal channel blocks) of
-    ‖G − G_p‖²_F / ‖G_p‖²_F, each G pixel-normalized [C, C]: every layer counts the same whatever the size of its
-    features, as in the evaluation's Gram distance, and the weight needs no scale of its own."""
+    ‖G − G_p‖_F / ‖G_p‖_F, each G pixel-normalized [C, C]: the evaluation's Gram distance on these layers. Every
+    layer counts the same whatever the size of its features, and the distance, not its square, keeps the gradient's
+    size from growing with how far the render is (squared, the term rose to 25 of a 31 loss at the start of stylize
+    on lego x The Starry Night at weight 4)."""
     blocks = render_feats.chunk(len(style_grams), dim=0)
-    return torch.stack([((gram(a) - gp.to(a)) ** 2).sum() / (gp.to(a) ** 2).sum().clamp_min(1e-12)
+    return torch.stack([((gram(a) - gp.to(a)) ** 2).sum().add(1e-20).sqrt() / gp.to(a).norm().clamp_min(1e-12)
                         for a, gp in zip(blocks, style_grams)]).mean()  # L (3) layers: no loop over pixels
 
 

@@ -41,8 +41,8 @@ class StyleLoss:
     # (relu4_1-4_3) instead of the conv3 block's: the painting's statistics at the scale of the Gram distance's deepest
     # layer, which the style term does not see (ours; 0: off; --strength multiplies it)
     deep_loss: str = "same"  # what that deep term measures: same (the style term's kind) | gram (each conv4 layer's
-    # Gram matrix against the painting's, ‖G − G_p‖² / ‖G_p‖² averaged over the three layers: the layers' texture
-    # statistics over the whole view instead of a match per cell; ours)
+    # Gram matrix against the painting's, ‖G − G_p‖ / ‖G_p‖ averaged over the three layers, the evaluation's Gram
+    # distance on them: the layers' texture statistics over the whole view instead of a match per cell; ours)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
