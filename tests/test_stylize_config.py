@@ -51,6 +51,11 @@ def test_every_shipped_config_loads_and_ablations_change_one_thing(capsys):
     contrast = flatten(load_config(CONFIGS / "tlvg_contrast.yaml"))
     assert {k for k, v in contrast.items() if v != tlvg[k]} == {"loss.lab_sigma", "loss.lab_block"}
     assert (contrast["loss.lab_sigma"], contrast["loss.lab_block"]) == ("painting", 0.03)
+    # the texture preset: the deep Gram term at 2 and the flow terms doubled, nothing else (its figures are for those)
+    texture = flatten(load_config(CONFIGS / "tlvg_texture.yaml"))
+    assert {k: v for k, v in texture.items() if v != tlvg[k]} == {
+        "loss.w_style_deep": 2.0, "loss.deep_loss": "gram", "loss.w_align": 2 * tlvg["loss.w_align"],
+        "loss.w_orient": 2 * tlvg["loss.w_orient"]}
     from tlvg_warp.train.reconstruct import load_config as load_reconstruct
 
     for p in CONFIGS.glob("*.yaml"):  # the shipped files use the current names only (no deprecation note)
