@@ -387,11 +387,12 @@ def layered_gram_loss(render_feats: torch.Tensor, style_grams: list) -> torch.Te
     """Mean over the layers concatenated in ``render_feats`` [L*C, N] (L = len(style_grams) equal channel blocks) of
     ‖G − G_p‖_F / ‖G_p‖_F, each G pixel-normalized [C, C]: the evaluation's Gram distance on these layers. Every
     layer counts the same whatever the size of its features, and the distance, not its square, keeps the gradient's
-    size from growing with how far the render is (squared, the term rose to 25 of a 31 loss at the start of stylize
-    on lego x The Starry Night at weight 4)."""
+    size from growing with how far the render is (squared, in a CPU look at lego x The Starry Night, the term rose
+    to 25 of a 31 loss at the start of stylize at weight 4)."""
     blocks = render_feats.chunk(len(style_grams), dim=0)
-    return torch.stack([((gram(a) - gp.to(a)) ** 2).sum().add(1e-20).sqrt() / gp.to(a).norm().clamp_min(1e-12)
-                        for a, gp in zip(blocks, style_grams)]).mean()  # L (3) layers: no loop over pixels
+    gps = [gp.to(render_feats) for gp in style_grams]
+    return torch.stack([(gram(a) - gp).square().sum().add(1e-20).sqrt() / gp.norm().clamp_min(1e-12)
+                        for a, gp in zip(blocks, gps)]).mean()  # L (3) layers: no loop over pixels
 
 
 def content_loss(render_feats: torch.Tensor, photo_feats: torch.Tensor) -> torch.Tensor:
