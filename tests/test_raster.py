@@ -744,16 +744,18 @@ def test_a_sized_render_equals_the_counted_one_and_reads_its_total_later():
     assert budget.capacity("v", g.num) is None  # ... or the caller marked a structural change
 
 
-def test_a_render_over_its_capacity_drops_the_deepest_keys_and_is_counted():
+@pytest.mark.parametrize("share", [2 / 3, 1 / 4])
+def test_a_render_over_its_capacity_drops_the_deepest_keys_and_is_counted(share):
     """A capacity below the total: the render keeps the first keys in depth order, so each tile's list is a
     prefix of the exact one and the kept keys number the capacity; the budget counts the overflow, and the view's
-    next render, sized from the true total, is the exact render again."""
+    next render, sized from the true total, is the exact render again. At a quarter of the total the key buffer
+    (the capacity's 2x room) ends at half the total: a key written past the capacity would land outside it."""
     from tlvg_warp.raster import IntersectionBudget, capture_binning
 
     g, cam = fitted_like_scene(dtype=torch.float32), camera(61, 45)
     with capture_binning() as exact_cap:
         exact = render(g, cam)
-    short = exact_cap["total"] * 2 // 3
+    short = int(exact_cap["total"] * share)
     budget = IntersectionBudget(1.25)
     budget.known["v"] = (g.num, 0, math.floor(short / 1.25))
     assert budget.capacity("v", g.num) <= short
