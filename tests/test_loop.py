@@ -254,23 +254,28 @@ def _blocks6(img: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([_blocks(img, n), _blocks(img * img, n)], 0)  # [6, cells]
 
 
+def _deep_run(demo, **extra):
+    """A stylize run on the stub with a conv4 block (the deep term at 0.7) and one terms call on view 1: the run,
+    its config, stylize phase, targets and terms, and in float64 what the terms see and the painting ([H,W,3] each)."""
+    run, cfg, tg = _stylize_run(demo, DeepStub(), **{"loss.luminance_only": False, "loss.style_loss": "nnfm",
+                                                     "loss.w_style_deep": 0.7, **extra})
+    sty = run.phase("stylize")
+    sty.setup(run)
+    view = _view(run, 1)
+    terms = sty.terms(run, view)
+    img, _ = _shown(demo, run, view)
+    return run, cfg, sty, tg, terms, img.numpy(), tg.style_work.double().numpy()
+
+
 def test_deep_style_term_matches_the_conv4_features(demo):
     """loss.w_style_deep: a second NNFM term on the network's deep features of the style term's input and the
     painting (float64 oracle: 8x8 block means of the image and its square, 6 channels), through the packed features
     of one terms call, with a gradient and its own weight; it may not run beside the coarse term."""
     from tlvg_warp.config_io import ConfigError
 
-    net = DeepStub()
-    run, cfg, tg = _stylize_run(demo, net, **{"loss.luminance_only": False, "loss.style_loss": "nnfm",
-                                              "loss.w_style_deep": 0.7})
+    run, cfg, sty, tg, terms, img, paint = _deep_run(demo)
     assert tuple(tg.style_feats_deep.shape[:1]) == (6,)
-    sty = run.phase("stylize")
-    sty.setup(run)
-    view = _view(run, 1)
-    terms = sty.terms(run, view)
-    img, cov = _shown(demo, run, view)
-    paint = tg.style_work.double().numpy()
-    fine, deep = _nnfm(_blocks(img.numpy(), 4), _blocks(paint, 4)), _nnfm(_blocks6(img.numpy(), 8), _blocks6(paint, 8))
+    fine, deep = _nnfm(_blocks(img, 4), _blocks(paint, 4)), _nnfm(_blocks6(img, 8), _blocks6(paint, 8))
     assert abs(fine - deep) > 0.1 * min(fine, deep) > 0  # the two differ here: the checks tell them apart
     assert float(terms["style"].detach()) == pytest.approx(fine, rel=TERM_TOL, abs=1e-7)
     assert float(terms["style_deep"].detach()) == pytest.approx(deep, rel=TERM_TOL, abs=1e-7)
@@ -292,16 +297,8 @@ def test_deep_gram_term_compares_each_conv4_layers_gram_matrix(demo):
     """loss.deep_loss gram: the deep term is each layer's Gram distance (three equal channel blocks of the deep
     features, float64 oracle on the stub's 8x8 block means), not the NNFM of the same features, and it carries a
     gradient to the splats' colours (the loss's own gradient: tests/test_losses_style.py)."""
-    net = DeepStub()
-    run, cfg, tg = _stylize_run(demo, net, **{"loss.luminance_only": False, "loss.style_loss": "nnfm",
-                                              "loss.w_style_deep": 0.7, "loss.deep_loss": "gram"})
-    sty = run.phase("stylize")
-    sty.setup(run)
-    view = _view(run, 1)
-    terms = sty.terms(run, view)
-    img, cov = _shown(demo, run, view)
-    paint = tg.style_work.double().numpy()
-    a, s = _blocks6(img.numpy(), 8), _blocks6(paint, 8)
+    run, cfg, sty, tg, terms, img, paint = _deep_run(demo, **{"loss.deep_loss": "gram"})
+    a, s = _blocks6(img, 8), _blocks6(paint, 8)
     want = _layered_gram(a, s)
     assert abs(want - _nnfm(a, s)) > 0.1 * want > 0  # the Gram and the NNFM of these features differ
     assert float(terms["style_deep"].detach()) == pytest.approx(want, rel=TERM_TOL, abs=1e-7)
