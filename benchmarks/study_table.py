@@ -107,8 +107,8 @@ def target_rows(study: Path, data: dict, order, me: str, ablation: str | None):
     return [c[0] for c in cols] + ["detail", "detail inside", "MV k1 / un-stylized", "Gaussians / input"], rows
 
 
-PAIRED = ["flow_alignment", "flow_energy", "style_gram", "style_gram_inside", "style_nnfm", "detail", "detail_inside",
-          "chroma_noise", "consistency_k1", "holes_2x", "spill", "content"]
+PAIRED = ["flow_alignment", "flow_energy", "stroke_scales", "style_gram", "style_gram_inside", "style_nnfm", "detail",
+          "detail_inside", "chroma_noise", "consistency_k1", "holes_2x", "spill", "content"]  # stroke_scales: no VGG
 FRACTIONS = {"holes_1x", "holes_2x", "spill"}  # shares of the view's pixels: printed as percentages
 
 

@@ -34,7 +34,7 @@ def test_target_table_reads_directions_marks_and_counts(tmp_path):
     # better: "tlvg vs abcgs" < 0), its chroma noise above the ablation's (a loss), flow level with the scene
     _write_pair(tmp_path, "fern", "starry_night", {
         "tlvg vs abcgs": {"flow_alignment": _cmp(0.10, 0.08, 0.12), "style_gram": _cmp(-0.05, -0.07, -0.03),
-                          "chroma_noise": _cmp(0.02, -0.01, 0.05)},
+                          "chroma_noise": _cmp(0.02, -0.01, 0.05), "stroke_scales": _cmp(0.03, 0.01, 0.05)},
         "tlvg vs rgb": {"chroma_noise": _cmp(0.09, 0.07, 0.11)},
         "tlvg vs no stylization": {"flow_alignment": _cmp(0.01, -0.01, 0.03)},
     }, {"tlvg": tlvg, "abcgs": {}, "rgb": {}})
@@ -70,6 +70,7 @@ def test_target_table_reads_directions_marks_and_counts(tmp_path):
     assert against_tlvg[0][idx["flow_alignment"]] == "worse -0.100"  # abcgs's flow 0.10 under tlvg's
     assert against_tlvg[0][idx["style_gram"]] == "worse +0.050"  # abcgs's Gram 0.05 above: worse
     assert against_tlvg[0][idx["chroma_noise"]] == "level -0.020"
+    assert against_tlvg[0][idx["stroke_scales"]] == "better -0.030"  # abcgs's stroke measure nearer: lower is better
     assert against_tlvg[0][idx["detail"]] == "-"  # not compared
     assert against_tlvg[1][idx["flow_alignment"]] == "better +0.040"  # stored as "abcgs vs tlvg"
     assert study_table.paired_rows(data, order, "abcgs", "tlvg")[0][idx["style_gram"]] == "better -0.050"
