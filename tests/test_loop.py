@@ -77,7 +77,8 @@ def test_stylize_terms_against_closed_forms(demo):
                                               "loss.w_orient": 0.5, "loss.w_stroke": 0.8,
                                               "loss.w_palette_snap": 0.35, "loss.w_style_swd": 0.45,
                                               "loss.w_color_swd": 0.55, "loss.swd_projections": 5,
-                                              "loss.color_swd_projections": 4, "loss.w_style_coarse": 0.65})
+                                              "loss.color_swd_projections": 4, "loss.w_style_coarse": 0.65,
+                                              "loss.w_tone_hold": 0.45})
     sty = run.phase("stylize")
     sty.setup(run)
     with torch.no_grad():  # move the parameters off their anchors so the anchor terms are not trivial
@@ -174,10 +175,15 @@ def test_stylize_terms_against_closed_forms(demo):
     e = hp_energy(y.numpy(), cov[..., 0].numpy())  # the test's own composite of the render
     detail = max(0.0, 1.0 - e / (2.5 * e_oracle)) ** 2
     assert detail > 0.1  # active
+    # the tone hold: the covered mean luminance of the render against that of the view's recoloured photo
+    luma = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
+    wc = cov[..., 0]
+    tone = ((y * wc).sum() / wc.sum() - ((tg.recolored[2].double() @ luma) * wc).sum() / wc.sum()) ** 2
+    assert float(tone) > 1e-6  # the render is off its target's tone here: the term is not trivially zero
     opac = torch.full((run.params.num,), 0.25 ** 2, dtype=torch.float64)
     opac[::2] = (0.25 - 3.0) ** 2
     want = {"style_swd": style_swd, "color_swd": color_swd, "content": content, "depth": depth, "tv": tv,
-            "chroma_tv": chroma_tv, "palette": snap, "style_gram": gram,
+            "chroma_tv": chroma_tv, "palette": snap, "style_gram": gram, "tone_hold": tone,
             "detail": detail, "stroke": stroke, "coverage": hinge, "silhouette": grown, "opacity_reg": math.sqrt(float(opac.sum())), "scale_reg": math.sqrt(3 * n * 0.125 ** 2)}
     for k, v in want.items():
         assert float(terms[k].detach()) == pytest.approx(float(v), rel=TERM_TOL, abs=1e-9), k

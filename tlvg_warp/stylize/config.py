@@ -44,6 +44,10 @@ class StyleLoss:
     # Gram matrix against the painting's, ‖G − G_p‖ / ‖G_p‖ averaged over the three layers, the evaluation's Gram
     # distance on them: the layers' texture statistics over the whole view instead of a match per cell; ours)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
+    w_tone_hold: float = 0.0  # the covered pixels' mean luminance held to the colour target's over the same pixels
+    # (the recoloured photo of the view): (Ȳ − Ȳ_target)². The stroke hinge asks for contrast, and a dark object can
+    # only gain contrast by lightening: it drifts pale (the biker splats under Monet, a CPU look: 0.56 -> 0.63). With
+    # the hold the contrast comes as dark and light around the target's tone (ours; 0: off; an eager term)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
     # luminance (their luminance features: with luminance_only the style term's own VGG pass serves it, one image a
@@ -129,7 +133,7 @@ class StyleLoss:
              "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
              "color_swd_projections": (">=", 1), "color_swd_space": ("of", "rgb", "chroma"),
              **{w: (">=", 0) for w in ("w_style", "w_style_coarse", "w_style_deep", "w_style_gram", "w_style_color",
-                                       "w_chroma_tv", "w_palette_snap", "w_style_swd", "w_color_swd",
+                                       "w_chroma_tv", "w_palette_snap", "w_style_swd", "w_color_swd", "w_tone_hold",
                                        "w_coverage", "w_silhouette", "w_detail", "w_stroke", "w_orient",
                                        "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
@@ -228,7 +232,7 @@ class StylizeConfig:
     terms_cuda_graphs: bool = True  # on CUDA: every term read off the render alone (VGG, content, depth, chroma TV,
     # orientation, stroke, coverage, silhouette, Lab) replays as one captured CUDA graph each way; vgg_cuda_graphs
     # and orient_cuda_graphs apply where it does not (a term it lacks is on: loss.w_style_gram, w_style_swd,
-    # w_style_color, w_color_swd, w_palette_snap, w_detail; or loss.lab_where covered)
+    # w_style_color, w_color_swd, w_palette_snap, w_detail, w_tone_hold; or loss.lab_where covered)
     orient_cuda_graphs: bool = True  # on CUDA: the orientation and stroke terms (loss.w_orient, w_stroke) replay one
     # captured CUDA graph
     keep_sh: bool = False  # keep view-dependent SH bands in stylized.ply (default: degree 0, ~3.6x smaller)

@@ -57,7 +57,8 @@ from .config import PHASES, StylizeConfig, config_yaml
 
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
 STYLIZE_TERMS = ("style", "style_coarse", "style_deep", "style_gram", "style_swd", "style_color", "color_swd",
-                 "content", "depth", "tv", "chroma_tv", "palette", "detail", "stroke", "coverage", "silhouette",
+                 "content", "depth", "tv", "chroma_tv", "palette", "detail", "tone_hold", "stroke", "coverage",
+                 "silhouette",
                  "opacity_reg", "scale_reg", "lab", "orient", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
@@ -408,6 +409,7 @@ class Stylize(Phase):
         self.fields = None  # per view [H,W,3] on the device
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
         self.stroke_target = None  # the painting's (E_across, E_along) at the views' height (the stroke hinge's)
+        self.tone_targets = None  # per view: the recoloured photo's mean luminance over the covered pixels (tone_hold)
         self.const = {"style": w.w_style * w.strength, "style_coarse": w.w_style_coarse * w.strength,
                       "style_deep": w.w_style_deep * w.strength,
                       "style_color": w.w_style_color * w.strength,
@@ -415,7 +417,7 @@ class Stylize(Phase):
                       "style_swd": w.w_style_swd * w.strength, "color_swd": w.w_color_swd,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
                       "chroma_tv": w.w_chroma_tv, "palette": w.w_palette_snap * (tg.colours is not None),
-                      "detail": w.w_detail * w.strength,
+                      "detail": w.w_detail * w.strength, "tone_hold": w.w_tone_hold,
                       "stroke": w.w_stroke * w.strength, "coverage": w.w_coverage,
                       "silhouette": w.w_silhouette,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
@@ -455,6 +457,10 @@ class Stylize(Phase):
             self.detail_target = painting_detail(self.tg.style_work, view_h)
         if self.on["stroke"] and self.stroke_target is None:
             self.stroke_target = painting_stroke(self.tg.style_work, view_h)
+        if self.on["tone_hold"] and self.tone_targets is None:  # the colour target's tone, per view, once
+            with torch.no_grad():
+                self.tone_targets = [self.covered_luminance(r.to(c), vi)
+                                     for vi, (r, c) in enumerate(zip(self.tg.recolored, self.tg.coverage))]
         if (self.on["orient"] or self.on["stroke"]) and self.field_terms is None:
             self.field_terms = self.make_field_terms()
         self.over_bg = run.background
@@ -509,7 +515,7 @@ class Stylize(Phase):
     # the terms read off the render alone (``image_terms`` computes those that are on)
     IMAGE_TERMS = ("content", "depth", "tv", "chroma_tv", "stroke", "coverage", "silhouette", "lab", "orient")
     # terms that read the render too but not in ``image_terms``: with one of them on, the terms stay eager
-    EAGER_ONLY = ("style_gram", "style_swd", "style_color", "color_swd", "palette", "detail")
+    EAGER_ONLY = ("style_gram", "style_swd", "style_color", "color_swd", "palette", "detail", "tone_hold")
 
     def make_terms_graph(self):
         """On CUDA the render-only terms (``image_terms``) as one graph each way (``terms_cuda_graphs``): about a
@@ -652,7 +658,18 @@ class Stylize(Phase):
             out["palette"] = palette_snap_loss(img, tg.colours, tg.coverage[vi])
         if on["detail"]:
             out["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
+        if on["tone_hold"]:
+            out["tone_hold"] = (self.covered_luminance(img, vi) - self.tone_targets[vi]) ** 2
         return out
+
+    def covered_luminance(self, img: torch.Tensor, vi: int) -> torch.Tensor:
+        """The mean luminance of ``img`` [H,W,3] over view ``vi``'s covered pixels (weighted by the un-stylized
+        scene's alpha), its gradient along the grey axis where ``loss.luminance_grad`` is gray (as the stroke hinge's)."""
+        from ..losses import gray_gradient, luminance  # lazy: imports Warp
+
+        w = self.tg.coverage[vi][..., 0].to(img)
+        img = gray_gradient(img) if self.cfg.loss.luminance_grad == "gray" else img
+        return (luminance(img)[..., 0] * w).sum() / w.sum().clamp_min(1e-12)
 
     def find_covered(self) -> None:
         """Per view, the pixels and the VGG cells the un-stylized scene covered (alpha >= 0.5; a cell by its mean):
