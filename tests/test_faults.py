@@ -134,11 +134,10 @@ def test_full_disk_while_saving_keeps_previous_checkpoint(valid, reference, tmp_
         shutil.copytree(reference, out)
         before = (out / "checkpoint.pt").read_bytes()
         filler = disk / "filler"
-        with open(filler, "wb") as f:  # fill the disk
-            try:
+        with open(filler, "wb", buffering=0) as f:  # fill the disk; unbuffered, so that closing the file has no
+            try:  # partly written block left to flush (it would raise at the close, however the free space falls)
                 while True:
                     f.write(b"\0" * (1 << 16))
-                    f.flush()
             except OSError:
                 pass
         capsys.readouterr()
