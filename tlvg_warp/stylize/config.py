@@ -41,13 +41,13 @@ class StyleLoss:
     # (relu4_1-4_3) instead of the conv3 block's: the painting's statistics at the scale of the Gram distance's deepest
     # layer, which the style term does not see (ours; 0: off; --strength multiplies it)
     deep_loss: str = "same"  # what that deep term measures: same (the style term's kind) | gram (each conv4 layer's
-    # Gram matrix against the painting's, ‖G − G_p‖ / ‖G_p‖ averaged over the three layers, the evaluation's Gram
-    # distance on them: the layers' texture statistics over the whole view instead of a match per cell; ours)
+    # Gram matrix against the painting's, ‖G − G_p‖ / ‖G_p‖ averaged over the three layers, the evaluation's
+    # Gram distance on them: the layers' texture statistics over the whole view instead of a match per cell; ours)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_tone_hold: float = 0.0  # the covered pixels' mean luminance held to the colour target's over the same pixels
-    # (the recoloured photo of the view): (Ȳ − Ȳ_target)². The stroke hinge asks for contrast, and a dark object can
-    # only gain contrast by lightening: it drifts pale (the biker splats under Monet, a CPU look: 0.56 -> 0.63). With
-    # the hold the contrast comes as dark and light around the target's tone (ours; 0: off; an eager term)
+    # (the recoloured photo of the view): (Ȳ − Ȳ_target)². The stroke hinge asks for contrast, and a dark object
+    # can only gain contrast by lightening: it drifts pale (the biker splats under Monet, a CPU look: 0.56 ->
+    # 0.63). With the hold the contrast comes as dark and light around the target's tone (ours; 0: off; eager)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
     # luminance (their luminance features: with luminance_only the style term's own VGG pass serves it, one image a

@@ -58,8 +58,7 @@ from .config import PHASES, StylizeConfig, config_yaml
 CHECKPOINT_FORMAT = "tlvg_warp.stylize.v1"
 STYLIZE_TERMS = ("style", "style_coarse", "style_deep", "style_gram", "style_swd", "style_color", "color_swd",
                  "content", "depth", "tv", "chroma_tv", "palette", "detail", "tone_hold", "stroke", "coverage",
-                 "silhouette",
-                 "opacity_reg", "scale_reg", "lab", "orient", "align", "aniso")
+                 "silhouette", "opacity_reg", "scale_reg", "lab", "orient", "align", "aniso")
 LOG_TERMS = ("loss", "fit", *STYLIZE_TERMS)  # the log's columns
 NORM_EPS = 1e-24  # inside sqrt of the anchor norms: a finite (zero) gradient when nothing has moved yet
 COARSE = 0.5  # the coarse style term's working size against the style term's (loss.w_style_coarse)
@@ -664,7 +663,7 @@ class Stylize(Phase):
 
     def covered_luminance(self, img: torch.Tensor, vi: int) -> torch.Tensor:
         """The mean luminance of ``img`` [H,W,3] over view ``vi``'s covered pixels (weighted by the un-stylized
-        scene's alpha), its gradient along the grey axis where ``loss.luminance_grad`` is gray (as the stroke hinge's)."""
+        scene's alpha), its gradient along the grey axis where ``loss.luminance_grad`` is gray (as the hinge's)."""
         from ..losses import gray_gradient, luminance  # lazy: imports Warp
 
         w = self.tg.coverage[vi][..., 0].to(img)
