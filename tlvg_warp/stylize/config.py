@@ -40,9 +40,10 @@ class StyleLoss:
     w_style_deep: float = 0.0  # a second style term (the same kind, on the same input) on the conv4 block's features
     # (relu4_1-4_3) instead of the conv3 block's: the painting's statistics at the scale of the Gram distance's deepest
     # layer, which the style term does not see (ours; 0: off; --strength multiplies it)
-    deep_loss: str = "same"  # what that deep term measures: same (the style term's kind) | gram (each conv4 layer's
-    # Gram matrix against the painting's, ‖G − G_p‖ / ‖G_p‖ averaged over the three layers, the evaluation's
-    # Gram distance on them: the layers' texture statistics over the whole view instead of a match per cell; ours)
+    deep_loss: str = "same"  # the deep term: same (the style term's kind) | gram (each conv4 layer's Gram distance)
+    # gram: ‖G − G_p‖ / ‖G_p‖ of each layer's Gram matrix against the painting's, averaged over the three layers (the
+    # evaluation's Gram distance on them): the layers' texture statistics over the whole view instead of a match per
+    # cell (ours)
     strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
     w_tone_hold: float = 0.0  # the covered pixels' mean luminance held to the colour target's over the same pixels
     # (the recoloured photo of the view): (Ȳ − Ȳ_target)². The stroke hinge asks for contrast, and a dark object
@@ -238,7 +239,9 @@ class StylizeConfig:
     keep_sh: bool = False  # keep view-dependent SH bands in stylized.ply (default: degree 0, ~3.6x smaller)
     background: list[float] | None = None  # render background RGB; None: the dataset's (white for the demo)
     views_per_step: int = 1  # training views per step (per rank under torchrun); the loss is their mean
-    render_headroom: float = 0.0  # > 1: on a GPU, a training render's key buffers take this x the view's last intersection count, so the host never waits for the count (0: count every render exactly; no faster over a whole run as measured, docs/performance.md)
+    render_headroom: float = 0.0  # > 1 on a GPU: key buffers sized from a view's last count x this (0: exact counts)
+    # A training render then never waits for its intersection count; no faster over a whole run as measured
+    # (docs/performance.md)
     log_every: int = 50  # host reads (log flush, progress bar, NaN check, last-good snapshot) every N iterations
     checkpoint_every: int = 0  # also write checkpoint.pt every N iterations (0: by time only, below)
     checkpoint_seconds: float = 60.0  # ... and at the first log point this long after the last one (0: off); a killed run loses about this much; log.jsonl is written at the same point

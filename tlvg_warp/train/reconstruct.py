@@ -77,7 +77,9 @@ class ReconstructConfig:
     seed: int = 0  # seeds view order, init subsampling, split sampling, random background
     device: str = "auto"  # cuda, cpu or auto (cuda when available)
     views_per_step: int = 1  # training views per step (per rank under torchrun); the loss is their mean
-    render_headroom: float = 0.0  # > 1: on a GPU, a training render's key buffers take this x the view's last intersection count, so the host never waits for the count (0: count every render exactly; no faster over a whole run as measured, docs/performance.md)
+    render_headroom: float = 0.0  # > 1 on a GPU: key buffers sized from a view's last count x this (0: exact counts)
+    # A training render then never waits for its intersection count; no faster over a whole run as measured
+    # (docs/performance.md)
     log_every: int = 50  # host reads (log rows, progress bar, NaN check, snapshot) every this many iterations
     timing_every: int = 20  # sample the per-stage time split every this many iterations
     checkpoint_every: int = 0  # also write checkpoint.pt every this many iterations (0: by time only, below)
