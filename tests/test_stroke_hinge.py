@@ -9,7 +9,10 @@ contrast along it held to the painting's.
 - field_terms (the orientation and stroke terms from one gradient pass, the call the phase graphs on CUDA): its
   values and gradient those of the two separate functions, an entry 0 where its term is off; on CUDA the replayed
   graph the eager call's for renders, fields and weights that change between calls;
-- the Stylize phase: computed and logged when weighted, never called at weight 0."""
+- the relative form (loss.stroke_contrast: log): energies of log(Y + eps) against the OpenCV oracle on its log,
+  a dark grating counting more than the same step on a light one, the painting's target in the same form,
+  gradcheck, and field_terms' second gradient pass;
+- the Stylize phase: computed and logged when weighted, never called at weight 0, the log form passed through."""
 import math
 from pathlib import Path
 
@@ -22,6 +25,7 @@ from _demo_helpers import StubFeatures, demo_stylize_inputs
 from _io_helpers import data_root
 from tlvg_warp.losses import (field_terms, flow_alignment_score_torch, painting_stroke_energies, resize_style,
                               stroke_energies, stroke_field, stroke_hinge)
+from tlvg_warp.losses.stroke_field import STROKE_LOG_EPS
 from tlvg_warp.losses.graphs import GraphedFn
 
 LUMA = np.array([0.299, 0.587, 0.114])
@@ -49,10 +53,12 @@ def interior(h, w):
     return m
 
 
-def oracle(img, theta, weight):
+def oracle(img, theta, weight, log_eps=None):
     """(E_across, E_along) by OpenCV in float64: σ 1 blur (9 taps) and Scharr, reflect-101, the gradient projected
-    on v = (cos θ, sin θ) and on its normal, weighted means with ``weight`` [H,W]."""
-    y = cv2.GaussianBlur(img @ LUMA, (9, 9), 1.0, borderType=cv2.BORDER_REFLECT_101)
+    on v = (cos θ, sin θ) and on its normal, weighted means with ``weight`` [H,W]; of log(Y + log_eps) if given."""
+    y = img @ LUMA
+    y = y if log_eps is None else np.log(y + log_eps)
+    y = cv2.GaussianBlur(y, (9, 9), 1.0, borderType=cv2.BORDER_REFLECT_101)
     gx = cv2.Scharr(y, cv2.CV_64F, 1, 0, borderType=cv2.BORDER_REFLECT_101)
     gy = cv2.Scharr(y, cv2.CV_64F, 0, 1, borderType=cv2.BORDER_REFLECT_101)
     along = (gx * math.cos(theta) + gy * math.sin(theta)) ** 2
@@ -196,6 +202,55 @@ def test_bounded_along_half_stays_below_one_where_the_ratio_grows():
                                     (x,))
     with pytest.raises(ValueError, match="along"):
         stroke_hinge(ea, el, *targets, along="linear")
+
+
+# --- 3a. the relative (log) form -----------------------------------------------------------------------------------
+def test_log_form_reads_contrast_relative_to_the_tone():
+    """Energies of log(Y + eps) equal the OpenCV oracle's on its own log; the same grating step (amplitude 0.05) on a
+    dark ground (Y 0.1) counts ((0.75 + eps)/(0.1 + eps))² ~ 21x one on a light ground (Y 0.75) in the log form and
+    the same in the linear form (a version that ignored log_eps, or took the log after the blur, fails)."""
+    h, w, deg = GRATING["h"], GRATING["w"], GRATING["deg"]
+    field, wt = const_field(h, w, math.radians(deg + 90.0)), interior(h, w)
+    got = {}
+    for ground in (0.1, 0.75):
+        img = grating(**{**GRATING, "amp": 0.05}) - 0.5 + ground
+        for eps in (None, STROKE_LOG_EPS):
+            ea, el = stroke_energies(torch.from_numpy(img), field, torch.from_numpy(wt), log_eps=eps)
+            oa, ol = oracle(img, math.radians(deg + 90.0), wt[..., 0], log_eps=eps)
+            assert (float(ea), float(el)) == pytest.approx((oa, ol), rel=ORACLE_TOL, abs=1e-12)
+            got[ground, eps] = float(ea)
+    assert got[0.1, None] == pytest.approx(got[0.75, None], rel=1e-9)
+    ratio = got[0.1, STROKE_LOG_EPS] / got[0.75, STROKE_LOG_EPS]
+    assert ratio == pytest.approx(((0.75 + STROKE_LOG_EPS) / (0.1 + STROKE_LOG_EPS)) ** 2, rel=0.15)
+
+
+def test_log_form_painting_target_and_gradient():
+    """The painting's target in the log form equals the torch energies of log luminance on its own field (float64);
+    the hinge through the log energies passes gradcheck; field_terms with stroke_log_eps gives the orientation term of
+    linear luminance and the hinge of log luminance, values and gradient."""
+    q = resize_style(_painting(), 128)
+    t_across, t_along = painting_stroke_energies(q, 128, log_eps=STROKE_LOG_EPS)
+    _, _, dq = stroke_field(q)
+    ea, el = stroke_energies(torch.from_numpy(q).double(), torch.from_numpy(dq), None, log_eps=STROKE_LOG_EPS)
+    assert (float(ea), float(el)) == pytest.approx((t_across, t_along), rel=ORACLE_TOL)
+    assert (t_across, t_along) != pytest.approx(painting_stroke_energies(q, 128), rel=0.05)
+    img, d, cov = _random_case(4)
+    ea, el = (float(v) for v in stroke_energies(img, d, cov, log_eps=STROKE_LOG_EPS))
+    targets = (2.0 * ea, 0.5 * el)
+    x = img.clone().requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda im: stroke_hinge(*stroke_energies(im, d, cov, log_eps=STROKE_LOG_EPS), *targets), (x,))
+    x = img.clone().requires_grad_()
+    v = field_terms(x, d, cov, stroke_target=targets, stroke_log_eps=STROKE_LOG_EPS)
+    (0.7 * v[0] + 1.3 * v[1]).backward()
+    y = img.clone().requires_grad_()
+    o = 1.0 - flow_alignment_score_torch(y, d)
+    hinge = stroke_hinge(*stroke_energies(y, d, cov, log_eps=STROKE_LOG_EPS), *targets)
+    (0.7 * o + 1.3 * hinge).backward()
+    got, want = v.detach().tolist(), [float(o.detach()), float(hinge.detach())]
+    assert got == pytest.approx(want, rel=1e-12)
+    assert float(hinge) == pytest.approx(0.25 + 1.0, rel=1e-12)
+    assert torch.allclose(x.grad, y.grad, rtol=1e-10, atol=1e-14)
 
 
 # --- 3b. the two field terms from one gradient pass --------------------------------------------------------------
@@ -351,6 +406,28 @@ def test_stylize_passes_the_along_form_to_the_hinge(demo, monkeypatch):
         logged[form] = [r["stroke"] for r in run.log if r["phase"] == "stylize"]
     assert all(v > 10.0 for v in logged["ratio"])
     assert all(0.5 < v < 1.0 for v in logged["bounded"])
+
+
+def test_stylize_passes_the_log_form_to_the_hinge(demo, monkeypatch):
+    """loss.stroke_contrast: log reaches the target (the painting's log energies) and every hinge call."""
+    import tlvg_warp.losses as L
+    from tlvg_warp.train.loop import train
+
+    seen, real = [], L.field_terms
+
+    def spy(*a, **k):
+        seen.append(k.get("stroke_log_eps"))
+        return real(*a, **k)
+    monkeypatch.setattr(L, "field_terms", spy)
+    run, cfg, tg = _stylize_run(demo, **{"loss.w_stroke": 0.5, "loss.stroke_contrast": "log"})
+    sty = run.phase("stylize")
+    train(run, progress=False)
+    view_h = int(np.median([c.height for c in run.cams]))
+    assert sty.stroke_target == pytest.approx(
+        painting_stroke_energies(tg.style_work.numpy(), view_h, log_eps=STROKE_LOG_EPS), rel=1e-12)
+    assert len(seen) == sty.steps > 0 and set(seen) == {STROKE_LOG_EPS}
+    linear, _, _ = _stylize_run(demo, **{"loss.w_stroke": 0.5})
+    assert linear.phase("stylize").stroke_log_eps is None
 
 
 def test_stylize_never_computes_the_stroke_term_at_weight_zero(demo, monkeypatch):

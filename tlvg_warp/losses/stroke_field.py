@@ -30,6 +30,10 @@ TENSOR_SIGMA = 3.0
 # per pixel, far below one 8-bit step (1/255 -> gradient² ~0.016): flat areas get c ~ 0 instead of the
 # direction of float round-off, while any visible texture keeps c ~ (λ1−λ2)/(λ1+λ2).
 EPS_TRACE = 1e-4
+# The stroke hinge's relative form (loss.stroke_contrast: log) reads log(Y + STROKE_LOG_EPS): a step dY counts as
+# dY / (Y + 0.05), so a dark passage meets the painting's contrast with small steps instead of lightening (clamped at
+# black, contrast in linear Y can only be added upward). 0.05 is a deep shadow; below it a step counts as if at 0.05.
+STROKE_LOG_EPS = 0.05
 LUMA = (0.299, 0.587, 0.114)
 _SCHARR_X = np.array([[-3, 0, 3], [-10, 0, 10], [-3, 0, 3]], np.float32)  # cv2.Scharr(dx=1), correlation
 
@@ -104,11 +108,13 @@ def _sep_blur(x, g):  # x [B,C,H,W], g [k]
     return F.conv2d(_pad(x, r, 0), g.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
 
 
-def _luma_gradients(x):
+def _luma_gradients(x, log_eps: float | None = None):
     """Scharr gradients (gx, gy) [B,1,H,W] of the luminance of x [B,3,H,W], pre-blurred σ PRE_SIGMA (the kernels and
-    borders of :func:`structure_tensor`)."""
+    borders of :func:`structure_tensor`); of log(max(Y, 0) + ``log_eps``) when given."""
     g1, _, sx, luma = _kernels(x.dtype, x.device)
     y = (x * luma).sum(1, keepdim=True)  # [B,1,H,W]
+    if log_eps is not None:
+        y = torch.log(y.clamp_min(0.0) + log_eps)
     y = _pad(_sep_blur(y, g1), 1, 1)
     return F.conv2d(y, sx.view(1, 1, 3, 3)), F.conv2d(y, sx.T.contiguous().view(1, 1, 3, 3))
 
@@ -231,13 +237,15 @@ def _directional(gx, gy, u0, u1):
     return g2 - along, along
 
 
-def stroke_energies(img: torch.Tensor, doubled: torch.Tensor, weight: torch.Tensor | None = None):
+def stroke_energies(img: torch.Tensor, doubled: torch.Tensor, weight: torch.Tensor | None = None,
+                    log_eps: float | None = None):
     """(E_across, E_along), 0-dim tensors in the image's dtype, differentiable w.r.t. ``img`` [H,W,3]: the weighted
     means of the luminance's squared derivative across and along the stroke field ``doubled`` [H,W,2]
     (c·(cos 2θ, sin 2θ)). Gradients as :func:`render_orientation` takes them (σ PRE_SIGMA pre-blur, Scharr,
     reflected border); weights c · ``weight`` [H,W,1] (the view's coverage; all ones when None), so a pixel without
-    a stroke direction (c = 0) counts for nothing. Stripes that run along the strokes raise E_across only."""
-    gx, gy = _luma_gradients(img.permute(2, 0, 1).unsqueeze(0))
+    a stroke direction (c = 0) counts for nothing. Stripes that run along the strokes raise E_across only.
+    ``log_eps``: of log(max(Y, 0) + log_eps) instead of Y (relative contrast, the blur after the log)."""
+    gx, gy = _luma_gradients(img.permute(2, 0, 1).unsqueeze(0), log_eps)
     return _energies(gx[0, 0], gy[0, 0], doubled, weight)
 
 
@@ -253,14 +261,16 @@ def _energies(gx, gy, doubled, weight):  # gx, gy [H,W]
     return (w * across).sum() / sw, (w * along).sum() / sw
 
 
-def painting_stroke_energies(style_img, view_h: int) -> tuple[float, float]:
+def painting_stroke_energies(style_img, view_h: int, log_eps: float | None = None) -> tuple[float, float]:
     """(T_across, T_along) of a painting [h,w,3] float in [0,1] at ``view_h`` rows (``resize_style``, as the detail
-    hinge's target): its own stroke field (:func:`stroke_field`), its luminance gradients by OpenCV in float64
-    (the kernels and border of :func:`structure_tensor`), the same weighted means as :func:`stroke_energies`
-    with weight c. The stroke hinge's targets."""
+    hinge's target): its own stroke field (:func:`stroke_field`, always of Y), its luminance gradients by OpenCV in
+    float64 (the kernels and border of :func:`structure_tensor`; of log(Y + ``log_eps``) when given), the same
+    weighted means as :func:`stroke_energies` with weight c. The stroke hinge's targets."""
     p = resize_style(np.asarray(_np(style_img), np.float32), view_h)  # [view_h,w',3] float32
     _, c, d = stroke_field(p)
     y = p.astype(np.float64) @ np.array(LUMA, np.float64)
+    if log_eps is not None:
+        y = np.log(np.maximum(y, 0.0) + log_eps)
     k1, b = _ksize(PRE_SIGMA), cv2.BORDER_REFLECT_101
     y = cv2.GaussianBlur(y, (k1, k1), PRE_SIGMA, borderType=b)
     gx = cv2.Scharr(y, cv2.CV_64F, 1, 0, borderType=b)
@@ -289,14 +299,20 @@ def stroke_hinge(e_across: torch.Tensor, e_along: torch.Tensor, t_across: float,
 
 
 def field_terms(img: torch.Tensor, doubled: torch.Tensor, weight: torch.Tensor, *, orient: bool = True,
-                stroke_target: tuple[float, float] | None = None, along: str = "ratio") -> torch.Tensor:
+                stroke_target: tuple[float, float] | None = None, along: str = "ratio",
+                stroke_log_eps: float | None = None) -> torch.Tensor:
     """The two loss terms read off the render's luminance gradients against the view's stroke field, from ONE
     gradient pass: [1 − :func:`flow_alignment_score_torch`, :func:`stroke_hinge` of :func:`stroke_energies`] [2],
     an entry 0 where its term is off (``orient`` False, ``stroke_target`` None). img [H,W,3], doubled [H,W,2],
-    weight [H,W,1] (the stroke hinge's coverage). One tensor out, so that ``GraphedFn`` replays both as one graph."""
-    gx, gy = _luma_gradients(img.permute(2, 0, 1).unsqueeze(0))  # [1,1,H,W] each
+    weight [H,W,1] (the stroke hinge's coverage). ``stroke_log_eps``: the hinge's energies of log luminance (a
+    second gradient pass; ``stroke_target`` then the painting's in the same form). One tensor out, so that
+    ``GraphedFn`` replays both as one graph."""
+    x = img.permute(2, 0, 1).unsqueeze(0)
+    gx, gy = _luma_gradients(x)  # [1,1,H,W] each
     zero = img.new_zeros(())
     orient_term = 1.0 - _alignment(_orientation(gx, gy)[2][0], doubled) if orient else zero
+    if stroke_target is not None and stroke_log_eps is not None:
+        gx, gy = _luma_gradients(x, stroke_log_eps)
     stroke_term = zero if stroke_target is None else stroke_hinge(
         *_energies(gx[0, 0], gy[0, 0], doubled, weight), *stroke_target, along=along)
     return torch.stack([orient_term, stroke_term])

@@ -148,12 +148,19 @@ def painting_detail(style_work: torch.Tensor, height: int) -> float:
     return float(detail_energy(p))
 
 
-def painting_stroke(style_work: torch.Tensor, height: int) -> tuple[float, float]:
+def painting_stroke(style_work: torch.Tensor, height: int, log_eps: float | None = None) -> tuple[float, float]:
     """The painting's luminance contrast (across, along) its own stroke field at ``height`` rows (the views' height),
-    the stroke hinge's targets."""
+    the stroke hinge's targets; of log luminance when ``log_eps`` is given."""
     from ..losses import painting_stroke_energies  # lazy: imports Warp
 
-    return painting_stroke_energies(style_work.detach().cpu().numpy(), height)
+    return painting_stroke_energies(style_work.detach().cpu().numpy(), height, log_eps)
+
+
+def stroke_log_eps(contrast: str) -> float | None:
+    """The stroke hinge's log offset for loss.stroke_contrast ("log": STROKE_LOG_EPS; "linear": None)."""
+    from ..losses.stroke_field import STROKE_LOG_EPS  # lazy: imports Warp
+
+    return STROKE_LOG_EPS if contrast == "log" else None
 
 
 def _shift_dc_(sh_dc: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
@@ -408,6 +415,7 @@ class Stylize(Phase):
         self.fields = None  # per view [H,W,3] on the device
         self.detail_target = None  # the painting's detail energy at the views' height (set up with the fields)
         self.stroke_target = None  # the painting's (E_across, E_along) at the views' height (the stroke hinge's)
+        self.stroke_log_eps = stroke_log_eps(w.stroke_contrast)  # None: the hinge reads linear luminance
         self.tone_targets = None  # per view: the recoloured photo's mean luminance over the covered pixels (tone_hold)
         self.const = {"style": w.w_style * w.strength, "style_coarse": w.w_style_coarse * w.strength,
                       "style_deep": w.w_style_deep * w.strength,
@@ -455,7 +463,7 @@ class Stylize(Phase):
         if self.on["detail"] and self.detail_target is None:
             self.detail_target = painting_detail(self.tg.style_work, view_h)
         if self.on["stroke"] and self.stroke_target is None:
-            self.stroke_target = painting_stroke(self.tg.style_work, view_h)
+            self.stroke_target = painting_stroke(self.tg.style_work, view_h, self.stroke_log_eps)
         if self.on["tone_hold"] and self.tone_targets is None:  # the colour target's tone, per view, once
             with torch.no_grad():
                 self.tone_targets = [self.covered_luminance(r.to(c), vi)
@@ -476,7 +484,8 @@ class Stylize(Phase):
         from ..losses.graphs import GraphedFn
 
         fn = partial(field_terms, orient=self.on["orient"], along=self.cfg.loss.stroke_along,
-                     stroke_target=self.stroke_target if self.on["stroke"] else None)
+                     stroke_target=self.stroke_target if self.on["stroke"] else None,
+                     stroke_log_eps=self.stroke_log_eps)
         return GraphedFn(fn) if self.cfg.orient_cuda_graphs else fn
 
     def jitter(self, p: GaussianParams, view_h: int) -> None:
