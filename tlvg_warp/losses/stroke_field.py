@@ -31,8 +31,8 @@ TENSOR_SIGMA = 3.0
 # direction of float round-off, while any visible texture keeps c ~ (λ1−λ2)/(λ1+λ2).
 EPS_TRACE = 1e-4
 # The stroke hinge's relative form (loss.stroke_contrast: log) reads log(Y + STROKE_LOG_EPS): a step dY counts as
-# dY / (Y + 0.05), so a dark passage meets the painting's contrast with small steps instead of lightening (clamped at
-# black, contrast in linear Y can only be added upward). 0.05 is a deep shadow; below it a step counts as if at 0.05.
+# dY / (Y + 0.05), so a dark passage meets the painting's contrast with small steps. 0.05 is a deep shadow; below it a
+# step counts as if at 0.05.
 STROKE_LOG_EPS = 0.05
 LUMA = (0.299, 0.587, 0.114)
 _SCHARR_X = np.array([[-3, 0, 3], [-10, 0, 10], [-3, 0, 3]], np.float32)  # cv2.Scharr(dx=1), correlation

@@ -92,9 +92,9 @@ class StyleLoss:
     stroke_along: str = "ratio"  # the hinge's second half: ratio (E_along/T_along - 1)^2, unbounded, or bounded
     # (1 - T_along/E_along)^2 in [0, 1). A scene with more contrast along the field than the painting (lego's bricks)
     # makes the ratio dominate the loss and smooths its edges (configs/tlvg.yaml uses bounded; docs/study.md)
-    stroke_contrast: str = "linear"  # what the hinge's energies read: linear luminance Y, or log (log(Y + 0.05), the
-    # painting's target too): contrast relative to the tone, so a dark object meets the target with small steps
-    # instead of being lightened by strokes that, clamped at black, can only add light (ours)
+    stroke_contrast: str = "linear"  # the stroke hinge's contrast: on luminance Y (linear) or on log(Y + 0.05) (log)
+    # for the render and the painting's target alike: contrast relative to the tone, met in a dark passage by small
+    # steps (ours; made against dark objects drifting pale, which it did not prevent: docs/study.md)
     w_orient: float = 0.0  # 1 - the render's own structure-tensor alignment with the stroke field (the flow energy
     # of eq. 1 read off the image instead of the footprints): the texture the style terms paint, not only the splats'
     # axes, follows the painter's directions (ours; 0: off)
