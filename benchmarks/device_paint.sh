@@ -8,7 +8,8 @@
 #   PART=stage2  carry .gpu/b and .carry/d2 (styles, beer): `source .gpu/b/setup.sh` first; starts beer's fit
 #   PART=fit     carry .carry/d3 (fern, lego at 400 px): fits fern and lego (7000 iterations), waits for all three
 #   PART=study   launch the study in the background (two queues of pairs: tuning, validation; PAIRS_A and PAIRS_B
-#                replace them, PAIRS_C, PAIRS_D and PAIRS_E add queues); PART=wait collects it. A pair whose scene's
+#                replace them, PAIRS_C, PAIRS_D and PAIRS_E add queues); PART=wait collects it (PACK=0: no archive,
+#                for every collecting call but the last). A pair whose scene's
 #                fit failed is skipped ("skipped ... (no fit)" and the fit's last log lines in the wait's output):
 #                `SCENES=name PART=fit` fits it again, then a study of those pairs alone
 #   PART=scene   SCENE=name:dataset:downscale STYLES=a.jpg,b.jpg VARIANTS="name:k=v;k=v ..." (benchmarks/tune.py's
@@ -166,6 +167,9 @@ EOF
     # the fits ran in the background (PART=fit FIT_LIMIT=1 returns at once): their held-out PSNR and size, here
     for s in $SCENES; do echo "fit $s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" 2>/dev/null | tail -n 2 | tr '\n' ' ')"; done
     grep -h "^done\|^skipped\|^fit of\|^run \|^evaluate \|Error" "$R"/pairs/queue_*.log "$R"/seeds/pairs/queue_*.log 2>/dev/null | tail -n 60
+    # PACK=0: no archive. After each of two calls that returned the archive, the next call found a fresh, bare
+    # machine (the files travel before the reply, past the 30 s idle release): collect with PACK=0 until the last
+    [ "${PACK:-1}" = 0 ] && exit 0
     (cd "$R" && tar -czf "$OUT/study_${TAG:-x}.tgz" $(ls -d {pairs,seeds/pairs}/*/*/evaluation/evaluation.json {pairs,seeds/pairs}/*/*/*/metrics.json pairs/*.jpg \
       {pairs,seeds/pairs}/queue_*.log 2>/dev/null))  # the queue logs: a pair that failed says why
     ;;
