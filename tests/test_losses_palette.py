@@ -355,3 +355,37 @@ def test_arf_rank_takes_its_statistics_over_the_covered_pixels():
         np.testing.assert_allclose(x[:, :12].numpy(), y[:, :12].numpy(), atol=1e-9)
     c, _ = palette_transfer(pt(framed), torch.from_numpy(style), "arf_rank")  # all pixels: the white moves the map
     assert np.abs(c[0][:, :12].numpy() - b[0][:, :12].numpy()).max() > 0.02
+
+
+def _object_views(object_rgb, share, n=3, size=40, seed=0):
+    """``n`` views [size,size,3] of a square object of colour ``object_rgb`` (with a little noise) covering about
+    ``share`` of each view on a white background, and their coverage [size,size,1]."""
+    gen = np.random.default_rng(seed)
+    side = int(round(size * share ** 0.5))
+    photos, cover = [], []
+    for _ in range(n):
+        img = np.ones((size, size, 3))
+        a = np.zeros((size, size, 1))
+        img[:side, :side] = np.clip(np.array(object_rgb) + gen.normal(0, 0.02, (side, side, 3)), 0, 1)
+        a[:side, :side] = 1.0
+        photos.append(torch.from_numpy(img))
+        cover.append(torch.from_numpy(a))
+    return photos, cover
+
+
+def test_dark_object_note_names_the_object_and_painting_luminance_and_only_where_it_applies():
+    from tlvg_warp.losses.palette import dark_object_note
+    painting = torch.from_numpy(np.random.default_rng(1).uniform(0.35, 0.85, (30, 50, 3)))
+    photos, cover = _object_views((0.15, 0.12, 0.1), share=0.25)
+    note = dark_object_note(photos, cover, painting, "covered")
+    y_obj = np.concatenate([p.numpy().reshape(-1, 3) @ LUMA for p in photos])[
+        np.concatenate([c.numpy().reshape(-1) for c in cover]) > 0.5].mean()
+    y_paint = (painting.numpy().reshape(-1, 3) @ LUMA).mean()
+    assert note is not None and "palette_where=all" in note and "\n" not in note
+    assert f"{y_obj:.2f} against {y_paint:.2f}" in note  # the numbers, from numpy's BT.601
+    assert dark_object_note(photos, cover, painting, "all") is None  # already ARF's all-pixel statistics
+    dark = [torch.full_like(p, 0.15) for p in photos]  # a dark capture: covered everywhere, where covered = all
+    full = [torch.ones_like(c) for c in cover]
+    assert dark_object_note(dark, full, painting, "covered") is None
+    light, lcover = _object_views((0.55, 0.5, 0.45), share=0.25)  # within the gap of the painting's mean
+    assert dark_object_note(light, lcover, painting, "covered") is None

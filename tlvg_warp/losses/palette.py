@@ -170,6 +170,32 @@ def rank_palette(images, style, floor: float = 0.0, coverage=None, bins: int = R
 COVERED = 0.5  # a pixel belongs to the scene where the un-stylized render's alpha is above this
 
 
+DARK_OBJECT_GAP = 0.15  # the covered pixels' mean luminance this far under the painting's: worth a note
+EMPTY_SHARE = 0.1  # at least this share of the views' pixels uncovered: an object in front of an empty background
+
+
+def dark_object_note(photos, coverage, style, where: str) -> str | None:
+    """One line for the user when the covered-pixel statistics (``where`` = covered) are about to give a dark object
+    in front of an empty background the painting's mean tone (the biker under Monet: covered luminance 0.26, the
+    painting 0.53, stylized 0.63; docs/study.md): the object comes out much lighter than it is, and
+    ``palette_where=all`` keeps it dark. None where it does not apply: statistics over all pixels, a capture that
+    fills its views (fewer than ``EMPTY_SHARE`` of the pixels uncovered), or an object within ``DARK_OBJECT_GAP`` of
+    the painting's mean luminance (or lighter)."""
+    if where != "covered":
+        return None
+    a = torch.cat([_as_torch(c).detach().reshape(-1).cpu() for c in coverage])  # [P]
+    keep = a > COVERED
+    if not bool(keep.any()) or float(keep.double().mean()) > 1.0 - EMPTY_SHARE:
+        return None
+    y = torch.cat([_luma64(_as_torch(im).detach()).reshape(-1).cpu() for im in photos])[keep]
+    y_obj, y_paint = float(y.mean()), float(_luma64(_as_torch(style).detach()).mean())
+    if y_obj > y_paint - DARK_OBJECT_GAP:
+        return None
+    return (f"note: the scene covers {float(keep.double().mean()):.0%} of its views and is darker than the painting "
+            f"(mean luminance {y_obj:.2f} against {y_paint:.2f}); palette_where: covered gives it the painting's mean "
+            f"tone, so it comes out lighter: --set palette_where=all keeps it dark")
+
+
 def _pooled_luma(items, coverage=None) -> torch.Tensor:
     """The photos' luminance, pooled over the pixels the scene covers (all pixels without ``coverage``, or where
     it covers none): a Blender object on a white background must take the painting's tones from its own range,

@@ -288,7 +288,7 @@ class Targets:
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     # lazy: imports Warp
     from ..losses import field_at_cells, flatten_feats, luminance, match_detail, resize_style, stroke_field
-    from ..losses.palette import AffinePalette, painting_colours, palette_transfer
+    from ..losses.palette import AffinePalette, dark_object_note, painting_colours, palette_transfer
 
     style_np = inp.style.detach().cpu().numpy().astype(np.float32)
     view_h = int(np.median([c.height for c in inp.cameras]))
@@ -324,6 +324,9 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     else:
         recolored, palette = palette_transfer(photos, style_work.to(device), cfg.palette_map, coverage=coverage,
                                               floor=cfg.palette_floor, where=cfg.palette_where)
+        note = dark_object_note(photos, coverage, style_work, cfg.palette_where)
+        if note:
+            print(note)
         if cfg.palette_detail:  # the painting's level of luminance detail back into the pre-process targets
             recolored, _ = match_detail(recolored, inp.style.to(device=device, dtype=torch.float32))
         # the background the scene does not cover stays the photo's (a Blender scene's white): a recoloured
