@@ -2,10 +2,13 @@
 scene with each Gaussian's colour moved by its own luminance offset (amplitude x N(0, 1), fixed per Gaussian, so
 every view shows the same texture on the same surface), scored by `evaluate`'s own k1 and detail, beside the run.
 
-    python benchmarks/k1_texture_control.py RUN_DIR [--views 12] [--amplitudes 0,0.05,0.1,0.2,0.3]
+    python benchmarks/k1_texture_control.py RUN_DIR [--views 12] [--amplitudes 0,0.05,0.1,0.2,0.3] [--grey]
 
 A stylization's k1 above the controls' at the same detail is inconsistency of its own; at or under them, it is what
-the scene's depth and the metric's resampling charge any texture of that strength. docs/study.md quotes it.
+the scene's depth and the metric's resampling charge any texture of that strength. ``--grey`` paints the
+un-stylized and the stylized Gaussians one grey first (the texture alone on each geometry) and adds the share of
+the pixels the un-stylized scene covers where a view's alpha is under 0.95: what the geometry alone costs.
+docs/study.md quotes it.
 """
 from __future__ import annotations
 
@@ -29,6 +32,21 @@ def jittered(g, amplitude: float, seed: int = 0):
     return type(g)(g.means, g.quats, g.log_scales, g.opacity_logits, sh)
 
 
+def grey(g):
+    """``g`` with every Gaussian's colour 0.5 on every channel and no view dependence."""
+    return type(g)(g.means, g.quats, g.log_scales, g.opacity_logits, torch.zeros_like(g.sh))
+
+
+def thin_share(views, refs) -> float:
+    """Share of the pixels the un-stylized scene covers (alpha >= 0.5) where ``views``' alpha is under 0.95."""
+    n = d = 0
+    for v, b in zip(views, refs.base):
+        cov = np.asarray(b["alpha"]) >= 0.5
+        n += int((np.asarray(v["alpha"])[cov] < 0.95).sum())
+        d += int(cov.sum())
+    return n / max(d, 1)
+
+
 def summary(per: dict) -> str:
     def mean(k):
         v = [x for x in per[k] if x == x]
@@ -42,6 +60,7 @@ def main(argv=None) -> None:
     ap.add_argument("run")
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--amplitudes", default="0,0.05,0.1,0.2,0.3")
+    ap.add_argument("--grey", action="store_true", help="the texture on one grey, on both geometries")
     a = ap.parse_args(argv)
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     run = load_run(a.run, max_views=a.views)
@@ -50,7 +69,16 @@ def main(argv=None) -> None:
     refs = build_references(g0, run["cameras"], run["background"], run["painting"], run["photos"], net, device=dev,
                             eval_height=auto_eval_height(run["cameras"]), log=lambda _m: None)  # as `evaluate`
     print(f"{'the run':28s} {summary(score_views(*stylized_views(run['gaussians'].to(device=dev), refs, dev), refs, net))}")
-    for amp in (float(x) for x in a.amplitudes.split(",")):
+    amps = [float(x) for x in a.amplitudes.split(",")]
+    if a.grey:
+        for name, g in (("un-stylized", g0), ("stylized", run["gaussians"].to(device=dev))):
+            views, a2 = stylized_views(grey(g), refs, dev)
+            print(f"{name} geometry: alpha under 0.95 on {thin_share(views, refs):.2%} of the covered pixels")
+            for amp in amps:
+                per = score_views(*stylized_views(jittered(grey(g), amp), refs, dev), refs, net)
+                print(f"{name + ' grey, jitter ' + format(amp, '.2f'):28s} {summary(per)}")
+        return
+    for amp in amps:
         per = score_views(*stylized_views(jittered(g0, amp), refs, dev), refs, net)
         print(f"{'un-stylized, jitter ' + format(amp, '.2f'):28s} {summary(per)}")
 

@@ -48,3 +48,16 @@ def _check_views(g, bg):
         assert torch.allclose(two, 2 * one, atol=1e-6)
         assert torch.allclose(one[..., 0], one[..., 1], atol=1e-6)
         assert torch.allclose(one[..., 0], one[..., 2], atol=1e-6)
+
+
+def test_grey_and_the_thin_share_by_hand():
+    g = random_scene(50, degree=1, seed=3)
+    gg = control.grey(g)
+    assert torch.allclose(_colour(gg), torch.full((50, 3), 0.5, dtype=torch.float64)) and not gg.sh[:, 1:].any()
+    # two views: 4 and 2 covered pixels in the un-stylized scene, of which 2 and 2 under 0.95 in the views
+    import numpy as np
+    from types import SimpleNamespace
+    base = [{"alpha": np.array([[1.0, 1.0], [1.0, 1.0]])}, {"alpha": np.array([[1.0, 0.2], [0.6, 0.0]])}]
+    views = [{"alpha": np.array([[0.94, 1.0], [0.96, 0.2]])}, {"alpha": np.array([[0.5, 0.1], [0.9, 0.1]])}]
+    # view 1: (0,0) 0.94 and (1,1) 0.2 are under 0.95: 2 of 4; view 2: (0,0) 0.5 and (1,0) 0.9: 2 of 2
+    assert control.thin_share(views, SimpleNamespace(base=base)) == 4 / 6
