@@ -9,8 +9,8 @@
 #   PART=fit     carry .carry/d3 (fern, lego at 400 px): fits fern and lego (7000 iterations), waits for all three
 #   PART=study   launch the study in the background (two queues of pairs: tuning, validation; PAIRS_A and PAIRS_B
 #                replace them, PAIRS_C, PAIRS_D and PAIRS_E add queues); PART=wait collects it (PACK=0: no archive,
-#                for every collecting call but the last). A pair whose scene's
-#                fit failed is skipped ("skipped ... (no fit)" and the fit's last log lines in the wait's output):
+#                for every collecting call but the last). A pair whose scene's fit failed is skipped ("skipped ...
+#                (no fit)" and the fit's last log lines in the wait's output):
 #                `SCENES=name PART=fit` fits it again, then a study of those pairs alone
 #   PART=scene   SCENE=name:dataset:downscale STYLES=a.jpg,b.jpg VARIANTS="name:k=v;k=v ..." (benchmarks/tune.py's
 #                form): the variants of one scene in one process, evaluated with the anchors

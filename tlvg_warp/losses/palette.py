@@ -183,15 +183,19 @@ def dark_object_note(photos, coverage, style, where: str) -> str | None:
     the painting's mean luminance (or lighter)."""
     if where != "covered":
         return None
-    a = torch.cat([_as_torch(c).detach().reshape(-1).cpu() for c in coverage])  # [P]
-    keep = a > COVERED
-    if not bool(keep.any()) or float(keep.double().mean()) > 1.0 - EMPTY_SHARE:
+    n_px = n_cov = y_sum = 0.0  # sums view by view, where the views live: no pooled copy of every pixel
+    for im, c in zip(photos, coverage):
+        keep = _as_torch(c).detach().reshape(-1) > COVERED  # [H*W]
+        n_px += keep.numel()
+        n_cov += keep.sum()
+        y_sum += _luma64(_as_torch(im).detach()).reshape(-1)[keep].sum()
+    share = float(n_cov) / max(n_px, 1)
+    if share == 0.0 or share > 1.0 - EMPTY_SHARE:
         return None
-    y = torch.cat([_luma64(_as_torch(im).detach()).reshape(-1).cpu() for im in photos])[keep]
-    y_obj, y_paint = float(y.mean()), float(_luma64(_as_torch(style).detach()).mean())
+    y_obj, y_paint = float(y_sum) / float(n_cov), float(_luma64(_as_torch(style).detach()).mean())
     if y_obj > y_paint - DARK_OBJECT_GAP:
         return None
-    return (f"note: the scene covers {float(keep.double().mean()):.0%} of its views and is darker than the painting "
+    return (f"note: the scene covers {share:.0%} of its views and is darker than the painting "
             f"(mean luminance {y_obj:.2f} against {y_paint:.2f}); palette_where: covered gives it the painting's mean "
             f"tone, so it comes out lighter: --set palette_where=all keeps it dark")
 
