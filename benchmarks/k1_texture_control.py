@@ -13,11 +13,13 @@ docs/study.md quotes it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import numpy as np
 import torch
 
 from tlvg_warp.eval.engine import auto_eval_height, load_run, resolve_scene
+from tlvg_warp.eval.metrics import interval
 from tlvg_warp.eval.refs import build_references, score_views, stylized_views
 from tlvg_warp.losses.vgg import load_vgg
 from tlvg_warp.types import SH_C0
@@ -29,12 +31,12 @@ def jittered(g, amplitude: float, seed: int = 0):
     z = torch.randn(g.num, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
     sh = g.sh.clone()
     sh[:, 0] += (amplitude * z / SH_C0).to(sh.dtype).to(sh.device)[:, None]
-    return type(g)(g.means, g.quats, g.log_scales, g.opacity_logits, sh)
+    return dataclasses.replace(g, sh=sh)
 
 
 def grey(g):
     """``g`` with every Gaussian's colour 0.5 on every channel and no view dependence."""
-    return type(g)(g.means, g.quats, g.log_scales, g.opacity_logits, torch.zeros_like(g.sh))
+    return dataclasses.replace(g, sh=torch.zeros_like(g.sh))
 
 
 def thin_share(views, refs) -> float:
@@ -48,9 +50,8 @@ def thin_share(views, refs) -> float:
 
 
 def summary(per: dict) -> str:
-    def mean(k):
-        v = [x for x in per[k] if x == x]
-        return float(np.mean(v)) if v else float("nan")
+    def mean(k):  # `evaluate`'s own mean over views (NaN views dropped)
+        return interval(per[k])["mean"]
     return f"k1 {mean('consistency_k1'):.4f}  detail {mean('detail'):.3f}  detail inside {mean('detail_inside'):.3f}"
 
 
