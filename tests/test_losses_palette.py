@@ -377,15 +377,17 @@ def test_dark_object_note_names_the_object_and_painting_luminance_and_only_where
     from tlvg_warp.losses.palette import dark_object_note
     painting = torch.from_numpy(np.random.default_rng(1).uniform(0.35, 0.85, (30, 50, 3)))
     photos, cover = _object_views((0.15, 0.12, 0.1), share=0.25)
-    note = dark_object_note(photos, cover, painting, "covered")
+    note = dark_object_note(photos, cover, painting, "arf", "covered")
     y_obj = np.concatenate([p.numpy().reshape(-1, 3) @ LUMA for p in photos])[
         np.concatenate([c.numpy().reshape(-1) for c in cover]) > 0.5].mean()
     y_paint = (painting.numpy().reshape(-1, 3) @ LUMA).mean()
     assert note is not None and "palette_where=all" in note and "\n" not in note
     assert f"{y_obj:.2f} against {y_paint:.2f}" in note  # the numbers, from numpy's BT.601
-    assert dark_object_note(photos, cover, painting, "all") is None  # already ARF's all-pixel statistics
+    assert dark_object_note(photos, cover, painting, "arf", "all") is None  # already ARF's all-pixel statistics
+    assert dark_object_note(photos, cover, painting, "arf_rank", "covered") == note  # the same statistics
+    assert dark_object_note(photos, cover, painting, "tone", "covered") is None  # palette_where cannot help
     dark = [torch.full_like(p, 0.15) for p in photos]  # a dark capture: covered everywhere, where covered = all
     full = [torch.ones_like(c) for c in cover]
-    assert dark_object_note(dark, full, painting, "covered") is None
+    assert dark_object_note(dark, full, painting, "arf", "covered") is None
     light, lcover = _object_views((0.55, 0.5, 0.45), share=0.25)  # within the gap of the painting's mean
-    assert dark_object_note(light, lcover, painting, "covered") is None
+    assert dark_object_note(light, lcover, painting, "arf", "covered") is None

@@ -174,14 +174,15 @@ DARK_OBJECT_GAP = 0.15  # the covered pixels' mean luminance this far under the 
 EMPTY_SHARE = 0.1  # at least this share of the views' pixels uncovered: an object in front of an empty background
 
 
-def dark_object_note(photos, coverage, style, where: str) -> str | None:
-    """One line for the user when the covered-pixel statistics (``where`` = covered) are about to give a dark object
+def dark_object_note(photos, coverage, style, mode: str, where: str) -> str | None:
+    """One line for the user when ARF's covered-pixel statistics (``mode`` arf or arf_rank, ``where`` = covered; the
+    tone map always reads the covered pixels, so ``palette_where`` cannot help it) are about to give a dark object
     in front of an empty background the painting's mean tone (the biker under Monet: covered luminance 0.26, the
     painting 0.53, stylized 0.63; docs/study.md): the object comes out much lighter than it is, and
     ``palette_where=all`` keeps it dark. None where it does not apply: statistics over all pixels, a capture that
     fills its views (fewer than ``EMPTY_SHARE`` of the pixels uncovered), or an object within ``DARK_OBJECT_GAP`` of
     the painting's mean luminance (or lighter)."""
-    if where != "covered":
+    if where != "covered" or mode not in ("arf", "arf_rank"):
         return None
     n_px = n_cov = y_sum = 0.0  # sums view by view, where the views live: no pooled copy of every pixel
     for im, c in zip(photos, coverage):

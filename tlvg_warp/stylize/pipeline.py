@@ -324,7 +324,7 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     else:
         recolored, palette = palette_transfer(photos, style_work.to(device), cfg.palette_map, coverage=coverage,
                                               floor=cfg.palette_floor, where=cfg.palette_where)
-        note = dark_object_note(photos, coverage, style_work, cfg.palette_where)
+        note = dark_object_note(photos, coverage, style_work, cfg.palette_map, cfg.palette_where)
         if note:
             print(note)
         if cfg.palette_detail:  # the painting's level of luminance detail back into the pre-process targets
