@@ -31,8 +31,8 @@ def add_arguments(p):
     p.add_argument("--config", default=None, metavar="YAML",
                    help="stylization config (default: configs/tlvg.yaml, installed with the package); presets, found "
                         "by name from any folder: configs/tlvg_object.yaml (every position held still), "
-                        "configs/tlvg_swd.yaml (the painting's colours as a whole), configs/tlvg_texture.yaml (more of its "
-                        "brushwork), configs/abcgs.yaml (the baseline)")
+                        "configs/tlvg_swd.yaml (the painting's colours as a whole), configs/tlvg_light.yaml (lighter "
+                        "brushwork, more of the photo), configs/abcgs.yaml (the baseline)")
     p.add_argument("--out", default=None, metavar="DIR", help="run folder (default: runs/stylize_<time>)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config key (repeatable), dotted for sections, e.g. --set loss.w_align=0.1 "
