@@ -255,6 +255,10 @@ class DeepStub(StubFeatures):
         x = (img.permute(2, 0, 1).unsqueeze(0) if img.dim() == 3 else img).float()
         return F.avg_pool2d(torch.cat([x, x * x], 1), 8)
 
+    def features_of(self, images, scale=1.0, deep=False):  # as VGG16Features: the first image's deep features last
+        out = super().features_of(images, scale)
+        return out + [self.deep_features(images[0]).reshape(6, -1)] if deep else out
+
 
 def _blocks6(img: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([_blocks(img, n), _blocks(img * img, n)], 0)  # [6, cells]

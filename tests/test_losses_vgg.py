@@ -151,6 +151,11 @@ def test_batched_features_and_precision_options(tmp_path):
     assert f_lum.shape == (768, 5 * 7)
     assert torch.allclose(f_lum, net(lum, scale=0.5).reshape(768, -1), atol=1e-5)
     assert torch.allclose(f_rgb, net(img, scale=0.5).reshape(768, -1), atol=1e-5)
+    # the deep term's conv4 features continued from the batch's relu3 equal one pass through conv1-4 of that image
+    *_, f_deep = net.features_of([lum, img], scale=0.5, deep=True)
+    one_pass = net.layers(lum, ("relu4_1", "relu4_2", "relu4_3"), scale=0.5)
+    assert f_deep.shape == (1536, 2 * 3)
+    assert torch.allclose(f_deep, torch.cat(list(one_pass.values()), 1).reshape(1536, -1), atol=1e-5)
     ref = net(img)
     net.set_precision(channels_last=True)
     assert torch.allclose(net(img), ref, atol=1e-5)

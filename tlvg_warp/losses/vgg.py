@@ -142,16 +142,20 @@ class VGG16Features(nn.Module):
 
     def layers(self, img: torch.Tensor, names, scale: float = 1.0) -> dict[str, torch.Tensor]:
         """The named relu outputs (``LAYERS`` keys) of ``img``, running only as deep as the deepest one."""
+        return self._run(self._prepare(img, scale), 0, names)
+
+    def _run(self, x: torch.Tensor, start: int, names) -> dict[str, torch.Tensor]:
+        """The named relu outputs of ``self.features[start:]`` on ``x`` (the output of layer ``start - 1``), in
+        the set precision and layout, returned in ``x``'s dtype."""
         want = {LAYERS[n]: n for n in names}
-        x, out = self._prepare(img, scale), {}
-        dtype = x.dtype
+        out, dtype = {}, x.dtype
         if self.lowp_dtype is not None:
             x = x.to(self.lowp_dtype)
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
-        for i, layer in enumerate(self.features[:max(want) + 1]):
+        for i in range(start, max(want) + 1):
             lp = self._lowp.get(i)
-            x = layer(x) if lp is None else F.conv2d(x, getattr(self, lp[0]), getattr(self, lp[1]), padding=1)
+            x = self.features[i](x) if lp is None else F.conv2d(x, getattr(self, lp[0]), getattr(self, lp[1]), padding=1)
             if i in want:
                 out[want[i]] = x
         if x.dtype != dtype:
@@ -166,20 +170,29 @@ class VGG16Features(nn.Module):
     def deep_features(self, img: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
         """relu4_1|relu4_2|relu4_3 concatenated [B,1536,h/8,w/8]: the conv4 block, one pooling coarser than the
         losses' relu3 features (the deep style term, ``loss.w_style_deep``)."""
-        f = self.layers(img, ("relu4_1", "relu4_2", "relu4_3"), scale)
+        return self.deep_of(self(img, scale))
+
+    def deep_of(self, relu3: torch.Tensor) -> torch.Tensor:
+        """The conv4 block [B,1536,h/2,w/2] continued from the relu3 features [B,768,h,w] ``forward`` gave (their
+        relu3_3 third): the deep term's features without a second pass through conv1-3, two thirds of its cost."""
+        f = self._run(relu3[:, 512:], LAYERS["relu3_3"] + 1, ("relu4_1", "relu4_2", "relu4_3"))
         return torch.cat([f["relu4_1"], f["relu4_2"], f["relu4_3"]], dim=1)
 
-    def features_of(self, images, scale: float = 1.0, graphs: bool = True) -> list[torch.Tensor]:
+    def features_of(self, images, scale: float = 1.0, graphs: bool = True, deep: bool = False) -> list[torch.Tensor]:
         """Loss features [768, h*w] of several same-size images in ONE pass (a batch): the stylize step's
         luminance render (style term) and RGB render (content term) cost one VGG forward and backward
         instead of two. ``images``: a list of [H,W,3] (or [1,3,H,W]) tensors; returns a list in that order.
-        ``graphs`` False: never the pass's own graph (a caller capturing a larger graph around it)."""
+        ``graphs`` False: never the pass's own graph (a caller capturing a larger graph around it). ``deep``: the
+        first image's conv4 features [1536, h*w/4] (``deep_of`` on its relu3 features) appended to the list."""
         xs = [im.permute(2, 0, 1).unsqueeze(0) if im.dim() == 3 else im for im in images]
         x = torch.cat(xs, 0)
         graphed = (self._graphed_pass(x, scale) if graphs and self.cuda_graphs and x.is_cuda and x.requires_grad
                    and torch.is_grad_enabled() else None)
         f = graphed(x) if graphed is not None else self(x, scale)  # [B,768,h,w]
-        return [fi.reshape(fi.shape[0], -1) for fi in f]
+        out = [fi.reshape(fi.shape[0], -1) for fi in f]
+        if deep:
+            out.append(self.deep_of(f[:1])[0].reshape(1536, -1))
+        return out
 
 
 def _resize_input(x: torch.Tensor, scale: float) -> torch.Tensor:

@@ -582,8 +582,11 @@ class Stylize(Phase):
         keys = list(dict.fromkeys(need)) if self.vgg_on else []
         kw = {"graphs": False} if in_graph else {}  # no graph of the pass's own inside this one
         inputs = {"y": luminance(img_y) if "y" in keys else None, "rgb": img}  # each once (the coarse pass reuses it)
-        by_input = (dict(zip(keys, self.vgg.features_of([inputs[k] for k in keys], self.cfg.vgg_scale, **kw)))
-                    if keys else {})
+        # with the deep term, the style term's input through the conv4 block too, continued from this pass's relu3
+        deep_kw = {"deep": True} if on["style_deep"] else {}
+        passed = self.vgg.features_of([inputs[k] for k in keys], self.cfg.vgg_scale, **kw, **deep_kw) if keys else []
+        deep = passed.pop() if on["style_deep"] else None  # [1536, ~Nc/4]
+        by_input = dict(zip(keys, passed))
         a, a_rgb = by_input.get(style_in), by_input.get("rgb")  # the style term's features; style_color's
         if on["content"]:
             out.append(content_loss(by_input[content_in], photo_feats) * content_scale)
@@ -613,8 +616,8 @@ class Stylize(Phase):
         feats = [] if a is None else [a.reshape(-1)] + ([a_rgb.reshape(-1)] if on["style_color"] else [])
         if on["style_coarse"]:  # the style term's input once more, one octave coarser (a pass of a quarter the cells)
             feats.append(self.vgg.features_of([inputs[style_in]], self.cfg.vgg_scale * COARSE, **kw)[0].reshape(-1))
-        if on["style_deep"]:  # the style term's input through the conv4 block (config: not with the coarse term)
-            feats.append(self.vgg.deep_features(inputs[style_in], self.cfg.vgg_scale).reshape(-1))
+        if on["style_deep"]:  # (config: not with the coarse term)
+            feats.append(deep.reshape(-1))
         return torch.cat([torch.stack(out) if out else img.new_zeros(0), *feats])
 
     def terms(self, run: Run, view: View) -> dict:
