@@ -391,3 +391,23 @@ def test_dark_object_note_names_the_object_and_painting_luminance_and_only_where
     assert dark_object_note(dark, full, painting, "arf", "covered") is None
     light, lcover = _object_views((0.55, 0.5, 0.45), share=0.25)  # within the gap of the painting's mean
     assert dark_object_note(light, lcover, painting, "arf", "covered") is None
+
+
+def test_covered_luminance_sums_and_the_tone_drift_note():
+    """The covered pixels' luminance sums against numpy's BT.601 in float64 (alpha above 0.5 counts, [H,W] or
+    [H,W,1]); the note names the direction and both tones, and is silent within TONE_DRIFT of the target."""
+    from tlvg_warp.losses.palette import TONE_DRIFT, covered_luminance_sums, tone_drift_note
+
+    g = torch.Generator().manual_seed(3)
+    img = torch.rand(20, 30, 3, generator=g)
+    cov = torch.rand(20, 30, generator=g)
+    cov[0, 0], cov[0, 1] = 0.5, 0.5001  # the boundary: at 0.5 not covered, above it covered
+    x, keep = img.double().numpy(), cov.numpy() > 0.5
+    y = x[..., 0] * 0.299 + x[..., 1] * 0.587 + x[..., 2] * 0.114
+    for c in (cov, cov[..., None]):
+        total, n = covered_luminance_sums(img, c)
+        assert n == keep.sum() and total == pytest.approx(y[keep].sum(), rel=1e-9)
+    assert tone_drift_note(0.30, 0.30 + TONE_DRIFT * 0.9) is None and tone_drift_note(0.5, 0.5) is None
+    lighter = tone_drift_note(0.479, 0.222)
+    assert "lighter" in lighter and "0.48 against 0.22" in lighter and "loss.w_tone_hold" in lighter
+    assert "darker" in tone_drift_note(0.20, 0.40)

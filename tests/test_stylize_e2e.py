@@ -302,6 +302,25 @@ def test_pair_outputs_complete_and_finite(pair):
         assert len(list((out / "fields").glob("*.npy"))) == PAIR_VIEWS, name
 
 
+def test_tone_covered_is_the_final_renders_luminance_over_the_unstylized_coverage(pair):
+    """metrics.json's tone_covered: the final scene rendered on every view, BT.601 luminance in float64 over the
+    pixels the un-stylized scene's alpha covers (above 0.5), pooled; that coverage is the input scene's alpha."""
+    ds = demo_dataset(n_views=PAIR_VIEWS, width=PAIR_W, height=PAIR_H, spacing=PAIR_SPACING)
+    for name, (out, res) in pair.items():
+        m = json.loads((out / "metrics.json").read_text())
+        total = n = 0.0
+        for i, cam in enumerate(ds.cameras):
+            with torch.no_grad():
+                alpha = render(res.inputs.gaussians, cam, tuple(ds.background)).alpha.clamp(0, 1)
+                img = render(res.gaussians, cam, tuple(res.config.background)).color.clamp(0, 1).double().numpy()
+            assert torch.allclose(res.coverage[i], alpha, atol=1e-5), name
+            keep = alpha.numpy() > 0.5
+            total += (img[..., 0] * 0.299 + img[..., 1] * 0.587 + img[..., 2] * 0.114)[keep].sum()
+            n += keep.sum()
+        assert n > 0 and m["tone_covered"] == pytest.approx(total / n, abs=1e-5), name
+        assert 0.0 < m["tone_target"] < 1.0, name
+
+
 def test_tlvg_flow_alignment_clearly_above_abcgs(pair):
     """The issue's claim at a CPU size: tlvg.yaml's scene follows the painting's strokes clearly better than
     abcgs.yaml's, by what its flow terms do, so that the test fails with w_align = w_aniso = 0.

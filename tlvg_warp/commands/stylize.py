@@ -126,6 +126,12 @@ def _summary(out, m: dict) -> None:
           f"wall {m['wall_time_s']:.1f}s")
     print(f"open {out / 'comparison.png'} (photo, original and stylized views beside the painting); "
           f"the stylized scene is {out / 'stylized.ply'}")
+    if m.get("tone_covered") is not None and m.get("tone_target") is not None:
+        from ..losses.palette import tone_drift_note  # lazy: CLI startup
+
+        note = tone_drift_note(m["tone_covered"], m["tone_target"])
+        if note:
+            print(note)
 
 
 def _live_viewer(inp, cfg, args):

@@ -201,6 +201,29 @@ def dark_object_note(photos, coverage, style, mode: str, where: str) -> str | No
             f"tone, so it comes out lighter: --set palette_where=all keeps it dark")
 
 
+TONE_DRIFT = 0.15  # the stylized scene's covered mean luminance this far from its colour target's: worth a note
+
+
+def covered_luminance_sums(img, coverage) -> tuple[float, float]:
+    """(sum of BT.601 luminance, pixel count) over the pixels ``coverage`` [H,W] or [H,W,1] (the un-stylized
+    scene's alpha) covers in ``img`` [H,W,3]: summed view by view, so that no pooled copy of every pixel is made."""
+    keep = _as_torch(coverage).detach().reshape(-1) > COVERED  # [H*W]
+    y = _luma64(_as_torch(img).detach()).reshape(-1)[keep]
+    return float(y.sum()), float(keep.sum())
+
+
+def tone_drift_note(stylized: float, target: float) -> str | None:
+    """One line for the user when the stylized scene's mean luminance over the pixels the un-stylized scene covers
+    has moved ``TONE_DRIFT`` or more from its colour target's (the recoloured photos' over the same pixels): the
+    biker splats under Starry Night over the Rhône went from a target of 0.22 to 0.48, a black figure painted pale
+    grey (docs/study.md); ``loss.w_tone_hold`` holds that mean to the target. None within the margin."""
+    if not abs(stylized - target) >= TONE_DRIFT:
+        return None
+    way = "lighter" if stylized > target else "darker"
+    return (f"note: the stylized scene came out {way} than its colour target over the pixels it covers (mean "
+            f"luminance {stylized:.2f} against {target:.2f}); --set loss.w_tone_hold=100 holds it to the target")
+
+
 def _pooled_luma(items, coverage=None) -> torch.Tensor:
     """The photos' luminance, pooled over the pixels the scene covers (all pixels without ``coverage``, or where
     it covers none): a Blender object on a white background must take the painting's tones from its own range,

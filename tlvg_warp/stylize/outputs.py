@@ -365,6 +365,7 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
                   progress: bool = False) -> dict:
     """Write every output file of a finished run; returns the metrics (also in metrics.json)."""
     from ..losses import field_picture  # lazy: imports Warp
+    from ..losses.palette import covered_luminance_sums
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -387,11 +388,14 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         write_json(out / "sources.json", {str(k): str(v) for k, v in (inp.sources or {}).items() if v is not None})
         pick = set(np.linspace(0, len(inp.cameras) - 1, min(cfg.comparison_views, len(inp.cameras))).round().astype(int))
         views, t = [], time.perf_counter()
+        tone = [0.0, 0.0]  # the stylized renders' luminance summed over the covered pixels, and their count
         with torch.no_grad():  # the orbit first: its encoding is the longest job
             frames = [_u8(render(g, cam, bg).color) for cam in orbit_path(inp.cameras, cfg.orbit_frames)]  # uint8
             video = pool.submit(_timed, _write_orbit, out, frames, cfg.orbit_fps) if frames else None
             for i, cam in enumerate(inp.cameras):
                 sty = render(g, cam, bg).color.clamp(0, 1).cpu()
+                if i < len(res.coverage):
+                    tone = [a + b for a, b in zip(tone, covered_luminance_sums(sty, res.coverage[i]))]
                 fld = res.fields[i][..., :2].numpy() if res.fields else None
                 views.append(pool.submit(_write_view, out, i, sty, res.originals[i], inp.photos[i].detach().cpu(), fld,
                                          i in pick))
@@ -432,6 +436,9 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         "training_field_alignment": fa,
         "training_field_alignment_per_view": [round(s, 5) for s in scores],
         "training_field_alignment_unstylized": float(np.mean(scores_orig)) if scores_orig else 0.0,
+        # the stylized views' mean luminance over the pixels the un-stylized scene covers (beside "tone_target",
+        # the colour target's over the same pixels): how far the run moved the scene's tone from its palette's
+        "tone_covered": tone[0] / tone[1] if tone[1] else None,
         "field_mapping": cfg.loss.field_mapping,
         "bytes_in": int(input_bytes) if input_bytes is not None else int(inp.gaussians.nbytes()),
         "bytes_out": int(out_bytes),
