@@ -155,7 +155,8 @@ def test_batched_features_and_precision_options(tmp_path):
     *_, f_deep = net.features_of([lum, img], scale=0.5, deep=True)
     one_pass = net.layers(lum, ("relu4_1", "relu4_2", "relu4_3"), scale=0.5)
     assert f_deep.shape == (1536, 2 * 3)
-    assert torch.allclose(f_deep, torch.cat(list(one_pass.values()), 1).reshape(1536, -1), atol=1e-5)
+    ref_deep = torch.cat(list(one_pass.values()), 1).reshape(1536, -1)  # values up to ~10: float32 round-off scales
+    assert torch.allclose(f_deep, ref_deep, rtol=1e-5, atol=1e-5 * float(ref_deep.abs().max()))
     ref = net(img)
     net.set_precision(channels_last=True)
     assert torch.allclose(net(img), ref, atol=1e-5)
