@@ -119,5 +119,15 @@ def test_config_names_resolve_to_a_local_file_first_then_a_shipped_preset(tmp_pa
     assert resolve_config("configs/abcgs.yaml") == Path("configs/abcgs.yaml")
     for missing in ("configs/nosuch.yaml", str(tmp_path / "elsewhere" / "abcgs.yaml")):
         assert resolve_config(missing) == Path(missing)  # left for load_config to report
+    # ... which names the shipped presets for a bare name (a retired or mistyped preset), not for a path elsewhere
+    from tlvg_warp.config_io import read_yaml_mapping
+    from tlvg_warp.errors import InputError
+
+    shipped_names = sorted(f.stem for f in (REPO / "configs").glob("*.yaml") if not f.stem.startswith("study_"))
+    with pytest.raises(InputError, match="shipped presets: " + ", ".join(shipped_names) + r"\)$"):
+        read_yaml_mapping(resolve_config("tlvg_texture"))
+    with pytest.raises(InputError) as e:
+        read_yaml_mapping(resolve_config(str(tmp_path / "elsewhere" / "abcgs.yaml")))
+    assert "presets" not in str(e.value) and str(e.value).endswith("config file does not exist")
     assert resolve_config(None, default=None) is None  # reconstruct: the class defaults
     assert resolve_config("reconstruct").read_bytes() == (REPO / "configs" / "reconstruct.yaml").read_bytes()

@@ -43,7 +43,7 @@ def read_yaml_mapping(path, what: str = "config file") -> dict:
     not a mapping). Every YAML the project reads (configs, studies, run folders) goes through here."""
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{what} does not exist", p)
+        raise InputError(f"{what} does not exist" + _presets_hint(p, what), p)
     try:
         d = yaml.safe_load(p.read_text()) or {}
     except (yaml.YAMLError, UnicodeDecodeError) as e:
@@ -333,6 +333,15 @@ def shipped_config(name: str = "tlvg.yaml") -> Path | None:
         if (folder / name).is_file():
             return folder / name
     return None
+
+
+def _presets_hint(path: Path, what: str) -> str:
+    """For a config named bare (``tlvg_textur``, ``configs/x.yaml``) that is neither a file nor a shipped preset:
+    the presets that do ship, so a mistyped or retired name is one look away from the right one."""
+    if what != "config file" or path.parent not in (Path("."), Path("configs")):
+        return ""
+    names = sorted({f.stem for d in CONFIG_DIRS if d.is_dir() for f in d.glob("*.yaml") if not f.stem.startswith("study_")})
+    return f" (the shipped presets: {', '.join(names)})" if names else ""
 
 
 def resolve_config(config, default: str | None = "tlvg.yaml") -> Path | None:
