@@ -396,7 +396,7 @@ def test_dark_object_note_names_the_object_and_painting_luminance_and_only_where
 def test_covered_luminance_sums_and_the_tone_drift_note():
     """The covered pixels' luminance sums against numpy's BT.601 in float64 (alpha above 0.5 counts, [H,W] or
     [H,W,1]); the note names the direction and both tones, and is silent within TONE_DRIFT of the target."""
-    from tlvg_warp.losses.palette import TONE_DRIFT, covered_luminance_sums, tone_drift_note
+    from tlvg_warp.losses.palette import TONE_DRIFT, covered_luminance_sums, covered_mean_luminance, tone_drift_note
 
     g = torch.Generator().manual_seed(3)
     img = torch.rand(20, 30, 3, generator=g)
@@ -407,6 +407,12 @@ def test_covered_luminance_sums_and_the_tone_drift_note():
     for c in (cov, cov[..., None]):
         total, n = covered_luminance_sums(img, c)
         assert n == keep.sum() and total == pytest.approx(y[keep].sum(), rel=1e-9)
+    # over views: the pooled mean of every covered pixel (not the mean of the views' means); None when none is covered
+    half = cov.clone()
+    half[:, 15:] = 0.0
+    pooled = np.concatenate([y[keep], y[half.numpy() > 0.5]]).mean()
+    assert covered_mean_luminance([img, img], [cov, half]) == pytest.approx(pooled, rel=1e-9)
+    assert covered_mean_luminance([img], [torch.zeros_like(cov)]) is None
     assert tone_drift_note(0.30, 0.30 + TONE_DRIFT * 0.9) is None and tone_drift_note(0.5, 0.5) is None
     lighter = tone_drift_note(0.479, 0.222)
     assert "lighter" in lighter and "0.48 against 0.22" in lighter and "loss.w_tone_hold" in lighter

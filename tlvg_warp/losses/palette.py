@@ -186,14 +186,12 @@ def dark_object_note(photos, coverage, style, mode: str, where: str) -> str | No
         return None
     n_px = n_cov = y_sum = 0.0  # sums view by view, where the views live: no pooled copy of every pixel
     for im, c in zip(photos, coverage):
-        keep = _as_torch(c).detach().reshape(-1) > COVERED  # [H*W]
-        n_px += keep.numel()
-        n_cov += keep.sum()
-        y_sum += _luma64(_as_torch(im).detach()).reshape(-1)[keep].sum()
-    share = float(n_cov) / max(n_px, 1)
+        y, n = covered_luminance_sums(im, c)
+        y_sum, n_cov, n_px = y_sum + y, n_cov + n, n_px + _as_torch(c).numel()
+    share = n_cov / max(n_px, 1)
     if share == 0.0 or share > 1.0 - EMPTY_SHARE:
         return None
-    y_obj, y_paint = float(y_sum) / float(n_cov), float(_luma64(_as_torch(style).detach()).mean())
+    y_obj, y_paint = y_sum / n_cov, float(_luma64(_as_torch(style).detach()).mean())
     if y_obj > y_paint - DARK_OBJECT_GAP:
         return None
     return (f"note: the scene covers {share:.0%} of its views and is darker than the painting "
@@ -210,6 +208,16 @@ def covered_luminance_sums(img, coverage) -> tuple[float, float]:
     keep = _as_torch(coverage).detach().reshape(-1) > COVERED  # [H*W]
     y = _luma64(_as_torch(img).detach()).reshape(-1)[keep]
     return float(y.sum()), float(keep.sum())
+
+
+def covered_mean_luminance(images, coverage) -> float | None:
+    """The mean BT.601 luminance over the pixels ``coverage`` covers in every view of ``images``, summed view by
+    view (``covered_luminance_sums``); None where no pixel is covered."""
+    y_sum = n = 0.0
+    for im, c in zip(images, coverage):
+        y, k = covered_luminance_sums(im, c)
+        y_sum, n = y_sum + y, n + k
+    return y_sum / n if n else None
 
 
 def tone_drift_note(stylized: float, target: float) -> str | None:

@@ -903,12 +903,11 @@ def run_stylize(inp: StylizeInputs, cfg: StylizeConfig, out_dir=None, *, resume=
     }
     metrics["setup_time_s"] = round(time.perf_counter() - t_start - metrics["train_time_s"], 3)
     metrics["setup_split_s"] = {k: round(v, 3) for k, v in split.items()}
-    from ..losses.palette import covered_luminance_sums  # lazy: imports Warp
+    from ..losses.palette import covered_mean_luminance  # lazy: imports Warp
 
     coverage = [c[..., 0].detach().cpu() for c in tg.coverage]  # [H,W] per view
-    sums = [covered_luminance_sums(r, c) for r, c in zip(tg.recolored, tg.coverage)]
     # the colour target's tone over the covered pixels: the outputs set the stylized renders' beside it
-    metrics["tone_target"] = sum(a for a, _ in sums) / max(sum(n for _, n in sums), 1.0)
+    metrics["tone_target"] = covered_mean_luminance(tg.recolored, tg.coverage)
     return StylizeResult(final, inp, cfg, tg.style_work, tg.style_field, [f.cpu() for f in sty.fields], run.log,
                          metrics, metrics["vgg_random"], vgg.source, tg.originals, coverage)
 
