@@ -335,10 +335,15 @@ def shipped_config(name: str = "tlvg.yaml") -> Path | None:
     return None
 
 
+def _named_bare(path: Path) -> bool:
+    """A config given as a preset's name (``abcgs``, ``abcgs.yaml``, ``configs/abcgs.yaml``), not a path elsewhere."""
+    return path.parent in (Path("."), Path("configs"))
+
+
 def _presets_hint(path: Path, what: str) -> str:
     """For a config named bare (``tlvg_textur``, ``configs/x.yaml``) that is neither a file nor a shipped preset:
     the presets that do ship, so a mistyped or retired name is one look away from the right one."""
-    if what != "config file" or path.parent not in (Path("."), Path("configs")):
+    if what != "config file" or not _named_bare(path):
         return ""
     names = sorted({f.stem for d in CONFIG_DIRS if d.is_dir() for f in d.glob("*.yaml") if not f.stem.startswith("study_")})
     return f" (the shipped presets: {', '.join(names)})" if names else ""
@@ -351,7 +356,7 @@ def resolve_config(config, default: str | None = "tlvg.yaml") -> Path | None:
     if config is None:
         return shipped_config(default) if default else None
     path = Path(config)
-    if path.is_file() or path.parent not in (Path("."), Path("configs")):
+    if path.is_file() or not _named_bare(path):
         return path
     return shipped_config(path.name if path.suffix else path.name + ".yaml") or path
 
