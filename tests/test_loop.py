@@ -197,6 +197,38 @@ def test_stylize_terms_against_closed_forms(demo):
     assert all(isinstance(v, float) for v in w0.values()) and w0["style"] == cfg.loss.w_style
 
 
+def test_tone_hold_is_a_hinge_beyond_its_margin(demo):
+    """loss.tone_margin: (|Ȳ − Ȳ_target| − m)² beyond the margin, 0 (and no gradient) within it; the drift measured
+    here in float64 from the render over the background and the view's recoloured photo, both over the coverage."""
+    luma = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
+    found = {}
+    for margin in (0.0, None, 1.0, "mirrored"):  # None: half the measured drift; mirrored: the same, target moved
+        m = 0.5 * abs(found[0.0][0]) if margin in (None, "mirrored") else margin
+        run, cfg, tg = _stylize_run(demo, StubFeatures(), **{"loss.w_tone_hold": 1.0, "loss.tone_margin": m})
+        sty = run.phase("stylize")
+        sty.setup(run)
+        view = _view(run, 1)
+        img, cov = _shown(demo, run, view)
+        wc = cov[..., 0]
+        drift = float((((img @ luma) - tg.recolored[1].double() @ luma) * wc).sum() / wc.sum())
+        if margin == "mirrored":  # the target as far on the other side: the render now darker than its target
+            sty.tone_targets[1] = sty.tone_targets[1] + 2 * drift
+            drift = -drift
+        term = sty.terms(run, view)["tone_hold"]
+        grad = torch.autograd.grad(term, view.out.color)[0]  # [H,W,3]: the pull on the render's colour
+        found[margin] = (drift, m, term, grad)
+    drift = found[0.0][0]
+    assert abs(drift) > 0.02  # the demo's render is off its colour target's tone: the hinge has something to hold
+    for margin, (d, m, term, _) in found.items():
+        assert float(term.detach()) == pytest.approx(max(0.0, abs(d) - m) ** 2, rel=TERM_TOL, abs=1e-12), margin
+    assert float(found[None][2].detach()) > 0 and float(found[1.0][2].detach()) == 0.0
+    # beyond the margin the pull is back toward the target (a lighter render is pushed darker), within it none
+    pull = float(found[None][3].sum())
+    assert pull != 0 and math.copysign(1, pull) == math.copysign(1, drift)
+    assert torch.count_nonzero(found[1.0][3]) == 0
+    assert float(found["mirrored"][3].sum()) * pull < 0  # a darker render is pulled lighter
+
+
 class OctaveStub(StubFeatures):
     """The stub with a scale: average pooling over blocks of 4 / scale pixels, so features at half the scale are
     the image's 8x8 block means (a closed form for the coarse style term). ``scales`` keeps the scales asked for."""

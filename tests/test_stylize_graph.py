@@ -30,8 +30,9 @@ def _run(inputs, device, *over, config="tlvg.yaml"):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-@pytest.mark.parametrize("config", ["tlvg.yaml", "abcgs.yaml"])  # abcgs: RGB FAST outside, alpha read by no term
-def test_stylize_terms_as_one_cuda_graph_match_eager(inputs, monkeypatch, config):
+@pytest.mark.parametrize("config, extra", [("tlvg.yaml", ()), ("abcgs.yaml", ()),  # abcgs: RGB FAST, alpha unread
+                                           ("tlvg.yaml", ("loss.w_tone_hold=100", "loss.tone_margin=0"))])
+def test_stylize_terms_as_one_cuda_graph_match_eager(inputs, monkeypatch, config, extra):
     """Every logged term of three stylize steps (three views: the graph's per-view constants change between calls)
     equals the eager run's within float32 round-off, and so do the Gaussians after them (the graph's gradient with
     respect to colour, alpha and depth reached the rasterizer). One capture, of the terms graph (the VGG pass and the
@@ -45,9 +46,9 @@ def test_stylize_terms_as_one_cuda_graph_match_eager(inputs, monkeypatch, config
         real(self, fn, *inputs_, n_grad=n_grad)
 
     monkeypatch.setattr(graphs.GraphedCall, "__init__", counting)
-    one = _run(inputs, "cuda", config=config)
+    one = _run(inputs, "cuda", *extra, config=config)
     assert captured == [3]  # the terms graph alone, with three differentiable inputs
-    eager = _run(inputs, "cuda", "terms_cuda_graphs=false", config=config)
+    eager = _run(inputs, "cuda", "terms_cuda_graphs=false", *extra, config=config)
     assert 3 not in captured[1:]  # the eager run captured only the VGG and field-term graphs
     assert len({row["view"] for row in one.log}) >= 2
     # FAST's sums in configs/abcgs.yaml take torch's deterministic path (losses/style.py): before, two eager GPU runs
@@ -55,8 +56,9 @@ def test_stylize_terms_as_one_cuda_graph_match_eager(inputs, monkeypatch, config
     rel, drift = 2e-4, 1e-3
     for a, b in zip(one.log, eager.log):
         assert a["view"] == b["view"]
-        for t in TERMS:
+        for t in TERMS + ("tone_hold",) * bool(extra):  # the tone hold: its per-view target among the constants
             assert a[t] == pytest.approx(b[t], rel=rel, abs=1e-6), (a["step"], t)
+        assert not extra or a["tone_hold"] > 0
         assert a["content"] > 0 and a["style"] > 0
         if config == "tlvg.yaml":
             assert a["lab"] > 0 and a["stroke"] > 0

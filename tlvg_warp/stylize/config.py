@@ -48,7 +48,9 @@ class StyleLoss:
     w_tone_hold: float = 0.0  # the covered pixels' mean luminance held to the colour target's over the same pixels
     # (the recoloured photo of the view): (Ȳ − Ȳ_target)². The stylize phase lifts a dark object over its target's
     # tone (the biker splats under Monet, a CPU look: 0.526 -> 0.629); with the hold it stays near it (0.53 at 100),
-    # the strokes as dark and light around that tone (ours; 0: off; eager)
+    # the strokes as dark and light around that tone (ours; 0: off)
+    tone_margin: float = 0.0  # the tone hold as a hinge: (|Ȳ − Ȳ_target| − margin)² beyond the margin, 0 within it, so
+    # the strokes may move the covered tone by up to this much and a scene whose tone holds is not touched (ours)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
     # luminance (their luminance features: with luminance_only the style term's own VGG pass serves it, one image a
@@ -135,7 +137,7 @@ class StyleLoss:
              "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1), "lab_where": ("of", "all", "covered"),
              "field_canvas": ("in", 0, 1),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
-             "strength": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
+             "strength": (">=", 0), "tone_margin": (">=", 0), "palette_colours": (">=", 1), "swd_projections": (">=", 1),
              "color_swd_projections": (">=", 1), "color_swd_space": ("of", "rgb", "chroma"),
              **{w: (">=", 0) for w in ("w_style", "w_style_coarse", "w_style_deep", "w_style_gram", "w_style_color",
                                        "w_chroma_tv", "w_palette_snap", "w_style_swd", "w_color_swd", "w_tone_hold",

@@ -134,6 +134,18 @@ def silhouette_loss(alpha: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor
     return torch.relu(alpha - coverage[..., 0]).mean()
 
 
+def covered_mean(y: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
+    """The mean of the luminance ``y`` [H,W,C] (its first channel: R = G = B) over the pixels the un-stylized scene
+    covers, weighted by its alpha [H,W,1]: []."""
+    return (y[..., :1] * coverage).sum() / coverage.sum().clamp_min(1e-12)
+
+
+def tone_hinge(tone: torch.Tensor, target: torch.Tensor, margin: float) -> torch.Tensor:
+    """(|Ȳ − Ȳ_target| − margin)² beyond the margin, 0 within it: the covered mean luminance may move with the
+    strokes by up to ``margin`` from its colour target's, no further (a dark object stays dark)."""
+    return torch.relu((tone - target).abs() - margin) ** 2
+
+
 def detail_hinge(energy: torch.Tensor, target: float) -> torch.Tensor:
     """(1 - E/E*)² while the render's detail energy E is below the painting's E*, 0 above: detail is asked for up to
     the painting's level, never beyond (more would be noise)."""
@@ -467,10 +479,8 @@ class Stylize(Phase):
             self.detail_target = painting_detail(self.tg.style_work, view_h)
         if self.on["stroke"] and self.stroke_target is None:
             self.stroke_target = painting_stroke(self.tg.style_work, view_h, self.stroke_log_eps)
-        if self.on["tone_hold"] and self.tone_targets is None:  # the colour target's tone, per view, once
-            with torch.no_grad():
-                self.tone_targets = [self.covered_luminance(r.to(c), vi)
-                                     for vi, (r, c) in enumerate(zip(self.tg.recolored, self.tg.coverage))]
+        if self.tone_targets is None:  # the colour target's tone per view, once (zeros where the hold is off)
+            self.tone_targets = self.make_tone_targets()
         if (self.on["orient"] or self.on["stroke"]) and self.field_terms is None:
             self.field_terms = self.make_field_terms()
         self.over_bg = run.background
@@ -479,6 +489,17 @@ class Stylize(Phase):
                                    for c, f in zip(self.tg.content_scale, self.tg.photo_feats)]
         if self.terms_graph is None:
             self.terms_graph = self.make_terms_graph()
+
+    @torch.no_grad()
+    def make_tone_targets(self) -> list:
+        """Per view the recoloured photo's mean luminance over the pixels the un-stylized scene covers, as a device
+        scalar (image_terms' argument); zeros where the tone hold is off."""
+        from ..losses import luminance  # lazy: imports Warp
+
+        cov = self.tg.coverage
+        if not self.on["tone_hold"]:
+            return [torch.zeros((), dtype=c.dtype, device=c.device) for c in cov]
+        return [covered_mean(luminance(r.to(c)), c) for r, c in zip(self.tg.recolored, cov)]
 
     def make_field_terms(self):
         """The orientation and stroke terms from one luminance-gradient pass: ~100 small torch ops forward and
@@ -524,9 +545,10 @@ class Stylize(Phase):
         return out
 
     # the terms read off the render alone (``image_terms`` computes those that are on)
-    IMAGE_TERMS = ("content", "depth", "tv", "chroma_tv", "stroke", "coverage", "silhouette", "lab", "orient")
+    IMAGE_TERMS = ("content", "depth", "tv", "chroma_tv", "stroke", "coverage", "silhouette", "lab", "orient",
+                   "tone_hold")
     # terms that read the render too but not in ``image_terms``: with one of them on, the terms stay eager
-    EAGER_ONLY = ("style_gram", "style_swd", "style_color", "color_swd", "palette", "detail", "tone_hold")
+    EAGER_ONLY = ("style_gram", "style_swd", "style_color", "color_swd", "palette", "detail")
 
     def make_terms_graph(self):
         """On CUDA the render-only terms (``image_terms``) as one graph each way (``terms_cuda_graphs``): about a
@@ -555,12 +577,13 @@ class Stylize(Phase):
             return None
 
     def image_terms(self, color, alpha, depth, coverage, field, photo_feats, content_scale, inv_depth, lab_stats,
-                    in_graph: bool = False, lab_index: torch.Tensor | None = None) -> torch.Tensor:
+                    tone_target, in_graph: bool = False, lab_index: torch.Tensor | None = None) -> torch.Tensor:
         """The terms read off the render alone and the VGG features the style terms match, packed: [T + F], the
         ``image_names`` terms, then (with VGG on) the style term's features [768, Nc] flat (the match reads
         and caches per view, so it stays outside), and with ``style_color`` the RGB ones after them. From the
         render's colour [H,W,3], alpha [H,W] and depth [H,W] and the view's constants: coverage [H,W,1], stroke
-        field [H,W,2], photo features [768,Nc], content scale [], inverse depth [H,W], Lab target statistics [4].
+        field [H,W,2], photo features [768,Nc], content scale [], inverse depth [H,W], Lab target statistics [4],
+        the colour target's covered tone [] (``tone_hold``; 0 where it is off).
         One tensor in terms of tensors only, so that on CUDA the call replays as one graph each way (``in_graph``:
         inside it the VGG pass and the field terms run as plain calls, not graphs of their own, and the Lab term
         through torch's kernels, not Warp's). The graph's output buffer is overwritten by the next view's replay:
@@ -613,6 +636,9 @@ class Stylize(Phase):
                        else lab_chroma_loss(lab_in, target_stats=lab_stats))
         if on["orient"]:
             out.append(orient)
+        if on["tone_hold"]:  # the covered mean luminance held within tone_margin of the colour target's
+            y = inputs["y"] if inputs["y"] is not None else luminance(img_y)
+            out.append(tone_hinge(covered_mean(y, coverage), tone_target, self.cfg.loss.tone_margin))
         feats = [] if a is None else [a.reshape(-1)] + ([a_rgb.reshape(-1)] if on["style_color"] else [])
         if on["style_coarse"]:  # the style term's input once more, one octave coarser (a pass of a quarter the cells)
             feats.append(self.vgg.features_of([inputs[style_in]], self.cfg.vgg_scale * COARSE, **kw)[0].reshape(-1))
@@ -624,7 +650,7 @@ class Stylize(Phase):
         tg, on, t, vi, o = self.tg, self.on, run.timer, view.index, view.out
         p, anchors = run.params, run.density.tracked
         args = (o.color, o.alpha, o.depth, tg.coverage[vi], self.fields[vi][..., :2], tg.photo_feats[vi],
-                self.content_scales[vi], tg.inv_depth[vi], tg.lab_stats[vi])
+                self.content_scales[vi], tg.inv_depth[vi], tg.lab_stats[vi], self.tone_targets[vi])
         packed = self.graphed_terms(args) if o.color.is_cuda and torch.is_grad_enabled() else None
         if packed is None:
             packed = self.image_terms(*args, lab_index=tg.lab_index[vi])
@@ -672,18 +698,7 @@ class Stylize(Phase):
             out["palette"] = palette_snap_loss(img, tg.colours, tg.coverage[vi])
         if on["detail"]:
             out["detail"] = detail_hinge(detail_energy(img, tg.coverage[vi]), self.detail_target)
-        if on["tone_hold"]:
-            out["tone_hold"] = (self.covered_luminance(img, vi) - self.tone_targets[vi]) ** 2
         return out
-
-    def covered_luminance(self, img: torch.Tensor, vi: int) -> torch.Tensor:
-        """The mean luminance of ``img`` [H,W,3] over view ``vi``'s covered pixels (weighted by the un-stylized
-        scene's alpha), its gradient along the grey axis where ``loss.luminance_grad`` is gray (as the hinge's)."""
-        from ..losses import gray_gradient, luminance  # lazy: imports Warp
-
-        w = self.tg.coverage[vi][..., 0].to(img)
-        img = gray_gradient(img) if self.cfg.loss.luminance_grad == "gray" else img
-        return (luminance(img)[..., 0] * w).sum() / w.sum().clamp_min(1e-12)
 
     def find_covered(self) -> None:
         """Per view, the pixels and the VGG cells the un-stylized scene covered (alpha >= 0.5; a cell by its mean):
