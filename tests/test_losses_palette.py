@@ -417,3 +417,6 @@ def test_covered_luminance_sums_and_the_tone_drift_note():
     lighter = tone_drift_note(0.479, 0.222)
     assert "lighter" in lighter and "0.48 against 0.22" in lighter and "loss.w_tone_hold" in lighter
     assert "darker" in tone_drift_note(0.20, 0.40)
+    # with the hold on, the note names ten times the run's weight, not the weight the run already had
+    held = tone_drift_note(0.479, 0.222, 100.0)
+    assert "loss.w_tone_hold=1000" in held and "this run: 100" in held and "w_tone_hold=100 " not in held

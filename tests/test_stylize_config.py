@@ -47,11 +47,13 @@ def test_every_shipped_config_loads_and_ablations_change_one_thing(capsys):
     # the object preset holds the positions and changes nothing else (its comment's figures are for that one change)
     obj = flatten(load_config(CONFIGS / "tlvg_object.yaml"))
     assert {k for k, v in obj.items() if v != tlvg[k]} == {"geometry.lock_xyz"} and obj["geometry.lock_xyz"] is True
-    # the light preset: the default without the deep Gram term and with the flow terms halved, nothing else (its
-    # figures are for those); the swd and contrast presets sit on it (they were measured without the deep term)
+    # the light preset: the default without the deep Gram term and the tone hold and with the flow terms halved,
+    # nothing else (its figures are for those); the swd and contrast presets sit on it (measured without either)
     light = flatten(load_config(CONFIGS / "tlvg_light.yaml"))
     assert {k: v for k, v in light.items() if v != tlvg[k]} == {
-        "loss.w_style_deep": 0.0, "loss.w_align": tlvg["loss.w_align"] / 2, "loss.w_orient": tlvg["loss.w_orient"] / 2}
+        "loss.w_style_deep": 0.0, "loss.w_align": tlvg["loss.w_align"] / 2, "loss.w_orient": tlvg["loss.w_orient"] / 2,
+        "loss.w_tone_hold": 0.0}
+    assert tlvg["loss.w_tone_hold"] > 0 and tlvg["loss.tone_margin"] > 0  # the default holds the tone, as a hinge
     assert tlvg["loss.deep_loss"] == "gram" and tlvg["loss.w_style_deep"] > 0
     # the contrast preset changes the Lab term's target spread and its blocks, nothing else (its figures are for those)
     contrast = flatten(load_config(CONFIGS / "tlvg_contrast.yaml"))

@@ -220,16 +220,19 @@ def covered_mean_luminance(images, coverage) -> float | None:
     return y_sum / n if n else None
 
 
-def tone_drift_note(stylized: float, target: float) -> str | None:
+def tone_drift_note(stylized: float, target: float, hold: float = 0.0) -> str | None:
     """One line for the user when the stylized scene's mean luminance over the pixels the un-stylized scene covers
     has moved ``TONE_DRIFT`` or more from its colour target's (the recoloured photos' over the same pixels): the
-    biker splats under Starry Night over the Rhône went from a target of 0.22 to 0.48, a black figure painted pale
-    grey (docs/study.md); ``loss.w_tone_hold`` holds that mean to the target. None within the margin."""
+    biker splats under Starry Night over the Rhône went from a target of 0.22 to 0.48 without the tone hold, a black
+    figure painted pale grey (docs/study.md). It names the tone hold's weight to use: 100 where the run had none
+    (``hold``: the run's ``loss.w_tone_hold``), ten times the run's otherwise. None within the margin."""
     if not abs(stylized - target) >= TONE_DRIFT:
         return None
     way = "lighter" if stylized > target else "darker"
+    fix = (f"--set loss.w_tone_hold={10 * hold:g} holds it closer (this run: {hold:g})" if hold > 0
+           else "--set loss.w_tone_hold=100 holds it near the target")
     return (f"note: the stylized scene came out {way} than its colour target over the pixels it covers (mean "
-            f"luminance {stylized:.2f} against {target:.2f}); --set loss.w_tone_hold=100 holds it to the target")
+            f"luminance {stylized:.2f} against {target:.2f}); {fix}")
 
 
 def _pooled_luma(items, coverage=None) -> torch.Tensor:
