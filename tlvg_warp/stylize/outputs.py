@@ -100,6 +100,18 @@ def zoom_crop(img: np.ndarray, zoom: int = ZOOM) -> np.ndarray:
     return out
 
 
+def comparison_caption(cfg, iterations: int, alignment: float) -> str:
+    """What comparison.png was made with: the settings that change a picture most, the terms that are on only."""
+    lum = (f"luminance_only=True ({cfg.loss.luminance_grad} gradient)" if cfg.loss.luminance_only
+           else "luminance_only=False") + f", content on {cfg.loss.content_on}"
+    extra = (f", conv4 {cfg.loss.deep_loss} term x{cfg.loss.w_style_deep:g}" if cfg.loss.w_style_deep else "") + (
+        f", tone hold x{cfg.loss.w_tone_hold:g} (margin {cfg.loss.tone_margin:g})" if cfg.loss.w_tone_hold else "")
+    return (f"config: style={cfg.loss.style_loss}, {lum}{extra}, "
+            f"lock_xyz={cfg.geometry.lock_xyz}, max_travel={cfg.geometry.max_travel:g}, "
+            f"colour_floor={cfg.colour_floor}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
+            f"{iterations} iterations; alignment to its training field {alignment:.3f}")
+
+
 def weights_name(source: str) -> str:
     """The VGG source as a picture caption shows it: the weights' file name, not the folder it sits in on this
     machine (metrics.json keeps the whole path)."""
@@ -410,15 +422,8 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         scores = [d[1] for d in done if d[1] is not None]
         scores_orig = [d[2] for d in done if d[2] is not None]
         fa = float(np.mean(scores)) if scores else 0.0
-        lum = (f"luminance_only=True ({cfg.loss.luminance_grad} gradient)" if cfg.loss.luminance_only
-               else "luminance_only=False") + f", content on {cfg.loss.content_on}"
-        caption = (f"config: style={cfg.loss.style_loss}, {lum}, "
-                   f"lock_xyz={cfg.geometry.lock_xyz}, max_travel={cfg.geometry.max_travel:g}, "
-                   f"colour_floor={cfg.colour_floor}, "
-                   f"w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
-                   f"{res.metrics['iterations']} iterations; "
-                   f"alignment to its training field {fa:.3f}; "
-                   + (RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {weights_name(res.vgg_source)}"))
+        caption = comparison_caption(cfg, res.metrics["iterations"], fa) + "; " + (
+            RANDOM_VGG_NOTE if res.vgg_random else f"VGG-16 weights: {weights_name(res.vgg_source)}")
         rows = [(ph, org, sty) for (sty, org, ph), _, _ in (d for d in done if d[0] is not None)]
         write_image(out / "comparison.png", comparison_grid(rows, style_np, caption).astype(np.float32) / 255.0)
         split["views_done"] = time.perf_counter() - t0  # every view's files written and scored
@@ -460,4 +465,4 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
 
 
 __all__ = ["write_outputs", "comparison_grid", "zoom_crop", "wrap_text", "font_scale", "orbit_path", "write_video",
-           "loss_curves", "curve", "panel_points", "RANDOM_VGG_NOTE"]
+           "loss_curves", "curve", "panel_points", "RANDOM_VGG_NOTE", "comparison_caption"]
