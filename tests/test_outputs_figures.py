@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tlvg_warp.stylize.outputs import (CURVE_BGR, PANEL_H, PANEL_W, comparison_caption, comparison_grid, curve, font_scale, loss_curves,
+from tlvg_warp.stylize.outputs import (CURVE_BGR, PANEL_H, PANEL_W, comparison_caption, comparison_grid, curve,
+                                      font_scale, loss_curves,
                                       orbit_path, panel_points, weights_name, wrap_text, zoom_crop)
 
 CAPTION = ("config: style=fast, luminance_only=True, lock_xyz=False, w_align=0.1, field=matched; 300 iterations; "
@@ -148,9 +149,9 @@ def test_caption_names_the_terms_that_are_on():
     from tlvg_warp.stylize import load_config
 
     configs = Path(__file__).resolve().parents[1] / "configs"
-    on = comparison_caption(load_config(configs / "tlvg.yaml"), 3000, 0.9)
-    off = comparison_caption(load_config(configs / "tlvg_light.yaml"), 3000, 0.9)
     cfg = load_config(configs / "tlvg.yaml")
+    on = comparison_caption(cfg, 3000, 0.9)
+    off = comparison_caption(load_config(configs / "tlvg_light.yaml"), 3000, 0.9)
     assert f"tone hold x{cfg.loss.w_tone_hold:g} (margin {cfg.loss.tone_margin:g})" in on
     assert f"conv4 gram term x{cfg.loss.w_style_deep:g}" in on
     assert "tone hold" not in off and "conv4" not in off
