@@ -322,6 +322,7 @@ def test_deep_style_term_matches_the_conv4_features(demo):
     assert float(terms["style"].detach()) == pytest.approx(fine, rel=TERM_TOL, abs=1e-7)
     assert float(terms["style_deep"].detach()) == pytest.approx(deep, rel=TERM_TOL, abs=1e-7)
     assert terms["style_deep"].requires_grad
+    assert "style_deep" not in sty.image_names  # its match is cached per view: outside the graphed terms
     assert sty.weights(0)["style_deep"] == 0.7 * cfg.loss.strength
     with pytest.raises(ConfigError, match="w_style_deep"):
         stylize_config({"loss.w_style_deep": 1.0, "loss.w_style_coarse": 1.0}).validate()
@@ -344,6 +345,7 @@ def test_deep_gram_term_compares_each_conv4_layers_gram_matrix(demo):
     want = _layered_gram(a, s)
     assert abs(want - _nnfm(a, s)) > 0.1 * want > 0  # the Gram and the NNFM of these features differ
     assert float(terms["style_deep"].detach()) == pytest.approx(want, rel=TERM_TOL, abs=1e-7)
+    assert sty.image_names[-1] == "style_deep"  # read off the render alone: among the terms a CUDA graph replays
     (g,) = torch.autograd.grad(terms["style_deep"], run.params.sh_dc)
     assert torch.isfinite(g).all() and float(g.abs().sum()) > 0
 

@@ -457,7 +457,12 @@ class Stylize(Phase):
         self.terms_graph = None  # on CUDA: image_terms as one graph (made in setup)
         self.content_scales = None  # per view the content scale as a device scalar (image_terms' argument)
         self.over_bg = None  # the run's background, that image_terms composites over
-        self.image_names = [t for t in self.IMAGE_TERMS if self.on[t]]  # image_terms' outputs, in order
+        # the deep term as each conv4 layer's Gram distance reads the render alone (no match, no cache), so it is
+        # computed inside image_terms, in the graph; "same" (the style term's kind, a cached match) stays outside
+        self.deep_in_terms = self.on["style_deep"] and w.deep_loss == "gram"
+        self.deep_grams = None  # the painting's per-layer conv4 Gram matrices (made in setup, outside any graph)
+        self.image_names = ([t for t in self.IMAGE_TERMS if self.on[t]]  # image_terms' outputs, in order
+                            + ["style_deep"] * self.deep_in_terms)
 
     def weights(self, k: int) -> dict:
         return dict(self.const, lab=self.cfg.loss.lab_weight(k, self.steps))
@@ -487,6 +492,8 @@ class Stylize(Phase):
         if self.content_scales is None:
             self.content_scales = [torch.tensor(float(c), dtype=f.dtype, device=f.device)
                                    for c, f in zip(self.tg.content_scale, self.tg.photo_feats)]
+        if self.deep_in_terms and self.deep_grams is None:  # computed here: a graph's capture would not run them
+            self.deep_grams = [g.contiguous() for g in self.deep_fn.style.layer_grams(self.deep_fn.LAYERS)]
         if self.terms_graph is None:
             self.terms_graph = self.make_terms_graph()
 
@@ -583,12 +590,15 @@ class Stylize(Phase):
         and caches per view, so it stays outside), and with ``style_color`` the RGB ones after them. From the
         render's colour [H,W,3], alpha [H,W] and depth [H,W] and the view's constants: coverage [H,W,1], stroke
         field [H,W,2], photo features [768,Nc], content scale [], inverse depth [H,W], Lab target statistics [4],
-        the colour target's covered tone [] (``tone_hold``; 0 where it is off).
+        the colour target's covered tone [] (``tone_hold``; 0 where it is off). The deep term as Gram distances
+        (``deep_in_terms``) is the last of the terms; its other kind's conv4 features [1536, Nc/4] come last.
         One tensor in terms of tensors only, so that on CUDA the call replays as one graph each way (``in_graph``:
         inside it the VGG pass and the field terms run as plain calls, not graphs of their own, and the Lab term
         through torch's kernels, not Warp's). The graph's output buffer is overwritten by the next view's replay:
         the loop reads the terms (logs them, runs the backward) within the step."""
-        from ..losses import content_loss, gray_gradient, lab_chroma_loss, luminance  # lazy: imports Warp
+        # lazy: imports Warp
+        from ..losses import content_loss, gray_gradient, lab_chroma_loss, luminance
+        from ..losses.style import layered_gram_loss
         from ..losses.color import lab_chroma_loss_torch
 
         on, out = self.on, []
@@ -639,10 +649,12 @@ class Stylize(Phase):
         if on["tone_hold"]:  # the covered mean luminance held within tone_margin of the colour target's
             y = inputs["y"] if inputs["y"] is not None else luminance(img_y)
             out.append(tone_hinge(covered_mean(y, coverage), tone_target, self.cfg.loss.tone_margin))
+        if self.deep_in_terms:  # each conv4 layer's Gram distance to the painting's (image_names ends with it)
+            out.append(layered_gram_loss(deep, self.deep_grams))
         feats = [] if a is None else [a.reshape(-1)] + ([a_rgb.reshape(-1)] if on["style_color"] else [])
         if on["style_coarse"]:  # the style term's input once more, one octave coarser (a pass of a quarter the cells)
             feats.append(self.vgg.features_of([inputs[style_in]], self.cfg.vgg_scale * COARSE, **kw)[0].reshape(-1))
-        if on["style_deep"]:  # (config: not with the coarse term)
+        if on["style_deep"] and not self.deep_in_terms:  # (config: not with the coarse term)
             feats.append(deep.reshape(-1))
         return torch.cat([torch.stack(out) if out else img.new_zeros(0), *feats])
 
@@ -663,7 +675,7 @@ class Stylize(Phase):
             found["style"] = self.style_fn(feats[0], key=vi)  # the key: a view's match may be reused (fast_refresh)
         if on["style_coarse"]:  # [768, ~Nc/4] after them
             found["style_coarse"] = self.coarse_fn(packed[n + k * c * nc:].view(c, -1), key=vi)
-        if on["style_deep"]:  # [1536, ~Nc/4] after them (the coarse term is off: the config allows one of the two)
+        if on["style_deep"] and not self.deep_in_terms:  # [1536, ~Nc/4] after them (the coarse term is off)
             found["style_deep"] = self.deep_fn(packed[n + k * c * nc:].view(self.tg.style_feats_deep.shape[0], -1),
                                                key=vi)
         t.mark("style")
