@@ -17,9 +17,9 @@ import json
 from pathlib import Path
 
 METRICS = [("flow_alignment", "higher"), ("flow_energy", "higher"), ("stroke_scales", "lower"), ("style_gram", "lower"),
-           ("style_gram_inside", "lower"), ("style_nnfm", "lower"), ("content", "lower"), ("consistency_k1", "lower"),
-           ("detail", "higher"), ("detail_inside", "higher"), ("holes_1x", "lower"), ("holes_2x", "lower"), ("spill", "lower"),
-           ("chroma_noise", "lower")]
+           ("style_gram_inside", "lower"), ("style_nnfm", "lower"), ("style_nnfm_inside", "lower"), ("content", "lower"),
+           ("consistency_k1", "lower"), ("detail", "higher"), ("detail_inside", "higher"), ("holes_1x", "lower"),
+           ("holes_2x", "lower"), ("spill", "lower"), ("chroma_noise", "lower")]
 
 
 def load(study: Path):
@@ -71,6 +71,7 @@ VERDICTS = [("flow vs un-stylized", "no stylization", "flow_alignment", 1),
             ("flow energy vs un-stylized", "no stylization", "flow_energy", 1),
             ("Gram vs abcgs", "abcgs", "style_gram", -1),
             ("NNFM vs abcgs", "abcgs", "style_nnfm", -1),
+            ("NNFM inside vs abcgs", "abcgs", "style_nnfm_inside", -1),  # "-" in an evaluation from before it
             ("chroma vs abcgs", "abcgs", "chroma_noise", -1)]
 LIMITS = {"detail": 0.6, "k1": 1.5, "gaussians": 1.2}  # detail (both measures) >= 0.6 of the painting's; k1,
 # Gaussians at most
@@ -107,8 +108,8 @@ def target_rows(study: Path, data: dict, order, me: str, ablation: str | None):
     return [c[0] for c in cols] + ["detail", "detail inside", "MV k1 / un-stylized", "Gaussians / input"], rows
 
 
-PAIRED = ["flow_alignment", "flow_energy", "stroke_scales", "style_gram", "style_gram_inside", "style_nnfm", "detail",
-          "detail_inside", "chroma_noise", "consistency_k1", "holes_2x", "spill", "content"]  # stroke_scales: no VGG
+PAIRED = ["flow_alignment", "flow_energy", "stroke_scales", "style_gram", "style_gram_inside", "style_nnfm",
+          "style_nnfm_inside", "detail", "detail_inside", "chroma_noise", "consistency_k1", "holes_2x", "spill", "content"]  # stroke_scales: no VGG
 FRACTIONS = {"holes_1x", "holes_2x", "spill"}  # shares of the view's pixels: printed as percentages
 
 

@@ -360,6 +360,34 @@ def test_gram_inside_takes_the_cells_inside_the_scene_against_a_float64_oracle()
     assert M._feats_of(f, 1)["grams_inside"] is None
 
 
+def test_nnfm_inside_takes_the_relu3_cells_inside_the_scene_against_an_oracle():
+    """style_nnfm_inside's features: the relu3 columns of the cells at least half inside the mask (block means of
+    the mask at the relu3 map's size, numpy), all of them for a full or an empty mask, none without a mask; and its
+    distance is the NNFM of those columns alone, which differs from the whole view's (float64 brute force)."""
+    gen = torch.Generator().manual_seed(5)
+    hh, ww = 32, 48
+    f = {k: torch.rand(1, 4, hh // s, ww // s, generator=gen) for k, s in zip(M.GRAM_LAYERS, (2, 2, 4, 8))}
+    f |= {k: torch.rand(1, 4, hh // 4, ww // 4, generator=gen) for k in ("relu3_1", "relu3_2")}
+    f["relu3_3"][0, :, :, :6] += 3.0  # the cells left of the object: far from the painting below
+    mask = np.zeros((hh, ww), bool)
+    mask[3:30, 22:45] = True
+    got = M._feats_of(f, 0, mask)
+    keep = mask.reshape(hh // 4, 4, ww // 4, 4).mean(axis=(1, 3)).reshape(-1) >= 0.5
+    r3 = torch.cat([f["relu3_1"][0], f["relu3_2"][0], f["relu3_3"][0]], 0).reshape(12, -1).double().numpy()
+    np.testing.assert_array_equal(got["relu3_inside"].double().numpy(), r3[:, keep])
+    assert torch.equal(M._feats_of(f, 0, np.ones((hh, ww), bool))["relu3_inside"], got["relu3"])
+    assert torch.equal(M._feats_of(f, 0, np.zeros((hh, ww), bool))["relu3_inside"], got["relu3"])
+    assert M._feats_of(f, 0)["relu3_inside"] is None
+    painting = torch.rand(12, 30, generator=gen, dtype=torch.float64).numpy()
+
+    def nnfm(a):  # mean over the render's cells of the least 1 - cos to a painting cell
+        a, s = a / np.linalg.norm(a, axis=0), painting / np.linalg.norm(painting, axis=0)
+        return float((1 - (a.T @ s).max(axis=1)).mean())
+    inside = M.style_nnfm(got["relu3_inside"], torch.from_numpy(painting))
+    assert inside == pytest.approx(nnfm(r3[:, keep]), abs=1e-6)
+    assert abs(inside - M.style_nnfm(got["relu3"], torch.from_numpy(painting))) > 1e-3
+
+
 def test_an_image_seen_twice_reuses_its_features_only_where_its_masks_agree():
     """vgg_feats_batch's reuse (a sticker is the same image on every view): the same image under two masks gets
     two inside Gram matrices, each the one its own pass gives; under one mask, one pass."""

@@ -81,7 +81,7 @@ def test_random_weights_report_not_measured(runs, tmp_path):
     rc, out = _evaluate(tmp_path, "rnd", runs[0], weights="random", extra=("--max-views", "6"))
     res = json.loads((out / "evaluation.json").read_text())
     assert rc == 0 and set(res["not_measured"]) == {"flow_alignment", "flow_energy", "style_gram", "style_gram_inside",
-                                                      "style_nnfm", "content"}
+                                                      "style_nnfm", "style_nnfm_inside", "content"}
     s = res["runs"][0]["summary"]
     assert all(s[k] is None for k in res["not_measured"])
     assert np.isfinite(s["consistency_k1"]["mean"])

@@ -78,7 +78,8 @@ def test_study_writes_table_per_scene_ablation_and_report(study):
         table = list(csv.DictReader(f))
     assert {r["metric"] for r in table if r["mean"] == "not measured"} == {"flow_alignment", "flow_energy",
                                                                              "style_gram", "style_gram_inside",
-                                                                             "style_nnfm", "content"}
+                                                                             "style_nnfm", "style_nnfm_inside",
+                                                                             "content"}
     html = (out / "study.html").read_text()
     for text in ("Scene demo", "Ablations", "Speed and quality", "Multi-view error", "not measured", "base64",
                  "no stylization", "sticker", "(reference)", "2 seed(s)"):

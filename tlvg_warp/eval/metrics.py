@@ -69,6 +69,8 @@ METRICS = {m.key: m for m in (
            "coverage, its outline excluded, as detail_inside)", "relative Frobenius norm", False, pretrained=True),
     Metric("style_nnfm", "Style distance, nearest-neighbour features (relu3)", "mean 1 − cos, 0…2", False,
            pretrained=True),
+    Metric("style_nnfm_inside", "Style distance, nearest-neighbour features over the relu3 cells inside the scene "
+           "(as style_gram_inside)", "mean 1 − cos, 0…2", False, pretrained=True),
     Metric("content", "Content distance to the photos (relu3_3, relu4_3, RGB)", "relative MSE", False,
            pretrained=True),
     Metric("consistency_k1", "Multi-view error, neighbouring views (k = 1)", "RMSE of RGB in 0…1", False),
@@ -103,6 +105,7 @@ ANCHOR_TO_BEAT = {
     "style_gram": UNSTYLIZED,
     "style_gram_inside": UNSTYLIZED,
     "style_nnfm": UNSTYLIZED,
+    "style_nnfm_inside": UNSTYLIZED,
     "detail": UNSTYLIZED,
     "detail_inside": UNSTYLIZED,
     "content": STICKER,
@@ -277,17 +280,25 @@ def _gram(a: torch.Tensor) -> torch.Tensor:
 
 def _feats_of(f: dict, b: int, mask: np.ndarray | None = None) -> dict:
     """One image's metric features from a batch's VGG maps; with ``mask`` (its pixels inside the scene) also the
-    Gram matrices over the cells inside it ("grams_inside"; a layer where no cell is inside counts every cell)."""
+    Gram matrices and the relu3 cells inside it ("grams_inside", "relu3_inside"; where no cell is inside, every
+    cell counts)."""
     grams, inside = {}, {}
     for k in GRAM_LAYERS:
         a = f[k][b].reshape(f[k].shape[1], -1)  # [C, N]
         grams[k] = _gram(a)
         if mask is not None:
-            keep = torch.from_numpy(cells_inside(mask, *f[k].shape[2:])).to(a.device)
-            inside[k] = _gram(a[:, keep]) if bool(keep.any()) else grams[k]
-    r3 = torch.cat([f["relu3_1"][b], f["relu3_2"][b], f["relu3_3"][b]], 0)
-    return {"grams": grams, "grams_inside": inside or None, "relu3": r3.reshape(r3.shape[0], -1),
+            inside[k] = _gram(_inside(a, mask, *f[k].shape[2:]))
+    r3 = torch.cat([f["relu3_1"][b], f["relu3_2"][b], f["relu3_3"][b]], 0)  # [768, h, w]
+    r3_flat = r3.reshape(r3.shape[0], -1)
+    return {"grams": grams, "grams_inside": inside or None, "relu3": r3_flat,
+            "relu3_inside": None if mask is None else _inside(r3_flat, mask, *r3.shape[1:]),
             "content": {k: f[k][b:b + 1].contiguous() for k in CONTENT_LAYERS}}
+
+
+def _inside(a: torch.Tensor, mask: np.ndarray, h: int, w: int) -> torch.Tensor:
+    """The columns of features [C, h*w] at the cells inside ``mask`` (``cells_inside``); all of them where none is."""
+    keep = torch.from_numpy(cells_inside(mask, h, w)).to(a.device)
+    return a[:, keep] if bool(keep.any()) else a
 
 
 def vgg_feats(net, img: np.ndarray) -> dict:

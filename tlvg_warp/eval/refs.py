@@ -219,6 +219,7 @@ def score_views(views: list, alpha2x: list, refs: Refs, net) -> dict:
             per["style_gram"].append(M.style_gram(f["grams"], ps["grams"]))
             per["style_gram_inside"].append(M.style_gram(f["grams_inside"], ps["grams"]))
             per["style_nnfm"].append(M.style_nnfm(f["relu3"], ps["relu3"]))
+            per["style_nnfm_inside"].append(M.style_nnfm(f["relu3_inside"], ps["relu3"]))
             per["content"].append(M.content(f["content"], refs.photo_feats[i]))
     for k in M.KS:
         per[f"consistency_k{k}"] = [M.pair_error(views[i], views[i + k], correspondences(refs, i, k))
