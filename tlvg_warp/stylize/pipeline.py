@@ -598,8 +598,8 @@ class Stylize(Phase):
         the loop reads the terms (logs them, runs the backward) within the step."""
         # lazy: imports Warp
         from ..losses import content_loss, gray_gradient, lab_chroma_loss, luminance
-        from ..losses.style import layered_gram_loss
         from ..losses.color import lab_chroma_loss_torch
+        from ..losses.style import layered_gram_loss
 
         on, out = self.on, []
         # the style and content terms see the render only where the scene was: pixels of an empty background
