@@ -1,4 +1,5 @@
-"""Mean luminance (BT.601) and its spread over the pixels a run's un-stylized scene covers (alpha >= 0.5), beside
+"""Mean luminance (BT.601), its spread and the mean chroma (CIELAB's |a,b|: how saturated; a washed-out render has
+less than its colour target) over the pixels a run's un-stylized scene covers (alpha >= 0.5), beside
 the painting's and those of ARF's map of the un-stylized renders (over all pixels and over the covered ones); and
 the stylized renders' alpha there (rendered on black, so a thin render shows as low alpha, not as a lighter colour).
 
@@ -10,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 
+import cv2
+import numpy as np
 import torch
 
 from tlvg_warp.config_io import read_yaml_mapping
@@ -21,7 +24,10 @@ from tlvg_warp.renderer import render
 
 def line(name: str, px: torch.Tensor, alpha: torch.Tensor | None = None) -> str:  # px [N,3]
     y = luminance(px)[:, 0]  # [N]
-    s = f"{name:30s} mean RGB {px.mean(0).numpy().round(3)} luminance {float(y.mean()):.3f} spread {float(y.std()):.3f}"
+    lab = cv2.cvtColor(np.ascontiguousarray(px.numpy(), np.float32)[:, None], cv2.COLOR_RGB2LAB)[:, 0]  # [N,3]
+    chroma = float(np.hypot(lab[:, 1], lab[:, 2]).mean())
+    s = (f"{name:30s} mean RGB {px.mean(0).numpy().round(3)} luminance {float(y.mean()):.3f} spread "
+         f"{float(y.std()):.3f} chroma {chroma:.1f}")
     if alpha is not None:
         s += f" alpha mean {float(alpha.mean()):.3f} 10th percentile {float(alpha.quantile(0.1)):.3f}"
     return s
