@@ -84,6 +84,18 @@ def test_known_cases_lose_to_a_genuine_stylization(cases, case, metrics):
         assert cmp[k]["better"] == "a", (case, k, cmp[k])
 
 
+def test_inside_style_distances_read_the_scene_not_its_empty_background(cases):
+    """style_gram_inside and style_nnfm_inside are scored over the feature cells inside the scene: on the demo, whose
+    views are about a quarter empty background, each differs from its whole-view figure on every view (scored on the
+    whole view, they would equal it), and the un-stylized scene loses both to a genuine stylization."""
+    _, per = cases
+    for k in ("style_gram", "style_nnfm"):
+        assert all(abs(i - w) > 1e-4 for i, w in zip(per["genuine"][k + "_inside"], per["genuine"][k])), k
+    cmp = R.compare(per["genuine"], per["unstylized"])
+    for k in ("style_gram_inside", "style_nnfm_inside"):
+        assert cmp[k]["better"] == "a", (k, cmp[k])
+
+
 def brushed(color, field, length=6, seed=0):
     """The view painted with strokes along a doubled-angle field [H,W,2]: noise smeared along the field's
     direction at each pixel (a line integral convolution over ±length px) modulates the view's luminance."""
