@@ -37,6 +37,9 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      host against GPU timeline of one render (benchmarks/profile_host.py): where the GPU waits.
   cost-curves        time and peak memory of a stylize step and a fit step against Gaussians (0.1M-10M) and pixels (0.1-4 MP) on
                      random scenes (benchmarks/cost_curves.py; the chart and CSV under $OUT/cost_curves).
+  outputs-profile SCENE [--views N] [--frames N]
+                     where a run's outputs spend their time: the renders alone, beside the scene-file writers and
+                     beside the views' encoding and scoring (benchmarks/profile_outputs.py).
   step-profile       is a fern stylize step host-bound? (benchmarks/profile_step.py: wall per step, GPU time
                      per step, top kernels; ARGS go to the run, e.g. --set terms_cuda_graphs=false; WARM, TIMED:
                      the steps timed without the profiler).
@@ -171,6 +174,7 @@ case "$cmd" in
   intersection-drift) exec python3 benchmarks/intersection_drift.py $FERN --iterations 3000 --out "$R/drift" --overwrite \
     --quiet "$@";;
   cost-curves) gpu; exec python3 benchmarks/cost_curves.py --out "$OUT/cost_curves" "$@";;
+  outputs-profile) exec python3 benchmarks/profile_outputs.py "$@";;
   step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet "$@";;
   setup-profile)
     python3 -m cProfile -o "$OUT/setup.prof" -m tlvg_warp stylize $FERN --iterations "${1:-30}" --out "$R/setup_run" \
