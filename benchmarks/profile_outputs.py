@@ -41,34 +41,28 @@ def render_all(g, cams, frames: int, per_frame_copy: bool = True) -> float:
     return time.perf_counter() - t
 
 
-def renders_with_view_jobs(g, cams, frames: int, folder: Path) -> tuple:
+def renders_with_view_jobs(g, cams, frames: int, folder: Path, renders_first: bool = False) -> tuple:
     """(seconds of the renders, seconds until every job is done): write_outputs's loop, the orbit's encoding and
-    each view's files and flow scores (against a constant field) in a pool of OUTPUT_WORKERS beside the renders."""
+    each view's files and flow scores (against a constant field) in a pool of OUTPUT_WORKERS beside the renders;
+    ``renders_first``: every render done (and copied) before the first job starts."""
     t = time.perf_counter()
     with ThreadPoolExecutor(max_workers=OUTPUT_WORKERS) as pool, torch.no_grad():
+        jobs, held = [], []  # held: the jobs kept back until every render is done (renders_first)
+
+        def submit(*job):
+            if renders_first:
+                held.append(job)
+            else:
+                jobs.append(pool.submit(*job))
+
         fr = [_u8(render(g, c, (1.0, 1.0, 1.0)).color) for c in orbit_path(cams, frames)]
-        jobs = [pool.submit(_write_orbit, folder, fr, 24)]
+        submit(_write_orbit, folder, fr, 24)
         for i, c in enumerate(cams):
             sty = render(g, c, (1.0, 1.0, 1.0)).color.clamp(0, 1).cpu()
             fld = torch.stack([torch.ones(c.height, c.width), torch.zeros(c.height, c.width)], -1).numpy()
-            jobs.append(pool.submit(_write_view, folder, i, sty, sty, sty, fld, i < 4))
+            submit(_write_view, folder, i, sty, sty, sty, fld, i < 4)
         t_render = time.perf_counter() - t
-        for j in jobs:
-            j.result()
-    return t_render, time.perf_counter() - t
-
-
-def renders_then_view_jobs(g, cams, frames: int, folder: Path) -> tuple:
-    """The same work with every render done (and copied) before the first job starts."""
-    t = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=OUTPUT_WORKERS) as pool, torch.no_grad():
-        fr = [_u8(render(g, c, (1.0, 1.0, 1.0)).color) for c in orbit_path(cams, frames)]
-        stys = [render(g, c, (1.0, 1.0, 1.0)).color.clamp(0, 1).cpu() for c in cams]
-        t_render = time.perf_counter() - t
-        jobs = [pool.submit(_write_orbit, folder, fr, 24)]
-        for i, (c, sty) in enumerate(zip(cams, stys)):
-            fld = torch.stack([torch.ones(c.height, c.width), torch.zeros(c.height, c.width)], -1).numpy()
-            jobs.append(pool.submit(_write_view, folder, i, sty, sty, sty, fld, i < 4))
+        jobs += [pool.submit(*job) for job in held]
         for j in jobs:
             j.result()
     return t_render, time.perf_counter() - t
@@ -100,7 +94,7 @@ def main() -> None:
             "writers alone (PLY, compressed PLY, SPZ in a pool)": [], "renders beside the writers": [],
             "renders beside the view and video jobs (write_outputs's loop)": [],
             "the same, until every job is done": [], "renders first, then the view and video jobs": [],
-            "the same, until every job is done ": []}
+            "renders first: until every job is done": []}
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(args.repeats):
             rows["renders alone, a copy per frame"].append(render_all(g, cams, args.frames))
@@ -118,9 +112,9 @@ def main() -> None:
             t_render, t_all = renders_with_view_jobs(g, cams, args.frames, Path(tmp))
             rows["renders beside the view and video jobs (write_outputs's loop)"].append(t_render)
             rows["the same, until every job is done"].append(t_all)
-            t_render, t_all = renders_then_view_jobs(g, cams, args.frames, Path(tmp))
+            t_render, t_all = renders_with_view_jobs(g, cams, args.frames, Path(tmp), renders_first=True)
             rows["renders first, then the view and video jobs"].append(t_render)
-            rows["the same, until every job is done "].append(t_all)
+            rows["renders first: until every job is done"].append(t_all)
     print("| arrangement | seconds (each repeat) |\n| --- | --- |")
     for k, v in rows.items():
         print(f"| {k} | {', '.join(f'{x:.3f}' for x in v)} |")
