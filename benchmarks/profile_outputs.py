@@ -21,7 +21,7 @@ from tlvg_warp.io import load_ply, save_ply
 from tlvg_warp.io.scene_views import scene_views
 from tlvg_warp.io.splat_formats import save_compressed_ply, save_spz
 from tlvg_warp.renderer import render
-from tlvg_warp.stylize.outputs import OUTPUT_WORKERS, _u8, _write_orbit, _write_view, orbit_path
+from tlvg_warp.stylize.outputs import OUTPUT_WORKERS, to_u8, write_orbit, write_view, orbit_path
 
 
 def render_all(g, cams, frames: int, per_frame_copy: bool = True) -> float:
@@ -31,7 +31,7 @@ def render_all(g, cams, frames: int, per_frame_copy: bool = True) -> float:
     with torch.no_grad():
         path = orbit_path(cams, frames)
         if per_frame_copy:
-            _ = [_u8(render(g, c, (1.0, 1.0, 1.0)).color) for c in path]
+            _ = [to_u8(render(g, c, (1.0, 1.0, 1.0)).color) for c in path]
             _ = [render(g, c, (1.0, 1.0, 1.0)).color.clamp(0, 1).cpu() for c in cams]
         else:
             imgs = [render(g, c, (1.0, 1.0, 1.0)).color for c in path + list(cams)]
@@ -55,12 +55,12 @@ def renders_with_view_jobs(g, cams, frames: int, folder: Path, renders_first: bo
             else:
                 jobs.append(pool.submit(*job))
 
-        fr = [_u8(render(g, c, (1.0, 1.0, 1.0)).color) for c in orbit_path(cams, frames)]
-        submit(_write_orbit, folder, fr, 24)
+        fr = [to_u8(render(g, c, (1.0, 1.0, 1.0)).color) for c in orbit_path(cams, frames)]
+        submit(write_orbit, folder, fr, 24)
         for i, c in enumerate(cams):
             sty = render(g, c, (1.0, 1.0, 1.0)).color.clamp(0, 1).cpu()
             fld = torch.stack([torch.ones(c.height, c.width), torch.zeros(c.height, c.width)], -1).numpy()
-            submit(_write_view, folder, i, sty, sty, sty, fld, i < 4)
+            submit(write_view, folder, i, sty, sty, sty, fld, i < 4)
         t_render = time.perf_counter() - t
         jobs += [pool.submit(*job) for job in held]
         for j in jobs:

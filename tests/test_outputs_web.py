@@ -64,12 +64,12 @@ def test_u8_of_a_tensor_equals_numpys_rounding():
     NaN, out-of-range and exact halves included. Catches a missing +0.5 (truncation) or a clamp after scaling."""
     import torch
 
-    from tlvg_warp.stylize.outputs import _u8
+    from tlvg_warp.stylize.outputs import to_u8
 
     g = torch.Generator().manual_seed(0)
     x = torch.rand(17, 23, 3, generator=g) * 1.4 - 0.2
     x[0, 0, 0], x[0, 1, 0], x[1, 0, 1] = float("nan"), 0.5 / 255.0, 254.5 / 255.0
-    assert _u8(x).dtype == np.uint8 and np.array_equal(_u8(x), _u8(x.numpy()))
+    assert to_u8(x).dtype == np.uint8 and np.array_equal(to_u8(x), to_u8(x.numpy()))
 
 
 def test_orbit_slerp_matches_scipy():

@@ -40,7 +40,7 @@ PAGE_TIMEOUT = 30.0
 
 # --- fake run folders in the layout write_outputs uses -------------------------------------------------------
 def fake_run(root: Path, color, n_views=4, names=None, shift=0.0, orbit=False, size=(W, H)) -> Path:
-    """renders/view_000.png ... (as stylize/outputs.py's _write_view names them), style.png, metrics.json with
+    """renders/view_000.png ... (as stylize/outputs.py's write_view names them), style.png, metrics.json with
     ``views``, cameras.json in the INRIA layout of train/reconstruct.cameras_json, config.yaml."""
     root.mkdir(parents=True)
     (root / "renders").mkdir()

@@ -28,7 +28,8 @@ RANDOM_VGG_NOTE = "VGG-16 RANDOM (not pretrained): style/content losses are not 
 ZOOM = 4  # the comparison's zoom column: the centre of the stylized view magnified this much (nearest)
 
 
-def _u8(img) -> np.ndarray:
+def to_u8(img) -> np.ndarray:
+    """An image in [0,1] (a tensor [H,W,C] on any device, or numpy) as uint8 numpy, NaN as 0, rounded."""
     if isinstance(img, torch.Tensor):  # on its device (the GPU for renders): 4x less to copy, no numpy pass
         return (img.detach().nan_to_num(0.0).clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
     a = np.asarray(img)
@@ -125,9 +126,9 @@ def comparison_grid(rows: list, painting: np.ndarray, caption: str) -> np.ndarra
     (nearest neighbour: the strokes pixel for pixel) | painting. Labels and caption are sized from the panel
     width and wrapped between words."""
     h, w = rows[0][0].shape[:2]
-    paint = _u8(_fit_painting(painting, h, w))
+    paint = to_u8(_fit_painting(painting, h, w))
     zoom = ZOOM if min(h, w) >= 16 * ZOOM else 2
-    body = np.concatenate([np.concatenate([_u8(ph), _u8(org), _u8(sty), zoom_crop(_u8(sty), zoom), paint], 1)
+    body = np.concatenate([np.concatenate([to_u8(ph), to_u8(org), to_u8(sty), zoom_crop(to_u8(sty), zoom), paint], 1)
                            for ph, org, sty in rows], 0)
     W = body.shape[1]
     names = ("photo", "original render", "stylized", f"stylized, centre x{zoom}", "painting")
@@ -205,7 +206,7 @@ def write_video(path: Path, frames: list, fps: int) -> str | None:
     """mp4 in H.264 (libx264, yuv420p, moov atom first) with imageio-ffmpeg's bundled ffmpeg, so browsers
     play it. Without imageio-ffmpeg: OpenCV's mp4v, which browsers do not play; returns a note saying so
     (None when H.264 was written). Raises RuntimeError when no encoder works (the caller then writes PNGs)."""
-    frames = [_even(_u8(f)) for f in frames]
+    frames = [_even(to_u8(f)) for f in frames]
     h, w = frames[0].shape[:2]
     try:
         import imageio_ffmpeg  # lazy: optional (without it, OpenCV's mp4v below)
@@ -337,7 +338,7 @@ def loss_curves(path: Path, log: list, vgg_random: bool) -> None:
 OUTPUT_WORKERS = min(8, os.cpu_count() or 1)  # threads that encode and score the outputs beside the GPU renders
 
 
-def _write_view(out: Path, i: int, sty: torch.Tensor, org: torch.Tensor, photo: torch.Tensor, fld, keep: bool) -> tuple:
+def write_view(out: Path, i: int, sty: torch.Tensor, org: torch.Tensor, photo: torch.Tensor, fld, keep: bool) -> tuple:
     """One view's renders/, originals/, photos/ and fields/ files, and the flow alignment of the stylized and
     the original render to its target field (None without fields); the three images as numpy when ``keep``
     (a row of comparison.png), else None (no view's render outlives its job)."""
@@ -360,7 +361,7 @@ def _timed(fn, *args) -> tuple:
     return fn(*args), time.perf_counter() - t
 
 
-def _write_orbit(out: Path, frames: list, fps: int) -> str | None:
+def write_orbit(out: Path, frames: list, fps: int) -> str | None:
     """orbit.mp4; PNG frames in orbit_frames/ when no encoder works. Returns the note to show (or None)."""
     try:
         note = write_video(out / "orbit.mp4", frames, fps)
@@ -402,14 +403,14 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         views, t = [], time.perf_counter()
         tone = [0.0, 0.0]  # the stylized renders' luminance summed over the covered pixels, and their count
         with torch.no_grad():  # the orbit first: its encoding is the longest job
-            frames = [_u8(render(g, cam, bg).color) for cam in orbit_path(inp.cameras, cfg.orbit_frames)]  # uint8
-            video = pool.submit(_timed, _write_orbit, out, frames, cfg.orbit_fps) if frames else None
+            frames = [to_u8(render(g, cam, bg).color) for cam in orbit_path(inp.cameras, cfg.orbit_frames)]  # uint8
+            video = pool.submit(_timed, write_orbit, out, frames, cfg.orbit_fps) if frames else None
             for i, cam in enumerate(inp.cameras):
                 sty = render(g, cam, bg).color.clamp(0, 1).cpu()
                 if i < len(res.coverage):
                     tone = [a + b for a, b in zip(tone, covered_luminance_sums(sty, res.coverage[i]))]
                 fld = res.fields[i][..., :2].numpy() if res.fields else None
-                views.append(pool.submit(_write_view, out, i, sty, res.originals[i], inp.photos[i].detach().cpu(), fld,
+                views.append(pool.submit(write_view, out, i, sty, res.originals[i], inp.photos[i].detach().cpu(), fld,
                                          i in pick))
         split = {"renders": time.perf_counter() - t}  # the GPU's part (orbit frames and views), in this thread
         style_np = inp.style.detach().cpu().numpy()
