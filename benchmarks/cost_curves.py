@@ -10,7 +10,7 @@ phase alone, a fit step with the pre-process alone (L1 + SSIM against the recolo
 with density control; reconstruct's own step adds only its SfM-free schedule). Steps
 WARM..WARM+STEPS are timed with a synchronize at both ends (the wall per step as the run sees it: host and GPU);
 peak memory is torch.cuda.max_memory_allocated over the run (torch's allocations: VGG, the optimizer, the raster's
-buffers on torch memory). ``raster`` points time the rasterizer alone on the same scene and view size, ours and each
+buffers on torch memory), including what earlier points of the process still hold at its start (``start_mib``). ``raster`` points time the rasterizer alone on the same scene and view size, ours and each
 of ``--raster-peers`` in this process (bench raster's timing: forward+backward, median of ``--raster-repeats`` after
 warm-up, one orbit view; its peak memory). Writes cost_curves.csv and cost_curves.png under OUT after every point;
 ``--resume`` keeps the points an earlier call wrote there (a curve can take more than one call).
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import gc
 import math
 import sys
 import time
@@ -89,8 +90,12 @@ def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
         save_ply(random_scene(n, -4.0, 0, "cpu"), scene)
     downscale, w, h = view_size(megapixels)
     TIMER.update(warm=args.warm, steps=args.steps, ms=float("nan"))
-    if torch.cuda.is_available():
+    start = float("nan")
+    if torch.cuda.is_available():  # what earlier points of this process left allocated (e.g. a CUDA graph's pool
+        gc.collect()  # held by a cache) counts in the peak: freed where it can be, and reported as start_mib
+        torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats()
+        start = torch.cuda.memory_allocated() / 2 ** 20
     argv = ["stylize", "--scene", str(scene), "--out", str(work / f"run_{kind}_{n}_{megapixels}"), "--overwrite",
             "--quiet",
             "--iterations", str(args.warm + args.steps + 1), "--downscale", f"{downscale:.6f}",
@@ -101,7 +106,7 @@ def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
     rc = cli.main(argv)
     peak = torch.cuda.max_memory_allocated() / 2 ** 20 if torch.cuda.is_available() else float("nan")
     return {"step": kind, "gaussians": n, "width": w, "height": h, "megapixels": round(w * h / 1e6, 3), "rc": rc,
-            "ms_per_step": round(TIMER["ms"], 3), "peak_mib": round(peak, 1)}
+            "ms_per_step": round(TIMER["ms"], 3), "peak_mib": round(peak, 1), "start_mib": round(start, 1)}
 
 
 def chart(rows: list[dict], path: Path, base_n: int, base_mp: float) -> None:
@@ -188,7 +193,8 @@ def read(path: Path) -> list[dict]:
 
 def write(rows: list[dict], out: Path, args) -> None:
     with open(out / "cost_curves.csv", "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=list(rows[0]))
+        wr = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))  # rows of earlier calls
+        # may lack a later column (start_mib): left empty there
         wr.writeheader()
         wr.writerows(rows)
     chart(rows, out / "cost_curves.png", args.base_gaussians, args.base_megapixels)
