@@ -204,16 +204,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     train_idx, test_idx = split_views(len(cams), cfg.holdout_every)
     targets = _image_list(dataset, device)
     bg_fixed = tuple(float(v) for v in cfg.background) if cfg.background is not None else dataset_background(dataset)
-
-    # --- the initial state ------------------------------------------------------------------------------------
-    init_note = "given Gaussians"
-    if ck is not None:
-        g0, ext = GaussianParams.from_state_dict(ck["params"], device).detached(), float(ck["extent"])
-    elif gaussians is not None:
-        g0, ext = gaussians.detach().to(device=device, dtype=torch.float32), scene_extent(cams)
-    else:
-        g0, ext, init_note = initialize(dataset, cfg.sh_degree, cfg.init_opacity, cfg.init_random_points,
-                                        cfg.max_init_points, device, cfg.seed)
+    g0, ext, init_note = _initial_state(dataset, cfg, ck, gaussians, device)
     density = density_control(cfg, g0.num, device, cams, extent=ext, n_views=len(train_idx), dist=dist)
     if ck is None:
         g0 = density.fit_budget(g0)  # the budget holds from the start: the most opaque
@@ -230,22 +221,10 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     if ck is not None:
         init_note = f"resumed at iteration {run.step} from {resume}"
 
-    def eval_views(g, which):
-        from ..losses import psnr, ssim  # lazy: imports Warp
-
-        ps, ss, renders = [], [], []
-        with torch.no_grad():
-            for i in which:
-                img = render(g, cams[i], bg_fixed).color.clamp(0, 1)
-                ps.append(psnr(img, targets[i]))
-                ss.append(float(ssim(img, targets[i])))
-                renders.append(img)
-        return ps, ss, renders
-
     eval_idx = test_idx if test_idx else train_idx
     psnr_init = None
     if start_step == 0:
-        pi, _, _ = eval_views(run.params.detached(), eval_idx)
+        pi, _, _ = _eval_views(run.params.detached(), cams, targets, eval_idx, bg_fixed)
         psnr_init = sum(pi) / len(pi)
 
     def write_ply(run_, note):
@@ -255,10 +234,8 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     train(run, progress=progress, callback=callback, diverged=FitDiverged, on_stop=write_ply if dist.is_main else None,
           hint=". Lower the learning rates or check the input images")
 
-    # --- outputs -----------------------------------------------------------------------------------------------
     final = run.params.detached()
-    ps, ss, renders = eval_views(final, eval_idx)
-    every = cfg.log_every
+    ps, ss, renders = _eval_views(final, cams, targets, eval_idx, bg_fixed)
     metrics = {
         "psnr": sum(ps) / len(ps), "ssim": sum(ss) / len(ss),
         "eval_split": "test" if test_idx else "train",
@@ -270,20 +247,55 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
         "time_split": run.timer.summary(), "extent": ext, "init": init_note,
         "num_train_views": len(train_idx), "num_test_views": len(test_idx), "device": str(device),
         "loss_history": [[r["step"], round(r["loss"], 6)] for r in run.log
-                         if r["step"] % every == 0 or r["step"] == cfg.iterations],
+                         if r["step"] % cfg.log_every == 0 or r["step"] == cfg.iterations],
         "densify_events": list(density.events), "render_counts": run.render_counts(),
     }
     if out is not None and dist.is_main:
-        metrics["ply_bytes"] = _save_ply_checked(final, out / "point_cloud.ply")
-        write_json(out / "cameras.json", cameras_json(dataset))
-        if cfg.save_renders:
-            for i, img in zip(eval_idx, renders):
-                write_image(out / ("test" if test_idx else "train") / f"{Path(names[i]).stem}.png", img)
+        metrics["ply_bytes"] = _write_fit_outputs(out, final, dataset, cfg.save_renders,
+                                                  [(names[i], img) for i, img in zip(eval_idx, renders)],
+                                                  "test" if test_idx else "train")
     metrics["wall_time_s"] = time.perf_counter() - t_start
     if out is not None and dist.is_main:
         write_json(out / "metrics.json", metrics)
     dist.barrier()
     return final, metrics
+
+
+def _initial_state(dataset, cfg: ReconstructConfig, ck, gaussians, device) -> tuple:
+    """(Gaussians, scene extent, a note saying where they came from): the checkpoint's, the given ones, or the
+    dataset's points initialized (its cameras set the extent of given Gaussians)."""
+    if ck is not None:
+        return GaussianParams.from_state_dict(ck["params"], device).detached(), float(ck["extent"]), "given Gaussians"
+    if gaussians is not None:
+        return gaussians.detach().to(device=device, dtype=torch.float32), scene_extent(list(dataset.cameras)), \
+            "given Gaussians"
+    return initialize(dataset, cfg.sh_degree, cfg.init_opacity, cfg.init_random_points, cfg.max_init_points, device,
+                      cfg.seed)
+
+
+def _eval_views(g, cams, targets, which, background) -> tuple:
+    """PSNR and SSIM of ``g``'s renders of views ``which`` against their photos, and the renders (clamped)."""
+    from ..losses import psnr, ssim  # lazy: imports Warp
+
+    ps, ss, renders = [], [], []
+    with torch.no_grad():
+        for i in which:
+            img = render(g, cams[i], background).color.clamp(0, 1)
+            ps.append(psnr(img, targets[i]))
+            ss.append(float(ssim(img, targets[i])))
+            renders.append(img)
+    return ps, ss, renders
+
+
+def _write_fit_outputs(out: Path, final, dataset, save_renders: bool, renders: list, split: str) -> int:
+    """point_cloud.ply (checked finite), cameras.json and, with ``save_renders``, the evaluated views' renders
+    ((name, image) pairs) under ``split``/. Returns the PLY's size in bytes."""
+    size = _save_ply_checked(final, out / "point_cloud.ply")
+    write_json(out / "cameras.json", cameras_json(dataset))
+    if save_renders:
+        for name, img in renders:
+            write_image(out / split / f"{Path(name).stem}.png", img)
+    return size
 
 
 __all__ = ["ReconstructConfig", "FitLoss", "FitDiverged", "fit_scene", "load_config", "config_yaml",
