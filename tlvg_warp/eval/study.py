@@ -319,6 +319,51 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
     if dist.is_main:
         st.out.mkdir(parents=True, exist_ok=True)
     launch = new_launch_id(dist)
+    keys = [f"{s}/{p}/{c}/seed_{k}" for s in st.scenes for p in st.paintings for c in st.configs
+            for k in range(st.seeds)]
+    status, ranks, evals, net = _run_jobs(st, dist, launch, keys, log, dev_name, device)
+    parts = dist.gather_objects({"status": status, "ranks": ranks, "evals": evals})
+    if not dist.is_main:
+        dist.barrier()  # the main rank's report is written before any rank returns
+        return None
+    status, ranks, evals = {}, {}, {}
+    for part in parts:
+        status |= part["status"]
+        ranks |= part["ranks"]
+        evals |= part["evals"]
+    status = {k: status.get(k, "not run") for k in keys}  # the order of one process
+    if net is None:
+        net = load_vgg(st.vgg_weights, device=device)
+    tables, pooled_all, anchors_all, groups_all = _scene_tables(st, evals)
+    pooled_all = {c: pooled(v) for c, v in pooled_all.items() if len(v) == len(tables)}
+    anchors_all = {a: pooled(v) for a, v in anchors_all.items() if len(v) == len(tables)}
+    g_all = pooled(groups_all) if groups_all and len(groups_all) == len(tables) else {}  # in the scenes' order
+    overall = {c: summarize(pv, g_all) for c, pv in pooled_all.items()}
+    overall_anchors = {a: summarize(pv, g_all) for a, pv in anchors_all.items()}
+    all_times = {c: _mean([r["wall_time_s"] for t in tables.values() for r in t["rows"] if r["config"] == c])
+                 for c in pooled_all}
+    result = {"study": str(st.path), "out": str(st.out), "device": str(device), "vgg": net.source,
+              "vgg_random": bool(net.is_random), "iterations": st.iterations, "seeds": st.seeds, "status": status,
+              "tables": tables, "ablation": ablation_rows(st, pooled_all, g_all or None), "overall": overall,
+              "overall_anchors": overall_anchors,
+              "times": all_times, "ours": st.ours, "baseline": st.baseline,
+              "ranks": {"world": dist.world, "stylized_by": {k: ranks[k] for k in keys if k in ranks}}}
+    if judge_cfg:
+        result["judge"] = run_panel(st, judge_cfg, log)
+    result["wall_s"] = round(time.perf_counter() - t0, 1)
+    write_json(st.out / "study.json", result)
+    write_text(st.out / "study.csv", csv_text(tables, result["ablation"]))
+    write_text(st.out / "study.html", study_html(result))
+    shutil.rmtree(st.out / ".claims" / launch, ignore_errors=True)
+    dist.barrier()
+    return result
+
+
+def _run_jobs(st: Study, dist, launch: str, keys: list, log, dev_name: str, device) -> tuple:
+    """This rank's share of the study's jobs: the scene fits, then the stylizations ``keys``
+    (scene/painting/config/seed_k), then the evaluations per (scene, painting). Returns (status per run key,
+    rank per run key, evaluations per (scene, painting): run name -> its result and "__anchors__", the VGG loaded
+    for them or None)."""
     fit_jobs = [s for s in st.scenes if not st.scenes[s].get("demo")]
     with local_only():  # every job is a whole single-process run on this rank's device
         for s in job_queue(st, dist, launch, "fit", fit_jobs):
@@ -326,8 +371,6 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
         dist.barrier()  # every scene is fitted before any stylization reads it
         plys = {s: (None if st.scenes[s].get("demo") else st.out / "scenes" / s / "point_cloud.ply")
                 for s in st.scenes}
-        keys = [f"{s}/{p}/{c}/seed_{k}" for s in st.scenes for p in st.paintings for c in st.configs
-                for k in range(st.seeds)]
         status, ranks = {}, {}
         for key in job_queue(st, dist, launch, "stylize", keys):
             s, p, c, sd = key.split("/")
@@ -352,18 +395,12 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
             write_text(out / "evaluation.html", report_html(res, runs, refs))
             evals[(s, p)] = {f"{Path(r['run']).parent.name}/{Path(r['run']).name}": r for r in res["runs"]}
             evals[(s, p)]["__anchors__"] = {a["name"]: a for a in res.get("anchors") or []}
-    parts = dist.gather_objects({"status": status, "ranks": ranks, "evals": evals})
-    if not dist.is_main:
-        dist.barrier()  # the main rank's report is written before any rank returns
-        return None
-    status, ranks, evals = {}, {}, {}
-    for part in parts:
-        status |= part["status"]
-        ranks |= part["ranks"]
-        evals |= part["evals"]
-    status = {k: status.get(k, "not run") for k in keys}  # the order of one process
-    if net is None:
-        net = load_vgg(st.vgg_weights, device=device)
+    return status, ranks, evals, net
+
+
+def _scene_tables(st: Study, evals: dict) -> tuple:
+    """Per scene, the configs' rows against the anchors over its paintings and seeds, and what pools them over
+    the scenes: (tables, pooled per-view values per config and per anchor (one entry per scene), seed groups)."""
     configs = list(st.configs)
     seeds = [f"seed_{k}" for k in range(st.seeds)]
     tables, pooled_all, anchors_all, groups_all = {}, {}, {}, []
@@ -389,28 +426,7 @@ def run_study(st: Study, judge_cfg: dict | None = None, log=print, dist=None) ->
             pooled_all.setdefault(c, []).append(v)
         for a, v in anchors.items():
             anchors_all.setdefault(a, []).append(v)
-    pooled_all = {c: pooled(v) for c, v in pooled_all.items() if len(v) == len(tables)}
-    anchors_all = {a: pooled(v) for a, v in anchors_all.items() if len(v) == len(tables)}
-    g_all = pooled(groups_all) if groups_all and len(groups_all) == len(tables) else {}  # in the scenes' order
-    overall = {c: summarize(pv, g_all) for c, pv in pooled_all.items()}
-    overall_anchors = {a: summarize(pv, g_all) for a, pv in anchors_all.items()}
-    all_times = {c: _mean([r["wall_time_s"] for t in tables.values() for r in t["rows"] if r["config"] == c])
-                 for c in pooled_all}
-    result = {"study": str(st.path), "out": str(st.out), "device": str(device), "vgg": net.source,
-              "vgg_random": bool(net.is_random), "iterations": st.iterations, "seeds": st.seeds, "status": status,
-              "tables": tables, "ablation": ablation_rows(st, pooled_all, g_all or None), "overall": overall,
-              "overall_anchors": overall_anchors,
-              "times": all_times, "ours": st.ours, "baseline": st.baseline,
-              "ranks": {"world": dist.world, "stylized_by": {k: ranks[k] for k in keys if k in ranks}}}
-    if judge_cfg:
-        result["judge"] = run_panel(st, judge_cfg, log)
-    result["wall_s"] = round(time.perf_counter() - t0, 1)
-    write_json(st.out / "study.json", result)
-    write_text(st.out / "study.csv", csv_text(tables, result["ablation"]))
-    write_text(st.out / "study.html", study_html(result))
-    shutil.rmtree(st.out / ".claims" / launch, ignore_errors=True)
-    dist.barrier()
-    return result
+    return tables, pooled_all, anchors_all, groups_all
 
 
 def _mean(xs):
