@@ -263,9 +263,10 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
 
 def _initial_state(dataset, cfg: ReconstructConfig, ck, gaussians, device) -> tuple:
     """(Gaussians, scene extent, a note saying where they came from): the checkpoint's, the given ones, or the
-    dataset's points initialized (its cameras set the extent of given Gaussians)."""
+    dataset's points initialized (its cameras set the extent of given Gaussians; the caller names the resumed
+    iteration)."""
     if ck is not None:
-        return GaussianParams.from_state_dict(ck["params"], device).detached(), float(ck["extent"]), "given Gaussians"
+        return GaussianParams.from_state_dict(ck["params"], device).detached(), float(ck["extent"]), "resumed"
     if gaussians is not None:
         return gaussians.detach().to(device=device, dtype=torch.float32), scene_extent(list(dataset.cameras)), \
             "given Gaussians"
