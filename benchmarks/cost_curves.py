@@ -10,9 +10,10 @@ phase alone, a fit step with the pre-process alone (L1 + SSIM against the recolo
 with density control; reconstruct's own step adds only its SfM-free schedule). Steps
 WARM..WARM+STEPS are timed with a synchronize at both ends (the wall per step as the run sees it: host and GPU);
 peak memory is torch.cuda.max_memory_allocated over the run (torch's allocations: VGG, the optimizer, the raster's
-buffers on torch memory), including what earlier points of the process still hold at its start (``start_mib``). ``raster`` points time the rasterizer alone on the same scene and view size, ours and each
-of ``--raster-peers`` in this process (bench raster's timing: forward+backward, median of ``--raster-repeats`` after
-warm-up, one orbit view; its peak memory). Writes cost_curves.csv and cost_curves.png under OUT after every point;
+buffers on torch memory), including what earlier points of the process still hold at its start (``start_mib``).
+``raster`` points time the rasterizer alone on the same scene and view size, ours and each of ``--raster-peers``
+in this process (bench raster's timing: forward+backward, median of ``--raster-repeats`` after warm-up, one orbit
+view; its peak memory). Writes cost_curves.csv and cost_curves.png under OUT after every point;
 ``--resume`` keeps the points an earlier call wrote there (a curve can take more than one call).
 """
 from __future__ import annotations
@@ -91,8 +92,8 @@ def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
     downscale, w, h = view_size(megapixels)
     TIMER.update(warm=args.warm, steps=args.steps, ms=float("nan"))
     start = float("nan")
-    if torch.cuda.is_available():  # what earlier points of this process left allocated (e.g. a CUDA graph's pool
-        gc.collect()  # held by a cache) counts in the peak: freed where it can be, and reported as start_mib
+    if torch.cuda.is_available():  # what earlier points of this process left allocated counts in the peak: what
+        gc.collect()  # garbage collection frees goes first, the rest is reported as start_mib
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats()
         start = torch.cuda.memory_allocated() / 2 ** 20

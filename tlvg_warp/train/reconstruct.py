@@ -204,7 +204,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     train_idx, test_idx = split_views(len(cams), cfg.holdout_every)
     targets = _image_list(dataset, device)
     bg_fixed = tuple(float(v) for v in cfg.background) if cfg.background is not None else dataset_background(dataset)
-    g0, ext, init_note = _initial_state(dataset, cfg, ck, gaussians, device)
+    g0, ext, init_note = _initial_state(dataset, cams, cfg, ck, gaussians, device)
     density = density_control(cfg, g0.num, device, cams, extent=ext, n_views=len(train_idx), dist=dist)
     if ck is None:
         g0 = density.fit_budget(g0)  # the budget holds from the start: the most opaque
@@ -261,14 +261,14 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
     return final, metrics
 
 
-def _initial_state(dataset, cfg: ReconstructConfig, ck, gaussians, device) -> tuple:
+def _initial_state(dataset, cams: list, cfg: ReconstructConfig, ck, gaussians, device) -> tuple:
     """(Gaussians, scene extent, a note saying where they came from): the checkpoint's, the given ones, or the
     dataset's points initialized (its cameras set the extent of given Gaussians; the caller names the resumed
     iteration)."""
     if ck is not None:
         return GaussianParams.from_state_dict(ck["params"], device).detached(), float(ck["extent"]), "resumed"
     if gaussians is not None:
-        return gaussians.detach().to(device=device, dtype=torch.float32), scene_extent(list(dataset.cameras)), \
+        return gaussians.detach().to(device=device, dtype=torch.float32), scene_extent(cams), \
             "given Gaussians"
     return initialize(dataset, cfg.sh_degree, cfg.init_opacity, cfg.init_random_points, cfg.max_init_points, device,
                       cfg.seed)
