@@ -91,23 +91,29 @@ def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
         save_ply(random_scene(n, -4.0, 0, "cpu"), scene)
     downscale, w, h = view_size(megapixels)
     TIMER.update(warm=args.warm, steps=args.steps, ms=float("nan"))
-    start = float("nan")
+    start = held = float("nan")
     if torch.cuda.is_available():  # what earlier points of this process left allocated counts in the peak: what
         gc.collect()  # garbage collection frees goes first, the rest is reported as start_mib
         torch.cuda.empty_cache()
+        held = torch.cuda.memory_allocated() / 2 ** 20
+        clear = getattr(torch._C, "_cuda_clearCublasWorkspaces", None)  # cuBLAS keeps a workspace per stream it
+        if clear is not None:  # ran on (CUDA graphs capture on side streams): held_mib counts them, start_mib not
+            clear()
+            torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats()
         start = torch.cuda.memory_allocated() / 2 ** 20
     argv = ["stylize", "--scene", str(scene), "--out", str(work / f"run_{kind}_{n}_{megapixels}"), "--overwrite",
             "--quiet",
             "--iterations", str(args.warm + args.steps + 1), "--downscale", f"{downscale:.6f}",
             "--set", "phases=" + ("[0,1,0]" if kind == "stylize" else "[1,0,0]"), "--set", "orbit_frames=0",
-            "--set", "web_formats=false",
+            "--set", "web_formats=false", *[a for kv in args.set for a in ("--set", kv)],
             *(["--vgg-weights", args.vgg_weights] if args.vgg_weights else []),
             *(["--device", args.device] if args.device else [])]
     rc = cli.main(argv)
     peak = torch.cuda.max_memory_allocated() / 2 ** 20 if torch.cuda.is_available() else float("nan")
     return {"step": kind, "gaussians": n, "width": w, "height": h, "megapixels": round(w * h / 1e6, 3), "rc": rc,
-            "ms_per_step": round(TIMER["ms"], 3), "peak_mib": round(peak, 1), "start_mib": round(start, 1)}
+            "ms_per_step": round(TIMER["ms"], 3), "peak_mib": round(peak, 1), "start_mib": round(start, 1),
+            "held_mib": round(held, 1), "settings": " ".join(args.set)}
 
 
 def chart(rows: list[dict], path: Path, base_n: int, base_mp: float) -> None:
@@ -154,6 +160,8 @@ def main() -> None:
     ap.add_argument("--raster-peers", default="tlvg_warp,gsplat", help="the rasterizers of the raster points")
     ap.add_argument("--raster-repeats", type=int, default=10)
     ap.add_argument("--resume", action="store_true", help="keep the points already in OUT/cost_curves.csv")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a stylize setting for every point (repeatable; the CSV's settings column names them)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -164,11 +172,11 @@ def main() -> None:
     todo += [(args.base_gaussians, float(m)) for m in args.megapixels.split(",")
              if m and (args.base_gaussians, float(m)) not in todo]
     rows = read(out / "cost_curves.csv") if args.resume else []
-    done = {(r["step"].split()[0], r["gaussians"], r["megapixels_asked"]) for r in rows}
+    done = {(r["step"].split()[0], r["gaussians"], r["megapixels_asked"], r.get("settings") or "") for r in rows}
     print("| step | Gaussians | view | ms per step | peak MiB |\n| --- | --- | --- | --- | --- |")
     for kind in args.steps_of.split(","):
         for n, mp in todo:
-            if (kind, n, mp) in done:
+            if (kind, n, mp, " ".join(args.set)) in done:
                 continue
             new = raster_points(n, mp, args) if kind == "raster" else [point(work, n, mp, kind, args)]
             for r in new:

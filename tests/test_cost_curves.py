@@ -41,3 +41,22 @@ def test_view_size_gives_the_asked_megapixels_at_the_orbit_aspect():
         assert abs(w * h / 1e6 - mp) / mp < 0.01
         ow, oh = cost_curves.ORBIT_SIZE
         assert math.isclose(w / h, ow / oh, rel_tol=0.01) and round(ow / downscale) == w
+
+
+def test_a_points_settings_reach_the_run_and_its_row(tmp_path, monkeypatch):
+    """``--set`` goes to every point's stylize command line, pair by pair, and the row names it (an A/B of a setting
+    in one CSV must not read as one curve)."""
+    seen = []
+    monkeypatch.setattr(cost_curves.cli, "main", lambda argv: seen.append(list(argv)) or 0)
+    monkeypatch.setattr(cost_curves, "random_scene", lambda *a, **k: None)
+    monkeypatch.setattr(cost_curves, "save_ply", lambda g, p: p.write_bytes(b""))
+
+    class Args:
+        warm, steps, vgg_weights, device = 1, 2, None, "cpu"
+        set = ["style_max_cells=0", "loss.w_style=2"]
+
+    row = cost_curves.point(tmp_path, 1000, 0.1, "stylize", Args)
+    argv = seen[0]
+    pairs = [argv[i + 1] for i, a in enumerate(argv) if a == "--set"]
+    assert pairs[-2:] == ["style_max_cells=0", "loss.w_style=2"] and "phases=[0,1,0]" in pairs
+    assert row["settings"] == "style_max_cells=0 loss.w_style=2" and row["rc"] == 0

@@ -217,6 +217,11 @@ class StylizeConfig:
     # which VGG sees a view (view height x vgg_scale), i.e. the painting spans the view and its strokes keep their
     # size relative to the picture
     stroke_scale: float = 1.0  # the painting's working size x this: 2 = strokes twice as large in the views
+    style_max_cells: int = 65536  # the style terms match each view cell against at most this many of the painting's
+    # feature cells (ours): above it every s-th row and column of its relu3 cells, s the smallest stride that fits.
+    # The match's cost grows with the product of the view's cells and the painting's, and with style_height 0 both
+    # grow with the view; the strokes keep their size (the features are the full-size painting's); 0: every cell.
+    # No view up to 1008x756 at stroke_scale 2 reaches it (fern at 1008x756: 57,000 cells)
     refine_radius: float = 0.0  # before the pre-process, split splats wider on screen than this x stroke_scale
     # pixels (their mean 3-sigma radius over the views) into stroke-sized children, within the Gaussian budget;
     # 0: off. A flat region held by a few huge splats cannot take a brushstroke (train/refine.py)
@@ -262,7 +267,7 @@ class StylizeConfig:
     density: DensityConfig = field(default_factory=_density)  # adaptive density control, per phase step
 
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
-             "stroke_scale": (">", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
+             "stroke_scale": (">", 0), "style_max_cells": (">=", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
              "stroke_jitter_mode": ("of", "luminance", "palette"), "palette_map": ("of", "arf", "arf_rank", "tone"),
              "palette_floor": (">=", 0), "palette_where": ("of", "all", "covered"), "post_chroma_blur": ("in", 0, 0.1),
              "downscale": (">", 0), "views_per_step": (">=", 1),

@@ -277,9 +277,9 @@ class Targets:
 
     style_work: torch.Tensor  # the painting at its working size [hs,ws,3] (CPU)
     style_field: tuple  # (θ, coherence, doubled) numpy at the working size
-    style_feats: torch.Tensor  # [768, Ns] the style term's target features
-    style_feats_rgb: torch.Tensor | None  # [768, Ns] RGB features of the painting (the colour style term), or None
-    match_feats: torch.Tensor  # [768, Ns] luminance features: the field match
+    style_feats: torch.Tensor  # [768, Ns'] the style term's target features (at most style_max_cells: thin_cells)
+    style_feats_rgb: torch.Tensor | None  # [768, Ns'] RGB features of the painting (the colour style term), or None
+    match_feats: torch.Tensor  # [768, Ns] luminance features, every cell: the field match (once per view)
     style_doubled_cells: torch.Tensor  # the painting's doubled-angle field at its feature cells
     recolored: list  # per view [H,W,3]: the photos in the painting's palette (pre-process and Lab targets)
     lab_stats: list  # per view: the Lab term's target statistics (``lab_targets``, once)
@@ -295,6 +295,22 @@ class Targets:
     style_feats_coarse: torch.Tensor | None = None  # [768, Ns/4] the style term's painting features one octave
     # coarser (loss.w_style_coarse), or None
     style_feats_deep: torch.Tensor | None = None  # [1536, Ns/4] the painting's conv4 features (loss.w_style_deep)
+
+
+def cell_stride(h: int, w: int, max_cells: int) -> int:
+    """The smallest stride s with every s-th row and column of an h x w grid at most ``max_cells`` cells (1 when
+    the grid fits or ``max_cells`` is 0: no limit)."""
+    s = 1
+    while max_cells and (-(-h // s)) * (-(-w // s)) > max_cells:
+        s += 1
+    return s
+
+
+def thin_cells(feats: torch.Tensor, max_cells: int) -> torch.Tensor:
+    """[1,C,h,w] painting features -> [C, n]: every s-th row and column (``cell_stride``), flattened row-major, so the
+    style match compares a view cell with at most ``max_cells`` painting cells (``style_max_cells``)."""
+    s = cell_stride(feats.shape[-2], feats.shape[-1], max_cells)
+    return feats[..., ::s, ::s].reshape(feats.shape[-3], -1).contiguous()  # [C, ceil(h/s) * ceil(w/s)]
 
 
 def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
@@ -345,8 +361,8 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
         # background would make the fit grow splats to paint it
         recolored = [over_background(r, c, p) for r, c, p in zip(recolored, coverage, photos)]
     lab_index = lab_blocks(coverage, cfg.loss.lab_block) if cfg.loss.lab_where == "covered" else [None] * len(coverage)
-    return Targets(style_work, (s_theta, s_coh, s_doubled), flatten_feats(sf).contiguous(),
-                   None if sf_rgb is None else flatten_feats(sf_rgb).contiguous(),
+    return Targets(style_work, (s_theta, s_coh, s_doubled), thin_cells(sf, cfg.style_max_cells),
+                   None if sf_rgb is None else thin_cells(sf_rgb, cfg.style_max_cells),
                    flatten_feats(sf_lum).contiguous(), cells, recolored,
                    lab_targets(recolored, style_work, "photo" if cfg.keep_colors else cfg.loss.lab_sigma,
                                cfg.loss.lab_block, lab_index),
