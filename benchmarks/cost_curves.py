@@ -116,19 +116,26 @@ def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
             "held_mib": round(held, 1), "settings": " ".join(args.set)}
 
 
-def chart(rows: list[dict], path: Path, base_n: int, base_mp: float) -> None:
+def chart(rows: list[dict], path: Path, base_n: int, base_mp: float, settings: str = "") -> None:
+    """Both curves of the rows measured with ``settings`` (a call's --set, space-joined; other rows are left out);
+    a curve without a point is an empty panel."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg  # lazy: only the figure needs it
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(10, 4))
     FigureCanvasAgg(fig)
+    rows = [r for r in rows if (r.get("settings") or "") == settings and r["rc"] in (0, "0")]
     for k, (key, label, keep) in enumerate((("gaussians", "Gaussians", lambda r: r["megapixels_asked"] == base_mp),
                                             ("megapixels", "megapixels", lambda r: r["gaussians"] == base_n))):
         ax = fig.add_subplot(1, 2, k + 1)
+        if not any(keep(r) for r in rows):  # a call that measured the other curve only: log axes need data
+            ax.set_axis_off()
+            ax.set_title(f"against {label}: no points", fontsize=9)
+            continue
         ax2 = ax.twinx()
         kinds = sorted({r["step"] for r in rows}, key=lambda k: (k.startswith("raster"), k))
         for kind, color in zip(kinds, ("tab:blue", "tab:green", "tab:orange", "tab:red", "tab:purple")):
-            pts = sorted((r for r in rows if keep(r) and r["step"] == kind and r["rc"] in (0, "0")),
+            pts = sorted((r for r in rows if keep(r) and r["step"] == kind),
                          key=lambda r: r[key])
             name = kind.replace("raster tlvg_warp", "raster ours (fwd+bwd)").replace("raster gsplat",
                                                                                      "raster gsplat (fwd+bwd)")
@@ -206,7 +213,7 @@ def write(rows: list[dict], out: Path, args) -> None:
         # may lack a later column (start_mib): left empty there
         wr.writeheader()
         wr.writerows(rows)
-    chart(rows, out / "cost_curves.png", args.base_gaussians, args.base_megapixels)
+    chart(rows, out / "cost_curves.png", args.base_gaussians, args.base_megapixels, " ".join(getattr(args, "set", [])))
 
 
 if __name__ == "__main__":

@@ -60,3 +60,20 @@ def test_a_points_settings_reach_the_run_and_its_row(tmp_path, monkeypatch):
     pairs = [argv[i + 1] for i, a in enumerate(argv) if a == "--set"]
     assert pairs[-2:] == ["style_max_cells=0", "loss.w_style=2"] and "phases=[0,1,0]" in pairs
     assert row["settings"] == "style_max_cells=0 loss.w_style=2" and row["rc"] == 0
+
+
+def test_the_chart_of_one_curve_alone_and_of_one_setting(tmp_path, monkeypatch):
+    """A call that measures points of the pixel curve only leaves the Gaussian curve empty: the chart draws it as an
+    empty panel (log axes without data raised, after the CSV was written, and ended the call); rows of another
+    setting stay out of the curves."""
+    plotted = []
+    from matplotlib.axes import Axes
+    real_plot = Axes.plot
+    monkeypatch.setattr(Axes, "plot", lambda self, x, y, *a, **k: plotted.append((list(x), list(y)))
+                        or real_plot(self, x, y, *a, **k))
+    rows = [_row("stylize", 1_000_000, 2.0, 31.9, 6885.0, settings=""),
+            _row("stylize", 1_000_000, 2.0, 50.5, 7214.0, settings="style_max_cells=0")]
+    cost_curves.write(rows, tmp_path, _Args)
+    im = cv2.imread(str(tmp_path / "cost_curves.png"))
+    assert im is not None and im.shape[1] > 100
+    assert ([2.0], [31.9]) in plotted and all(50.5 not in y for _, y in plotted)

@@ -217,11 +217,12 @@ class StylizeConfig:
     # which VGG sees a view (view height x vgg_scale), i.e. the painting spans the view and its strokes keep their
     # size relative to the picture
     stroke_scale: float = 1.0  # the painting's working size x this: 2 = strokes twice as large in the views
-    style_max_cells: int = 65536  # the style terms match each view cell against at most this many of the painting's
-    # feature cells (ours): above it every s-th row and column of its relu3 cells, s the smallest stride that fits.
-    # The match's cost grows with the product of the view's cells and the painting's, and with style_height 0 both
-    # grow with the view; the strokes keep their size (the features are the full-size painting's); 0: every cell.
-    # No view up to 1008x756 at stroke_scale 2 reaches it (fern at 1008x756: 57,000 cells)
+    style_max_cells: int = 0  # > 0: the style terms match each view cell against at most this many of the painting's
+    # feature cells (ours), every s-th row and column of its relu3 cells, s the smallest stride that fits; 0: every
+    # cell. The match's cost grows with the product of the view's cells and the painting's, and with style_height 0
+    # both grow with the view: at 65536 a stylize step at 4 MP took 56.7 ms instead of 244.8 (2 MP: 31.9 instead of
+    # 50.5), while at fern's 1008x756 a quarter of the cells moved NNFM 0.0006 and the stroke measure 0.002 past
+    # three seeds' range, so it is an option for large views (docs/performance.md)
     refine_radius: float = 0.0  # before the pre-process, split splats wider on screen than this x stroke_scale
     # pixels (their mean 3-sigma radius over the views) into stroke-sized children, within the Gaussian budget;
     # 0: off. A flat region held by a few huge splats cannot take a brushstroke (train/refine.py)
