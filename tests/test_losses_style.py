@@ -376,3 +376,20 @@ def test_fast_union_leaves_torch_deterministic_flag_as_it_found_it(before):
     finally:
         torch.use_deterministic_algorithms(was[0], warn_only=was[1])
     assert np.allclose(us.numpy(), _dense_union(idx_r, idx_c, 29, 41) @ s.T, atol=1e-12)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the CUDA chunk budget")
+def test_cuda_chunk_budget_changes_no_match(monkeypatch):
+    """On CUDA a match in SIM_BUDGET_CUDA's few large chunks picks what many small chunks pick: the same painting
+    cell per render cell, or (a float16 tie) one whose float64 cosine is as high within float16's rounding."""
+    g = torch.Generator().manual_seed(3)
+    a = torch.rand(64, 3000, generator=g).cuda()
+    s = style_mod.StyleFeatures(torch.rand(64, 9000, generator=g).cuda())
+    big = style_mod._topk_both(a, s, 1, need_cols=False)[0][:, 0]
+    monkeypatch.setattr(style_mod, "SIM_BUDGET_CUDA", 100_000)  # 11 rows a chunk: 273 chunks
+    small = style_mod._topk_both(a, s, 1, need_cols=False)[0][:, 0]
+    an, sn = torch.nn.functional.normalize(a.double(), dim=0), torch.nn.functional.normalize(s.s.double(), dim=0)
+    cos = an.T @ sn  # [3000, 9000]
+    rows = torch.arange(3000, device=a.device)
+    assert (big == small).float().mean() > 0.99
+    assert torch.allclose(cos[rows, big], cos[rows, small], atol=2e-3, rtol=0)

@@ -29,7 +29,10 @@ RIDGE = 1e-12  # FAST's A + 1e-12*I (reference code)
 RIDGE64 = 1e-10
 RIDGE32 = 1e-5
 EPS_COS = 1e-8  # F.cosine_similarity's eps: a (dead) all-zero row has cosine 0
-SIM_BUDGET = 1 << 25  # elements per similarity chunk: 32M floats = 128 MB in float32
+SIM_BUDGET = 1 << 25  # elements per similarity chunk on the CPU: 32M floats = 128 MB in float32
+SIM_BUDGET_CUDA = 1 << 28  # on CUDA (float16): 512 MB. Each row chunk reads all of the painting's features again, so
+# small chunks made a large match bound by those reads: a 4 MP view's 62,000 cells against the painting's 300,000
+# (460 MB of features) took 560 chunks at 32M elements, 70 at this budget (docs/performance.md)
 TWO_PRODUCTS = None  # the match's column pass from a second product: None = on CUDA only (tests force either)
 SOLVES = ("auto", "cholesky64", "lu64", "cholesky32")
 
@@ -46,8 +49,8 @@ def _unit(f: torch.Tensor) -> torch.Tensor:
     return F.normalize(f, p=2, dim=0)  # unit columns [C, N]
 
 
-def _chunks(n_rows: int, n_cols: int):
-    step = max(1, SIM_BUDGET // max(1, n_cols))
+def _chunks(n_rows: int, n_cols: int, budget: int):
+    step = max(1, budget // max(1, n_cols))
     for i0 in range(0, n_rows, step):
         yield i0, min(n_rows, i0 + step)
 
@@ -144,7 +147,8 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     Nc' the cell count rounded up to 8, so every operand and output of both float16 products is 16-byte aligned
     (tensor-core kernels; 0.23 -> 0.05 ms at fern size); the padding cells' similarities are set to -inf
     before their top-k. On the CPU (float32 products cost more than a top-k down the columns) one product, its
-    column top-k merged across row chunks. Products larger than SIM_BUDGET elements are made in chunks."""
+    column top-k merged across row chunks. Products larger than SIM_BUDGET elements (SIM_BUDGET_CUDA on CUDA) are
+    made in chunks."""
     st = as_style(s, a)
     mdt = match_dtype(a)
     c, nc = a.shape
@@ -157,8 +161,9 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     idx_r = torch.empty(nc, kr, dtype=torch.long, device=a.device)
     idx_c = torch.empty(ns, kc, dtype=torch.long, device=a.device) if need_cols else None
     sn = st.unit(mdt)
+    budget = SIM_BUDGET_CUDA if a.is_cuda else SIM_BUDGET
     best_v = best_i = None  # CPU: running column top-k over the row chunks [kc', Ns]
-    for i0, i1 in _chunks(nc, ns):
+    for i0, i1 in _chunks(nc, ns, budget):
         sim = anT[i0:i1] @ sn  # [m, Ns]
         # the nearest neighbour alone (NNFM, the field match) is one pass of argmax, where topk's radix select makes
         # several over the same rows; ties go to the first painting cell
@@ -178,7 +183,7 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
         idx_c.copy_(best_i.T)
         return idx_r, idx_c
     snT = st.unitT(mdt)
-    for j0, j1 in _chunks(ns, nc + pad):
+    for j0, j1 in _chunks(ns, nc + pad, budget):
         simT = snT[j0:j1] @ anT.T  # [m, Nc']
         if pad:
             simT[:, nc:] = float("-inf")
