@@ -220,8 +220,8 @@ class StylizeConfig:
     style_max_cells: int = 0  # > 0: the style terms match each view cell against at most this many of the painting's
     # feature cells (ours), every s-th row and column of its relu3 cells, s the smallest stride that fits; 0: every
     # cell. The match's cost grows with the product of the view's cells and the painting's, and with style_height 0
-    # both grow with the view: at 65536 a stylize step at 4 MP took 56.7 ms instead of 244.8 (2 MP: 31.9 instead of
-    # 50.5), while at fern's 1008x756 a quarter of the cells moved NNFM 0.0006 and the stroke measure 0.002 past
+    # both grow with the view: at 65536 a stylize step at 4 MP took 56.1 ms instead of 201.9 (2 MP: 31.6 instead of
+    # 46.1), while at fern's 1008x756 a quarter of the cells moved NNFM 0.0006 and the stroke measure 0.002 past
     # three seeds' range, so it is an option for large views (docs/performance.md)
     refine_radius: float = 0.0  # before the pre-process, split splats wider on screen than this x stroke_scale
     # pixels (their mean 3-sigma radius over the views) into stroke-sized children, within the Gaussian budget;
