@@ -2,7 +2,7 @@
 
     python benchmarks/cost_curves.py --out OUT [--gaussians 100000,300000,1000000,3000000,10000000] \
         [--megapixels 0.1,0.5,1,2,4] [--base-gaussians 1000000] [--base-megapixels 0.76] [--steps 40] [--warm 20] \
-        [--steps-of stylize,fit,raster] [--raster-peers tlvg_warp,gsplat] [--resume]
+        [--steps-of stylize,fit,raster] [--raster-peers tlvg_warp,gsplat] [--resume] [--profile N] [--set K=V]
 
 Each point is a random scene (bench raster's: uniform in a cube, log-scale -4, SH degree 0) stylized by `stylize`
 with configs/tlvg.yaml in this process, on orbit views of the point's size (4:3): a stylize step with the stylize
@@ -45,15 +45,35 @@ def _sync():
         torch.cuda.synchronize()
 
 
+def _top_kernels(prof, steps: int, rows: int = 12) -> str:
+    """The GPU kernels of the profiled steps, most time first: ms a step each, and the total."""
+    kernels = [e for e in prof.key_averages() if e.device_type == torch.autograd.DeviceType.CUDA
+               and not getattr(e, "is_user_annotation", False)]
+    kernels.sort(key=lambda e: -e.self_device_time_total)
+    total = sum(e.self_device_time_total for e in kernels) / 1e3 / steps
+    lines = [f"  {e.self_device_time_total / 1e3 / steps:8.3f} ms  {e.count // steps:4d}x  {e.key[:110]}"
+             for e in kernels[:rows]]
+    return f"GPU kernel time a step ({steps} steps under the profiler): {total:.2f} ms\n" + "\n".join(lines)
+
+
 def _timed_train(orig):
     def train(run, callback=None, **kw):
         def both(step, r):
+            end = TIMER["warm"] + TIMER["steps"]
             if step == TIMER["warm"]:
                 _sync()
                 TIMER["t0"] = time.perf_counter()
-            elif step == TIMER["warm"] + TIMER["steps"]:
+            elif step == end:
                 _sync()
                 TIMER["ms"] = (time.perf_counter() - TIMER["t0"]) / TIMER["steps"] * 1e3
+                if TIMER["profile"]:  # after the timed steps, so the profiler slows none of them
+                    from torch.profiler import ProfilerActivity, profile
+                    TIMER["prof"] = profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA])
+                    TIMER["prof"].start()
+            elif TIMER["profile"] and step == end + TIMER["profile"]:
+                _sync()
+                TIMER["prof"].stop()
+                print(_top_kernels(TIMER["prof"], TIMER["profile"]), flush=True)
             if callback is not None:
                 callback(step, r)
         return orig(run, callback=both, **kw)
@@ -90,7 +110,7 @@ def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
     if not scene.is_file():
         save_ply(random_scene(n, -4.0, 0, "cpu"), scene)
     downscale, w, h = view_size(megapixels)
-    TIMER.update(warm=args.warm, steps=args.steps, ms=float("nan"))
+    TIMER.update(warm=args.warm, steps=args.steps, ms=float("nan"), profile=getattr(args, "profile", 0))
     start = held = float("nan")
     if torch.cuda.is_available():  # what earlier points of this process left allocated counts in the peak: what
         gc.collect()  # garbage collection frees goes first, the rest is reported as start_mib
@@ -104,7 +124,7 @@ def point(work: Path, n: int, megapixels: float, kind: str, args) -> dict:
         start = torch.cuda.memory_allocated() / 2 ** 20
     argv = ["stylize", "--scene", str(scene), "--out", str(work / f"run_{kind}_{n}_{megapixels}"), "--overwrite",
             "--quiet",
-            "--iterations", str(args.warm + args.steps + 1), "--downscale", f"{downscale:.6f}",
+            "--iterations", str(args.warm + args.steps + TIMER["profile"] + 1), "--downscale", f"{downscale:.6f}",
             "--set", "phases=" + ("[0,1,0]" if kind == "stylize" else "[1,0,0]"), "--set", "orbit_frames=0",
             "--set", "web_formats=false", *[a for kv in args.set for a in ("--set", kv)],
             *(["--vgg-weights", args.vgg_weights] if args.vgg_weights else []),
@@ -167,6 +187,8 @@ def main() -> None:
     ap.add_argument("--raster-peers", default="tlvg_warp,gsplat", help="the rasterizers of the raster points")
     ap.add_argument("--raster-repeats", type=int, default=10)
     ap.add_argument("--resume", action="store_true", help="keep the points already in OUT/cost_curves.csv")
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="after the timed steps, N more under torch's profiler: the top GPU kernels a step")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a stylize setting for every point (repeatable; the CSV's settings column names them)")
     args = ap.parse_args()
