@@ -192,6 +192,31 @@ def test_nearest_cell_is_the_float64_argmax(monkeypatch):
             assert np.allclose(sim[np.arange(23), got], sim.max(1), rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("two", [False, True])
+def test_padded_painting_columns_change_no_match(monkeypatch, two):
+    """The painting's unit columns padded to a multiple of 8 (as on CUDA, forced here): the padding cells never win,
+    whatever the cosines' sign (features with negative entries make every real cosine negative for some render
+    cells, where a padding cell's 0 would beat them), whole and in row chunks; the column pass is unchanged."""
+    g = np.random.default_rng(5)
+    a, s = g.normal(size=(6, 40)), np.abs(g.normal(size=(6, 21))) + 0.1  # 21 painting cells: 3 padding columns
+    a[:, :5] = -np.abs(a[:, :5])  # render cells 0-4 point away from every (positive) painting cell
+    an, sn = a / np.linalg.norm(a, axis=0), s / np.linalg.norm(s, axis=0)
+    sim = an.T @ sn
+    assert (sim.max(1) < 0).any()  # a 0 would win there
+    monkeypatch.setattr(style_mod, "PAD_COLUMNS", True)
+    monkeypatch.setattr(style_mod, "TWO_PRODUCTS", two)
+    st = style_mod.StyleFeatures(torch.from_numpy(s))
+    for budget in (1 << 25, 50):
+        monkeypatch.setattr(style_mod, "SIM_BUDGET", budget)
+        for k in (1, 3):
+            idx_r, idx_c = style_mod._topk_both(torch.from_numpy(a), st, k, need_cols=two)
+            assert int(idx_r.max()) < 21
+            np.testing.assert_array_equal(idx_r.numpy(), np.argsort(-sim, 1, kind="stable")[:, :k])
+            if two:
+                np.testing.assert_array_equal(np.sort(idx_c.numpy(), 1), np.sort(np.argsort(-sim.T, 1)[:, :k], 1))
+    assert st.unit(torch.float64, 8).shape == (6, 24) and float(st.unit(torch.float64, 8)[:, 21:].abs().sum()) == 0
+
+
 def _dense_union(idx_r, idx_c, nc: int, ns: int) -> np.ndarray:
     """FAST's U built densely [Nc,Ns]: 1 where a render cell's row pass or a style cell's column pass picked the pair."""
     U = np.zeros((nc, ns))
@@ -381,15 +406,17 @@ def test_fast_union_leaves_torch_deterministic_flag_as_it_found_it(before):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="the CUDA chunk budget")
 def test_cuda_chunk_budget_changes_no_match(monkeypatch):
     """On CUDA a match in SIM_BUDGET_CUDA's few large chunks picks what many small chunks pick: the same painting
-    cell per render cell, or (a float16 tie) one whose float64 cosine is as high within float16's rounding."""
+    cell per render cell, or (a float16 tie) one whose float64 cosine is as high within float16's rounding. 9,003
+    painting cells: the product runs on columns padded to 9,008, and no padding cell is picked."""
     g = torch.Generator().manual_seed(3)
     a = torch.rand(64, 3000, generator=g).cuda()
-    s = style_mod.StyleFeatures(torch.rand(64, 9000, generator=g).cuda())
+    s = style_mod.StyleFeatures(torch.rand(64, 9003, generator=g).cuda())
     big = style_mod._topk_both(a, s, 1, need_cols=False)[0][:, 0]
     monkeypatch.setattr(style_mod, "SIM_BUDGET_CUDA", 100_000)  # 11 rows a chunk: 273 chunks
     small = style_mod._topk_both(a, s, 1, need_cols=False)[0][:, 0]
     an, sn = torch.nn.functional.normalize(a.double(), dim=0), torch.nn.functional.normalize(s.s.double(), dim=0)
-    cos = an.T @ sn  # [3000, 9000]
+    cos = an.T @ sn  # [3000, 9003]
     rows = torch.arange(3000, device=a.device)
+    assert int(big.max()) < 9003 and int(small.max()) < 9003
     assert (big == small).float().mean() > 0.99
     assert torch.allclose(cos[rows, big], cos[rows, small], atol=2e-3, rtol=0)

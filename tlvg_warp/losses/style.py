@@ -34,6 +34,9 @@ SIM_BUDGET_CUDA = 1 << 28  # on CUDA (float16): 512 MB. Each row chunk reads all
 # small chunks made a large match bound by those reads: a 4 MP view's 62,000 cells against the painting's 300,000
 # (460 MB of features) took 560 chunks at 32M elements, 70 at this budget (docs/performance.md)
 TWO_PRODUCTS = None  # the match's column pass from a second product: None = on CUDA only (tests force either)
+PAD_COLUMNS = None  # the row pass's painting operand padded to a multiple of 8 cells: None = on CUDA only (tests
+# force it). A float16 product whose leading dimension is not a multiple of 8 elements falls back to an unaligned
+# GEMM: at 4 MP the painting's 299,636 cells ran an sm75 "align1" kernel, 174 of a step's 227 ms of GPU time
 SOLVES = ("auto", "cholesky64", "lu64", "cholesky32")
 
 
@@ -84,17 +87,22 @@ class StyleFeatures:
     def device(self):
         return self.s.device
 
-    def unit(self, dtype: torch.dtype) -> torch.Tensor:
-        u = self._unit.get(dtype)
+    def unit(self, dtype: torch.dtype, pad_to: int = 1) -> torch.Tensor:
+        """Unit columns [C, Ns'] in ``dtype``, Ns' = Ns rounded up to a multiple of ``pad_to`` (the extra columns 0:
+        a caller that pads must keep them out of its ranking)."""
+        u = self._unit.get((dtype, pad_to))
         if u is None:
-            u = self._unit[dtype] = _unit(self.s).to(dtype).contiguous()
+            n = self.s.shape[1]
+            u = torch.zeros(self.s.shape[0], n + (-n) % pad_to, dtype=dtype, device=self.s.device)
+            u[:, :n] = _unit(self.s)
+            self._unit[(dtype, pad_to)] = u
         return u
 
     def unitT(self, dtype: torch.dtype) -> torch.Tensor:
         """Unit columns as rows [Ns, C] (the left operand of the column-pass similarity product)."""
         u = self._unitT.get(dtype)
         if u is None:
-            u = self._unitT[dtype] = self.unit(dtype).T.contiguous()
+            u = self._unitT[dtype] = _unit(self.s).T.to(dtype).contiguous()
         return u
 
     @property
@@ -144,9 +152,9 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
 
     On CUDA: two products, each top-k along its rows (a top-k down the columns of one product was 2x slower on
     the GPU): sim = âᵀŝ [Nc,Ns] and simᵀ = ŝᵀâ [Ns,Nc']. The unit render features are laid out [Nc', C] with
-    Nc' the cell count rounded up to 8, so every operand and output of both float16 products is 16-byte aligned
-    (tensor-core kernels; 0.23 -> 0.05 ms at fern size); the padding cells' similarities are set to -inf
-    before their top-k. On the CPU (float32 products cost more than a top-k down the columns) one product, its
+    Nc' the cell count rounded up to 8, and the painting's unit columns [C, Ns'] likewise (``PAD_COLUMNS``), so
+    every operand and output of both float16 products is 16-byte aligned (tensor-core kernels; 0.23 -> 0.05 ms at
+    fern size); the padding cells' similarities are set to -inf before their top-k. On the CPU (float32 products cost more than a top-k down the columns) one product, its
     column top-k merged across row chunks. Products larger than SIM_BUDGET elements (SIM_BUDGET_CUDA on CUDA) are
     made in chunks."""
     st = as_style(s, a)
@@ -160,11 +168,14 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     anT[:nc].copy_(_unit(a).T)  # the padding rows stay unset: only their own (overwritten) outputs see them
     idx_r = torch.empty(nc, kr, dtype=torch.long, device=a.device)
     idx_c = torch.empty(ns, kc, dtype=torch.long, device=a.device) if need_cols else None
-    sn = st.unit(mdt)
     budget = SIM_BUDGET_CUDA if a.is_cuda else SIM_BUDGET
+    pad_s = 8 if (a.is_cuda if PAD_COLUMNS is None else PAD_COLUMNS) and not (need_cols and not two) else 1
+    sn = st.unit(mdt, pad_s)  # [C, Ns'], the padding columns 0 (the CPU's column top-k must not see them)
     best_v = best_i = None  # CPU: running column top-k over the row chunks [kc', Ns]
-    for i0, i1 in _chunks(nc, ns, budget):
-        sim = anT[i0:i1] @ sn  # [m, Ns]
+    for i0, i1 in _chunks(nc, sn.shape[1], budget):
+        sim = anT[i0:i1] @ sn  # [m, Ns']
+        if sn.shape[1] > ns:
+            sim[:, ns:] = float("-inf")  # the padding cells rank last
         # the nearest neighbour alone (NNFM, the field match) is one pass of argmax, where topk's radix select makes
         # several over the same rows; ties go to the first painting cell
         idx_r[i0:i1] = sim.argmax(1, keepdim=True) if kr == 1 else sim.topk(kr, dim=1).indices
