@@ -221,8 +221,8 @@ class StylizeConfig:
     # feature cells (ours), every s-th row and column of its relu3 cells, s the smallest stride that fits; 0: every
     # cell. The match's cost grows with the product of the view's cells and the painting's, and with style_height 0
     # both grow with the view: at 65536 a stylize step at 4 MP took 56.1 ms instead of 201.9 (2 MP: 31.6 instead of
-    # 46.1), while at fern's 1008x756 a quarter of the cells moved NNFM 0.0006 and the stroke measure 0.002 past
-    # three seeds' range, so it is an option for large views (docs/performance.md)
+    # 46.1; both before the match's product was aligned), while at fern's 1008x756 a quarter of the cells moved NNFM
+    # 0.0006 and the stroke measure 0.002 past three seeds' range, so it is an option (docs/performance.md)
     refine_radius: float = 0.0  # before the pre-process, split splats wider on screen than this x stroke_scale
     # pixels (their mean 3-sigma radius over the views) into stroke-sized children, within the Gaussian budget;
     # 0: off. A flat region held by a few huge splats cannot take a brushstroke (train/refine.py)
