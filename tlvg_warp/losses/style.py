@@ -154,9 +154,9 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     the GPU): sim = âᵀŝ [Nc,Ns] and simᵀ = ŝᵀâ [Ns,Nc']. The unit render features are laid out [Nc', C] with
     Nc' the cell count rounded up to 8, and the painting's unit columns [C, Ns'] likewise (``PAD_COLUMNS``), so
     every operand and output of both float16 products is 16-byte aligned (tensor-core kernels; 0.23 -> 0.05 ms at
-    fern size); the padding cells' similarities are set to -inf before their top-k. On the CPU (float32 products cost more than a top-k down the columns) one product, its
-    column top-k merged across row chunks. Products larger than SIM_BUDGET elements (SIM_BUDGET_CUDA on CUDA) are
-    made in chunks."""
+    fern size); the padding cells' similarities are set to -inf before their top-k. On the CPU (float32 products
+    cost more than a top-k down the columns) one product, its column top-k merged across row chunks. Products larger
+    than SIM_BUDGET elements (SIM_BUDGET_CUDA on CUDA) are made in chunks."""
     st = as_style(s, a)
     mdt = match_dtype(a)
     c, nc = a.shape

@@ -268,7 +268,8 @@ class StylizeConfig:
     density: DensityConfig = field(default_factory=_density)  # adaptive density control, per phase step
 
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
-             "stroke_scale": (">", 0), "style_max_cells": (">=", 0), "refine_radius": (">=", 0), "stroke_jitter": (">=", 0),
+             "stroke_scale": (">", 0), "style_max_cells": (">=", 0), "refine_radius": (">=", 0),
+             "stroke_jitter": (">=", 0),
              "stroke_jitter_mode": ("of", "luminance", "palette"), "palette_map": ("of", "arf", "arf_rank", "tone"),
              "palette_floor": (">=", 0), "palette_where": ("of", "all", "covered"), "post_chroma_blur": ("in", 0, 0.1),
              "downscale": (">", 0), "views_per_step": (">=", 1),
