@@ -287,3 +287,38 @@ def test_field_source_picks_the_render_the_field_is_matched_on(demo, monkeypatch
         other = now if source == "unstylized" else tg.originals[i]
         torch.testing.assert_close(seen[i], want.to(seen[i]))
         assert float((seen[i] - other.to(seen[i])).abs().max()) > 0.05
+
+
+def test_the_fields_match_every_view_against_one_set_of_painting_columns(demo, monkeypatch):
+    """make_fields normalizes the painting's features once for all views (they are the same painting), not once per
+    view: each view's match is handed the same StyleFeatures, whose unit columns are built on its first use; the
+    fields equal those of a match against the plain tensor (a version that rebuilt them per view, or matched a
+    stale set, fails)."""
+    import tlvg_warp.losses as L
+    from tlvg_warp.losses import style as style_mod
+
+    handed, real = [], L.matched_view_field
+
+    def recording(vgg, img, painting, *a):
+        handed.append(painting)
+        return real(vgg, img, painting, *a)
+    monkeypatch.setattr(L, "matched_view_field", recording)
+    builds = []
+    real_unit = style_mod._unit
+    monkeypatch.setattr(style_mod, "_unit", lambda f: builds.append(f.shape) or real_unit(f))
+    cfg = _cfg()
+    tg = _targets(demo, cfg)
+    run = build_run(demo, cfg, tg, StubFeatures(), torch.device("cpu"), Dist(), None)
+    builds.clear()
+    fields = run.phase("stylize").make_fields(run)
+    ns = tg.match_feats.shape[1]
+    assert len(handed) == VIEWS and all(p is handed[0] for p in handed)
+    assert sum(1 for s in builds if s[1] == ns) == 1  # the painting's columns once; the views' own once each
+    from tlvg_warp.stylize.pipeline import flow_field_tensor
+    for i, f in enumerate(fields):  # the same fields as a match against the plain tensor, view by view
+        src = tg.originals[i] if cfg.loss.field_source == "unstylized" else None
+        if src is None:
+            from tlvg_warp.renderer import render
+            src = render(run.params.gaussians(), run.cams[i], run.background).color
+        plain = real(StubFeatures(), src, tg.match_feats, tg.style_doubled_cells, cfg.vgg_scale)
+        torch.testing.assert_close(f, flow_field_tensor(plain.float()))

@@ -548,9 +548,11 @@ class Stylize(Phase):
         """Per view the target stroke field [H,W,3] from the current render ("matched") or the canvas."""
         # lazy: imports Warp
         from ..losses import map_field_canvas, matched_view_field
+        from ..losses.style import StyleFeatures
 
         tg, out, w = self.tg, [], self.cfg.loss
         g = run.params.gaussians()
+        painting = StyleFeatures(tg.match_feats)  # its unit columns made once for every view, not once per view
         painting_field = torch.from_numpy(tg.style_field[2]).to(run.device)  # [hs,ws,2] doubled angle
         for i, cam in enumerate(run.cams):
             canvas = None
@@ -561,7 +563,7 @@ class Stylize(Phase):
             else:
                 img = (tg.originals[i].to(run.device) if w.field_source == "unstylized"
                        else render(g, cam, run.background).color)
-                d = matched_view_field(self.vgg, img, tg.match_feats, tg.style_doubled_cells, self.cfg.vgg_scale)
+                d = matched_view_field(self.vgg, img, painting, tg.style_doubled_cells, self.cfg.vgg_scale)
                 if canvas is not None:  # doubled-angle vectors mix as orientations do; coherence weighs each side
                     d = (1 - w.field_canvas) * d + w.field_canvas * canvas.to(d)
             out.append(flow_field_tensor(d.to(device=run.device, dtype=torch.float32)))
