@@ -21,7 +21,7 @@ from tlvg_warp.io import load_ply, save_ply
 from tlvg_warp.io.scene_views import scene_views
 from tlvg_warp.io.splat_formats import save_compressed_ply, save_spz
 from tlvg_warp.renderer import render
-from tlvg_warp.stylize.outputs import OUTPUT_WORKERS, to_u8, write_orbit, write_view, orbit_path
+from tlvg_warp.stylize.outputs import OUTPUT_WORKERS, orbit_path, to_u8, write_orbit, write_view
 
 
 def render_all(g, cams, frames: int, per_frame_copy: bool = True) -> float:

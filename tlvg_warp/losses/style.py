@@ -169,8 +169,9 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     idx_r = torch.empty(nc, kr, dtype=torch.long, device=a.device)
     idx_c = torch.empty(ns, kc, dtype=torch.long, device=a.device) if need_cols else None
     budget = SIM_BUDGET_CUDA if a.is_cuda else SIM_BUDGET
-    pad_s = 8 if (a.is_cuda if PAD_COLUMNS is None else PAD_COLUMNS) and not (need_cols and not two) else 1
-    sn = st.unit(mdt, pad_s)  # [C, Ns'], the padding columns 0 (the CPU's column top-k must not see them)
+    cols_in_rows = need_cols and not two  # the CPU's column top-k reads this product: no padding cells in it
+    pad_s = 8 if (a.is_cuda if PAD_COLUMNS is None else PAD_COLUMNS) and not cols_in_rows else 1
+    sn = st.unit(mdt, pad_s)  # [C, Ns'], the padding columns 0
     best_v = best_i = None  # CPU: running column top-k over the row chunks [kc', Ns]
     for i0, i1 in _chunks(nc, sn.shape[1], budget):
         sim = anT[i0:i1] @ sn  # [m, Ns']
@@ -179,7 +180,7 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
         # the nearest neighbour alone (NNFM, the field match) is one pass of argmax, where topk's radix select makes
         # several over the same rows; ties go to the first painting cell
         idx_r[i0:i1] = sim.argmax(1, keepdim=True) if kr == 1 else sim.topk(kr, dim=1).indices
-        if need_cols and not two:
+        if cols_in_rows:
             v, i = sim.topk(min(kc, i1 - i0), dim=0)  # [k', Ns]
             if i0:
                 i = i + i0
