@@ -405,7 +405,7 @@ def test_fast_union_leaves_torch_deterministic_flag_as_it_found_it(before):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="the CUDA chunk budget")
 def test_cuda_chunk_budget_changes_no_match(monkeypatch):
-    """On CUDA a match in SIM_BUDGET_CUDA's few large chunks picks what many small chunks pick: the same painting
+    """On CUDA a match in its few large chunks picks what many small chunks pick: the same painting
     cell per render cell, or (a float16 tie) one whose float64 cosine is as high within float16's rounding. 9,003
     painting cells: the product runs on columns padded to 9,008, and no padding cell is picked."""
     g = torch.Generator().manual_seed(3)
@@ -413,6 +413,7 @@ def test_cuda_chunk_budget_changes_no_match(monkeypatch):
     s = style_mod.StyleFeatures(torch.rand(64, 9003, generator=g).cuda())
     big = style_mod._topk_both(a, s, 1, need_cols=False)[0][:, 0]
     monkeypatch.setattr(style_mod, "SIM_BUDGET_CUDA", 100_000)  # 11 rows a chunk: 273 chunks
+    monkeypatch.setattr(style_mod, "SIM_ROWS_CUDA", 1)
     small = style_mod._topk_both(a, s, 1, need_cols=False)[0][:, 0]
     an, sn = torch.nn.functional.normalize(a.double(), dim=0), torch.nn.functional.normalize(s.s.double(), dim=0)
     cos = an.T @ sn  # [3000, 9003]
@@ -420,3 +421,25 @@ def test_cuda_chunk_budget_changes_no_match(monkeypatch):
     assert int(big.max()) < 9003 and int(small.max()) < 9003
     assert (big == small).float().mean() > 0.99
     assert torch.allclose(cos[rows, big], cos[rows, small], atol=2e-3, rtol=0)
+
+
+@pytest.mark.parametrize("n_cols", [1, 9_003, 14_194, 57_000, 131_072, 299_636, 1 << 29])
+def test_chunk_rows_bounds(n_cols):
+    """A chunk's rows on CUDA: at least SIM_ROWS_CUDA rows or SIM_BUDGET elements (whichever is more), never more
+    than SIM_BUDGET_CUDA elements unless one row alone is larger; on the CPU SIM_BUDGET elements. Checked in
+    integers against the bounds, not the formula: a rule that dropped the floor (fern's 14,194 painting cells:
+    2,363 rows, not 18,911) or the cap (the 4 MP painting: 895 rows, not 2,048) fails."""
+    rows = style_mod._chunk_rows(n_cols, cuda=True)
+    cap = style_mod.SIM_BUDGET_CUDA
+    assert rows >= 1
+    assert rows * n_cols <= cap or rows == 1
+    floor = max(style_mod.SIM_ROWS_CUDA, style_mod.SIM_BUDGET // n_cols)  # SIM_BUDGET's rows: floor division
+    assert rows >= min(floor, max(1, cap // n_cols))
+    assert rows <= max(floor, 1)  # no more than the floor asks: the memory the rule saves
+    cpu = style_mod._chunk_rows(n_cols, cuda=False)
+    assert cpu * n_cols <= style_mod.SIM_BUDGET or cpu == 1
+    assert (cpu + 1) * n_cols > style_mod.SIM_BUDGET
+    if n_cols == 14_194:
+        assert rows == 2_363 and rows * n_cols <= style_mod.SIM_BUDGET  # one 32M chunk's worth, not 512 MB
+    if n_cols == 299_636:
+        assert rows == cap // n_cols == 895

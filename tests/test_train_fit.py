@@ -223,3 +223,21 @@ def test_fern_small_cpu_integration(tmp_path):
     assert m["num_test_views"] == 3 and m["eval_split"] == "test"
     assert m["psnr"] > m["psnr_init"] + PSNR_GAIN_FERN
     assert g.num <= 4000  # (no wall-time assertion: speed is shown by benchmarks, and CI machines vary)
+
+
+@pytest.mark.parametrize("degree", [0, 2])
+def test_cli_sh_degree_flag_sets_the_fitted_degree(tmp_path, degree):
+    """`--sh-degree N` fits and writes N: the PLY (read back with plyfile) holds 3 x ((N+1)^2 - 1) f_rest fields, as
+    many as the INRIA layout gives that degree, and config.yaml records it; the flag wins over the config's value."""
+    from plyfile import PlyData
+
+    two = blender_dataset(tmp_path / "two", 2)
+    out = tmp_path / f"sh{degree}"
+    rc = main(["reconstruct", str(two), "--out", str(out), "--iterations", "3", "--device", "cpu", "--quiet",
+               "--set", "init_random_points=100", "--set", "sh_degree=3", "--sh-degree", str(degree)])
+    assert rc == 0
+    names = [p.name for p in PlyData.read(str(out / "point_cloud.ply"))["vertex"].properties]
+    assert sum(n.startswith("f_rest_") for n in names) == 3 * ((degree + 1) ** 2 - 1)
+    assert yaml.safe_load((out / "config.yaml").read_text())["sh_degree"] == degree
+    m = json.loads((out / "metrics.json").read_text())
+    assert "peak_gpu_mib" in m and m["peak_gpu_mib"] is None  # the CPU: no GPU memory to report

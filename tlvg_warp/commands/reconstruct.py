@@ -26,6 +26,9 @@ def add_arguments(p):
     p.add_argument("--iterations", type=int, default=None, help="optimizer steps (config: iterations)")
     p.add_argument("--downscale", type=float, default=None, help="image downscale factor (config: downscale)")
     p.add_argument("--images", default=None, help="image sub-folder, e.g. images_8 (config: images)")
+    p.add_argument("--sh-degree", type=int, default=None, choices=[0, 1, 2, 3],
+                   help="highest SH degree fitted (config: sh_degree, default 3); 0 for a scene you will only "
+                        "stylize: stylize keeps degree 0, and fitting it alone is faster and a quarter of the bytes")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config key (repeatable), dotted for sections, e.g. --set density.max_gaussians=300000 "
                         "--set lr.means=0.0016 (configs/reconstruct.yaml lists every key)")
@@ -52,7 +55,7 @@ def run(args) -> int:
         base = config_from_dict(load_checkpoint(args.resume)["config"], ReconstructConfig())
     overrides = list(args.set)
     for key, val in (("iterations", args.iterations), ("downscale", args.downscale), ("images", args.images),
-                     ("device", args.device)):
+                     ("sh_degree", args.sh_degree), ("device", args.device)):
         if val is not None:
             overrides.append(f"{key}={val}")
     cfg = load_config(resolve_config(args.config, default=None), overrides, base)  # a preset by name from any folder
@@ -75,7 +78,8 @@ def run(args) -> int:
         drop_checkpoints(out)
     print(f"{out}: held-out PSNR {m['psnr']:.2f} dB (init {m['psnr_init'] if m['psnr_init'] is None else round(m['psnr_init'], 2)}), "
           f"SSIM {m['ssim']:.4f}, {m['num_gaussians']} Gaussians, {m['ply_bytes'] / 1e6:.1f} MB, "
-          f"{m['iterations']} iterations in {m['train_time_s']:.1f} s")
+          f"{m['iterations']} iterations in {m['train_time_s']:.1f} s"
+          + (f", peak GPU memory {m['peak_gpu_mib'] / 1024:.2f} GiB" if m.get("peak_gpu_mib") else ""))
     return 0
 
 

@@ -30,9 +30,12 @@ RIDGE64 = 1e-10
 RIDGE32 = 1e-5
 EPS_COS = 1e-8  # F.cosine_similarity's eps: a (dead) all-zero row has cosine 0
 SIM_BUDGET = 1 << 25  # elements per similarity chunk on the CPU: 32M floats = 128 MB in float32
-SIM_BUDGET_CUDA = 1 << 28  # on CUDA (float16): 512 MB. Each row chunk reads all of the painting's features again, so
-# small chunks made a large match bound by those reads: a 4 MP view's 62,000 cells against the painting's 300,000
-# (460 MB of features) took 560 chunks at 32M elements, 70 at this budget (docs/performance.md)
+SIM_BUDGET_CUDA = 1 << 28  # on CUDA (float16): at most 512 MB a chunk. Each row chunk reads all of the painting's
+# features again, so small chunks made a large match bound by those reads: a 4 MP view's 62,000 cells against the
+# painting's 300,000 (460 MB of features) took 560 chunks at 32M elements, 70 at this budget (docs/performance.md)
+SIM_ROWS_CUDA = 2048  # on CUDA a chunk holds this many render cells (or SIM_BUDGET elements, if more), up to
+# SIM_BUDGET_CUDA: the painting's features are re-read once per 2048 rows at most (the product writes 8x what it
+# reads again), and a small match no longer takes 512 MB (fern at 504x378: 11,800 x 14,200 cells in one chunk)
 TWO_PRODUCTS = None  # the match's column pass from a second product: None = on CUDA only (tests force either)
 PAD_COLUMNS = None  # the row pass's painting operand padded to a multiple of 8 cells: None = on CUDA only (tests
 # force it). A float16 product whose leading dimension is not a multiple of 8 elements falls back to an unaligned
@@ -52,8 +55,17 @@ def _unit(f: torch.Tensor) -> torch.Tensor:
     return F.normalize(f, p=2, dim=0)  # unit columns [C, N]
 
 
-def _chunks(n_rows: int, n_cols: int, budget: int):
-    step = max(1, budget // max(1, n_cols))
+def _chunk_rows(n_cols: int, cuda: bool) -> int:
+    """Rows of a [rows, n_cols] similarity chunk: SIM_BUDGET elements on the CPU; on CUDA SIM_ROWS_CUDA rows or
+    SIM_BUDGET elements, whichever is more, at most SIM_BUDGET_CUDA elements."""
+    n_cols = max(1, n_cols)
+    if not cuda:
+        return max(1, SIM_BUDGET // n_cols)
+    return max(1, min(SIM_BUDGET_CUDA // n_cols, max(SIM_ROWS_CUDA, SIM_BUDGET // n_cols)))
+
+
+def _chunks(n_rows: int, n_cols: int, cuda: bool):
+    step = _chunk_rows(n_cols, cuda)
     for i0 in range(0, n_rows, step):
         yield i0, min(n_rows, i0 + step)
 
@@ -155,8 +167,8 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     Nc' the cell count rounded up to 8, and the painting's unit columns [C, Ns'] likewise (``PAD_COLUMNS``), so
     every operand and output of both float16 products is 16-byte aligned (tensor-core kernels; 0.23 -> 0.05 ms at
     fern size); the padding cells' similarities are set to -inf before their top-k. On the CPU (float32 products
-    cost more than a top-k down the columns) one product, its column top-k merged across row chunks. Products larger
-    than SIM_BUDGET elements (SIM_BUDGET_CUDA on CUDA) are made in chunks."""
+    cost more than a top-k down the columns) one product, its column top-k merged across row chunks. Products are
+    made in row chunks (:func:`_chunk_rows`)."""
     st = as_style(s, a)
     mdt = match_dtype(a)
     c, nc = a.shape
@@ -168,12 +180,11 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
     anT[:nc].copy_(_unit(a).T)  # the padding rows stay unset: only their own (overwritten) outputs see them
     idx_r = torch.empty(nc, kr, dtype=torch.long, device=a.device)
     idx_c = torch.empty(ns, kc, dtype=torch.long, device=a.device) if need_cols else None
-    budget = SIM_BUDGET_CUDA if a.is_cuda else SIM_BUDGET
     cols_in_rows = need_cols and not two  # the CPU's column top-k reads this product: no padding cells in it
     pad_s = 8 if (a.is_cuda if PAD_COLUMNS is None else PAD_COLUMNS) and not cols_in_rows else 1
     sn = st.unit(mdt, pad_s)  # [C, Ns'], the padding columns 0
     best_v = best_i = None  # CPU: running column top-k over the row chunks [kc', Ns]
-    for i0, i1 in _chunks(nc, sn.shape[1], budget):
+    for i0, i1 in _chunks(nc, sn.shape[1], a.is_cuda):
         sim = anT[i0:i1] @ sn  # [m, Ns']
         if sn.shape[1] > ns:
             sim[:, ns:] = float("-inf")  # the padding cells rank last
@@ -195,7 +206,7 @@ def _topk_both(a: torch.Tensor, s, k: int, need_cols: bool = True):
         idx_c.copy_(best_i.T)
         return idx_r, idx_c
     snT = st.unitT(mdt)
-    for j0, j1 in _chunks(ns, nc + pad, budget):
+    for j0, j1 in _chunks(ns, nc + pad, a.is_cuda):
         simT = snT[j0:j1] @ anT.T  # [m, Nc']
         if pad:
             simT[:, nc:] = float("-inf")

@@ -304,12 +304,18 @@ class Run:
                 "resumed_from": start_step or None,
                 "time_per_phase_s": {p: round(t, 3) for p, t in self.phase_time.items()},
                 "train_time_s": round(sum(self.phase_time.values()), 3), "stage_split": self.timer.summary(),
-                "densify_events": list(self.density.events), "render_counts": self.render_counts()}
+                "densify_events": list(self.density.events), "render_counts": self.render_counts(),
+                "peak_gpu_mib": peak_gpu_mib(self.device)}
 
     def render_counts(self) -> dict | None:
         """How this process's training renders sized their key buffers (``IntersectionBudget.counts``); None where
         every render counts exactly (the CPU, or ``render_headroom`` 0)."""
         return self.budget.counts() if self.budget is not None else None
+
+
+def peak_gpu_mib(device: torch.device) -> float | None:
+    """torch's peak allocated memory on ``device`` in this process so far, MiB; None on the CPU."""
+    return round(torch.cuda.max_memory_allocated(device) / 2 ** 20, 1) if device.type == "cuda" else None
 
 
 def _note_views(was: dict, now: dict) -> None:

@@ -31,7 +31,7 @@ from ..renderer import render
 from ..types import Gaussians
 from .density import DENSITY_RENAMED, DensityConfig
 from .init import initialize, scene_extent
-from .loop import Diverged, Fit, train
+from .loop import Diverged, Fit, peak_gpu_mib, train
 from .optim import LR_RENAMED, GaussianParams, LearningRates
 from .session import Session, density_control, new_run, optimizer
 
@@ -242,7 +242,7 @@ def fit_scene(dataset, config: ReconstructConfig | None = None, out_dir=None, ga
         "views": [names[i] for i in eval_idx], "psnr_per_view": ps, "ssim_per_view": ss,
         "psnr_init": psnr_init, "num_gaussians": final.num, "ply_bytes": None,
         "iterations": run.step, "resumed_from": start_step if start_step else None,
-        "train_time_s": run.loop_time, "wall_time_s": None,
+        "train_time_s": run.loop_time, "wall_time_s": None, "peak_gpu_mib": peak_gpu_mib(device),
         "it_per_s": (run.step - start_step) / max(run.loop_time, 1e-9),
         "time_split": run.timer.summary(), "extent": ext, "init": init_note,
         "num_train_views": len(train_idx), "num_test_views": len(test_idx), "device": str(device),
