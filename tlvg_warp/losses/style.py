@@ -35,7 +35,8 @@ SIM_BUDGET_CUDA = 1 << 28  # on CUDA (float16): at most 512 MB a chunk. Each row
 # painting's 300,000 (460 MB of features) took 560 chunks at 32M elements, 70 at this budget (docs/performance.md)
 SIM_ROWS_CUDA = 2048  # on CUDA a chunk holds this many render cells (or SIM_BUDGET elements, if more), up to
 # SIM_BUDGET_CUDA: the painting's features are re-read once per 2048 rows at most (the product writes 8x what it
-# reads again), and a small match no longer takes 512 MB (fern at 504x378: 11,800 x 14,200 cells in one chunk)
+# reads again), and a 1007x755 view's 11,800 cells against the painting's 57,000 take 224 MB chunks instead of 512 MB
+# (a stylize step's peak 3,804 -> 3,225 MiB, 14.9 -> 15.2 ms; at 2 and 4 MP the cap rules, as before)
 TWO_PRODUCTS = None  # the match's column pass from a second product: None = on CUDA only (tests force either)
 PAD_COLUMNS = None  # the row pass's painting operand padded to a multiple of 8 cells: None = on CUDA only (tests
 # force it). A float16 product whose leading dimension is not a multiple of 8 elements falls back to an unaligned
