@@ -28,7 +28,8 @@ def add_arguments(p):
     p.add_argument("--images", default=None, help="image sub-folder, e.g. images_8 (config: images)")
     p.add_argument("--sh-degree", type=int, default=None, choices=[0, 1, 2, 3],
                    help="highest SH degree fitted (config: sh_degree, default 3); 0 for a scene you will only "
-                        "stylize: stylize keeps degree 0, and fitting it alone is faster and a quarter of the PLY's bytes")
+                        "stylize: stylize keeps degree 0, and fitting it alone is faster and a quarter of the PLY's "
+                        "bytes")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config key (repeatable), dotted for sections, e.g. --set density.max_gaussians=300000 "
                         "--set lr.means=0.0016 (configs/reconstruct.yaml lists every key)")
