@@ -43,6 +43,9 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
   step-profile       is a fern stylize step host-bound? (benchmarks/profile_step.py: wall per step, GPU time
                      per step, top kernels; ARGS go to the run, e.g. --set terms_cuda_graphs=false; WARM, TIMED:
                      the steps timed without the profiler).
+  fit-profile [ARGS] is a fern fit step (7000 iterations, images_4) host-bound? benchmarks/profile_step.py on
+                     `reconstruct` (WARM, TIMED, CPROF as for step-profile; WARM=4000 TIMED=1000: after densification).
+                     Reproduces: "Scene fitting", where a fit step goes.
   setup-profile [N]  where a stylize run's fixed costs go: cProfile of fern stylized for N iterations (default 30),
                      the package's functions by cumulative time (set-up, outputs, start-up).
   intersection-drift [ARGS]
@@ -177,6 +180,8 @@ case "$cmd" in
   cost-curves) gpu; exec python3 benchmarks/cost_curves.py --out "$OUT/cost_curves" "$@";;
   outputs-profile) exec python3 benchmarks/profile_outputs.py "$@";;
   step-profile) exec python3 benchmarks/profile_step.py stylize -- $FERN --out "$R/profile" --overwrite --quiet "$@";;
+  fit-profile) exec python3 benchmarks/profile_step.py reconstruct -- "$D/fern_llff" --images images_4 --iterations 7000 \
+    --out "$R/fit_profile" --overwrite --quiet "$@";;
   setup-profile)
     python3 -m cProfile -o "$OUT/setup.prof" -m tlvg_warp stylize $FERN --iterations "${1:-30}" --out "$R/setup_run" \
       --overwrite --quiet > "$R/setup_run.log" 2>&1; tail -n 3 "$R/setup_run.log"
