@@ -241,3 +241,11 @@ def test_cli_sh_degree_flag_sets_the_fitted_degree(tmp_path, degree):
     assert yaml.safe_load((out / "config.yaml").read_text())["sh_degree"] == degree
     m = json.loads((out / "metrics.json").read_text())
     assert "peak_gpu_mib" in m and m["peak_gpu_mib"] is None  # the CPU: no GPU memory to report
+
+
+def test_peak_memory_note_in_gib():
+    """The last line's clause reads MiB from metrics.json as GiB (2^10 MiB each), and is empty where there is none."""
+    from tlvg_warp.commands import peak_memory_note
+
+    assert peak_memory_note({"peak_gpu_mib": 1536.0}) == ", peak GPU memory 1.50 GiB"
+    assert peak_memory_note({"peak_gpu_mib": None}) == "" and peak_memory_note({}) == ""

@@ -20,3 +20,9 @@ def check_resumable(run) -> None:
     if p.is_dir() and not (p / "checkpoint.pt").exists() and (p / "metrics.json").is_file():
         raise InputError("this run finished and its checkpoint.pt was removed, so it cannot be resumed or extended "
                          "(run with --keep-checkpoint to keep it)", p)
+
+
+def peak_memory_note(metrics: dict) -> str:
+    """The run's last line's peak GPU memory clause, from metrics.json's ``peak_gpu_mib``; empty on the CPU."""
+    mib = metrics.get("peak_gpu_mib")
+    return f", peak GPU memory {mib / 1024:.2f} GiB" if mib else ""

@@ -13,7 +13,7 @@ from pathlib import Path
 from ..errors import InputError
 from ..runs import resolve_device, run_folder
 from ..runs import drop_checkpoints
-from . import KEEP_CHECKPOINT_HELP, check_resumable
+from . import KEEP_CHECKPOINT_HELP, check_resumable, peak_memory_note
 
 
 def add_arguments(p):
@@ -79,8 +79,7 @@ def run(args) -> int:
         drop_checkpoints(out)
     print(f"{out}: held-out PSNR {m['psnr']:.2f} dB (init {m['psnr_init'] if m['psnr_init'] is None else round(m['psnr_init'], 2)}), "
           f"SSIM {m['ssim']:.4f}, {m['num_gaussians']} Gaussians, {m['ply_bytes'] / 1e6:.1f} MB, "
-          f"{m['iterations']} iterations in {m['train_time_s']:.1f} s"
-          + (f", peak GPU memory {m['peak_gpu_mib'] / 1024:.2f} GiB" if m.get("peak_gpu_mib") else ""))
+          f"{m['iterations']} iterations in {m['train_time_s']:.1f} s" + peak_memory_note(m))
     return 0
 
 

@@ -13,7 +13,7 @@ import math
 import sys
 
 from ..viewer import SceneViewer, scene_center, scene_radius, up_from_cameras
-from . import KEEP_CHECKPOINT_HELP, check_resumable
+from . import KEEP_CHECKPOINT_HELP, check_resumable, peak_memory_note
 from .view import serve_forever
 
 
@@ -123,8 +123,7 @@ def _summary(out, m: dict, tone_hold: float = 0.0) -> None:
           f"{m['training_field_alignment_unstylized']:.3f}; `evaluate` scores all runs against one common field), "
           f"Gaussians {m['gaussians_input']} -> {m['gaussians_final']}, {m['bytes_out'] / 1e6:.2f} MB, "
           f"phases pre {tp['pre']:.1f}s / stylize {tp['stylize']:.1f}s / post {tp['post']:.1f}s, "
-          f"wall {m['wall_time_s']:.1f}s" + (f", peak GPU memory {m['peak_gpu_mib'] / 1024:.2f} GiB"
-                                              if m.get("peak_gpu_mib") else ""))
+          f"wall {m['wall_time_s']:.1f}s" + peak_memory_note(m))
     print(f"open {out / 'comparison.png'} (photo, original and stylized views beside the painting); "
           f"the stylized scene is {out / 'stylized.ply'}")
     if m.get("tone_covered") is not None and m.get("tone_target") is not None:
