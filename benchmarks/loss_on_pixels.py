@@ -46,7 +46,7 @@ def main(photo_path: str, painting_path: str, out: str, steps: int = 300, height
     for k in range(steps):
         img = torch.sigmoid(logits)
         a_lum, a_rgb = vgg.features_of([luminance(img), img], cfg.vgg_scale)
-        loss = (w.strength * (w.w_style * style_lum(a_lum) + w.w_style_color * style_rgb(a_rgb))
+        loss = (w.style_scale * (w.w_style * style_lum(a_lum) + w.w_style_color * style_rgb(a_rgb))
                 + w_content * content_loss(a_rgb, photo_feats) + w.w_chroma_tv * chroma_tv_loss(img))
         opt.zero_grad()
         loss.backward()

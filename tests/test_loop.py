@@ -276,7 +276,7 @@ def test_coarse_style_term_matches_both_at_half_the_working_size(demo):
     assert float(terms["style"].detach()) == pytest.approx(fine, rel=TERM_TOL, abs=1e-7)
     assert float(terms["style_coarse"].detach()) == pytest.approx(coarse, rel=TERM_TOL, abs=1e-7)
     assert terms["style_coarse"].requires_grad
-    assert sty.weights(0)["style_coarse"] == 0.5 * cfg.loss.strength
+    assert sty.weights(0)["style_coarse"] == 0.5 * cfg.loss.strength ** 3
 
 
 class DeepStub(StubFeatures):
@@ -323,7 +323,7 @@ def test_deep_style_term_matches_the_conv4_features(demo):
     assert float(terms["style_deep"].detach()) == pytest.approx(deep, rel=TERM_TOL, abs=1e-7)
     assert terms["style_deep"].requires_grad
     assert "style_deep" not in sty.image_names  # its match is cached per view: outside the graphed terms
-    assert sty.weights(0)["style_deep"] == 0.7 * cfg.loss.strength
+    assert sty.weights(0)["style_deep"] == 0.7 * cfg.loss.strength ** 3
     with pytest.raises(ConfigError, match="w_style_deep"):
         stylize_config({"loss.w_style_deep": 1.0, "loss.w_style_coarse": 1.0}).validate()
 

