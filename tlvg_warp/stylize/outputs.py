@@ -102,12 +102,16 @@ def zoom_crop(img: np.ndarray, zoom: int = ZOOM) -> np.ndarray:
 
 
 def comparison_caption(cfg, iterations: int, alignment: float) -> str:
-    """What comparison.png was made with: the settings that change a picture most, the terms that are on only."""
+    """What comparison.png was made with: the stylize controls that differ from neutral (strength 1, stroke scale 1,
+    the palette), the settings that change a picture most, the terms that are on only."""
     lum = (f"luminance_only=True ({cfg.loss.luminance_grad} gradient)" if cfg.loss.luminance_only
            else "luminance_only=False") + f", content on {cfg.loss.content_on}"
     extra = (f", conv4 {cfg.loss.deep_loss} term x{cfg.loss.w_style_deep:g}" if cfg.loss.w_style_deep else "") + (
         f", tone hold x{cfg.loss.w_tone_hold:g} (margin {cfg.loss.tone_margin:g})" if cfg.loss.w_tone_hold else "")
-    return (f"config: style={cfg.loss.style_loss}, {lum}{extra}, "
+    controls = ((f"strength {cfg.loss.strength:g}, " if cfg.loss.strength != 1 else "")
+                + (f"stroke scale {cfg.stroke_scale:g}, " if cfg.stroke_scale != 1 else "")
+                + ("keep colours, " if cfg.keep_colors else ""))
+    return (f"{controls}config: style={cfg.loss.style_loss}, {lum}{extra}, "
             f"lock_xyz={cfg.geometry.lock_xyz}, max_travel={cfg.geometry.max_travel:g}, "
             f"colour_floor={cfg.colour_floor}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
             f"{iterations} iterations; alignment to its training field {alignment:.3f}")
