@@ -33,10 +33,11 @@ from .pipeline import RUN_FILES, load_checkpoint, run_stylize
 # The no-argument demo's settings (a user's flag or --set wins). On 2 CPU cores: 160x120 views (18,733 discs),
 # the render fed to VGG at x0.5 (80x60) and the painting at the view's size times the config's stroke scale, SH DC
 # learning rate x4 so that a preview of 240 iterations moves the colours (docs/performance.md gives its time).
-# On a GPU: 640x480 views, 600 iterations.
+# On a GPU: 640x480 views, 600 iterations, the same colour learning rate (against the config's: chroma noise
+# 0.560 against 0.682, k1 0.071 against 0.082, the rest within their intervals; docs/performance.md).
 DEMO_CPU = {"iterations": 240, "downscale": 1.0, "density.interval": 20,
             "style_height": 0, "vgg_scale": 0.5, "lr.sh_dc": 0.01}
-DEMO_GPU = {"iterations": 600, "downscale": 0.25, "density.interval": 100}
+DEMO_GPU = {"iterations": 600, "downscale": 0.25, "density.interval": 100, "lr.sh_dc": 0.01}
 
 
 @dataclass
