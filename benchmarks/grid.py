@@ -15,12 +15,17 @@ import numpy as np
 BAND = 34  # the label band's height in pixels
 
 
+def read(path: str) -> np.ndarray:
+    im = cv2.imread(path)
+    if im is None:
+        raise SystemExit(f"error: {path}: not an image OpenCV can read")
+    return im
+
+
 def tile(path: str, label: str, width: int, height: int) -> np.ndarray:
     cell = np.full((BAND + height, width, 3), 255, np.uint8)
     if path:
-        im = cv2.imread(path)
-        if im is None:
-            raise SystemExit(f"error: {path}: not an image OpenCV can read")
+        im = read(path)
         s = min(width / im.shape[1], height / im.shape[0])
         im = cv2.resize(im, (round(im.shape[1] * s), round(im.shape[0] * s)), interpolation=cv2.INTER_AREA)
         y, x = BAND + (height - im.shape[0]) // 2, (width - im.shape[1]) // 2
@@ -37,7 +42,7 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=504)
     a = ap.parse_args()
     pairs = [t.split("=", 1) for t in a.tiles]
-    first = cv2.imread(next(p for _, p in pairs if p))
+    first = read(next(p for _, p in pairs if p))
     height = round(first.shape[0] * a.width / first.shape[1])  # the first image's aspect sets the rows' height
     cells = [tile(p, label, a.width, height) for label, p in pairs]
     cells += [tile("", "", a.width, height)] * (-len(cells) % a.cols)
