@@ -46,8 +46,8 @@ def stylize(args, variants, styles):
             out = Path(args.out) / Path(style).stem / name
             if (out / "metrics.json").is_file():
                 continue
-            argv = ["stylize", "--scene", args.scene, "--data", args.data, "--style", style, "--config", cfg,
-                    "--out", str(out), "--overwrite", "--quiet", *sum((["--set", s] for s in sets), [])]
+            argv = ["stylize", "--scene", args.scene, *(["--data", args.data] if args.data else []), "--style", style,
+                    "--config", cfg, "--out", str(out), "--overwrite", "--quiet", *sum((["--set", s] for s in sets), [])]
             if args.downscale:
                 argv += ["--downscale", str(args.downscale)]
             if args.iterations:
@@ -121,7 +121,8 @@ def montage(args, variants, styles, view: int = 0, width: int = 504):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", required=True)
-    ap.add_argument("--data", required=True)
+    ap.add_argument("--data", default="", help="the scene's photos (a dataset folder); none: a splat file alone, "
+                    "stylized against its own renders from orbit cameras")
     ap.add_argument("--styles", required=True, help="comma-separated painting paths")
     ap.add_argument("--out", required=True)
     ap.add_argument("--variant", action="append", default=[], help="name:key=value;key=value")
