@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from tlvg_warp.stylize.outputs import (CURVE_BGR, PANEL_H, PANEL_W, comparison_caption, comparison_grid, curve,
-                                      font_scale, loss_curves,
-                                      orbit_path, panel_points, weights_name, wrap_text, zoom_crop)
+from tlvg_warp.stylize.outputs import (CURVE_BGR, PANEL_H, PANEL_W, SPILL_NOTE, comparison_caption, comparison_grid,
+                                      curve, font_scale, loss_curves, orbit_path, panel_points, spill_counts,
+                                      spill_note, weights_name, wrap_text, zoom_crop)
 
 CAPTION = ("config: style=fast, luminance_only=True, lock_xyz=False, w_align=0.1, field=matched; 300 iterations; "
            "flow alignment 0.412; VGG-16 weights: /home/someone/.cache/torch/hub/checkpoints/vgg16-397923af.pth")
@@ -160,3 +160,28 @@ def test_caption_names_the_terms_that_are_on():
     assert on.startswith(f"stroke scale {cfg.stroke_scale:g}, config:") and "strength" not in on
     cfg.loss.strength, cfg.keep_colors = 0.5, True
     assert comparison_caption(cfg, 3000, 0.9).startswith("strength 0.5, stroke scale 2, keep colours, config:")
+
+
+def test_spill_counts_against_evaluates_spill_and_a_hand_count():
+    """One view's spill counts: painted where the un-stylized scene is empty, the covered pixels, all pixels; the
+    first over the last is `evaluate`'s spill (eval.metrics.spill), on random maps and on a 2x2 counted by hand."""
+    import torch
+
+    from tlvg_warp.eval.metrics import spill
+
+    cov = torch.tensor([[1.0, 0.0], [0.6, 0.2]])
+    alpha = torch.tensor([[1.0, 0.7], [0.1, 0.4]])  # (0,1) painted outside; (1,1) under 0.5; (1,0) a hole
+    assert spill_counts(alpha, cov) == (1, 2, 4)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        c, a = (torch.from_numpy(rng.random((30, 40))) for _ in range(2))
+        out, covered, n = spill_counts(a, c)
+        assert (covered, n) == (int((c >= 0.5).sum()), 1200) and out / n == pytest.approx(spill(a.numpy(), c.numpy()))
+
+
+def test_spill_note_from_its_share_on_with_the_weight_to_try():
+    assert spill_note(None, 10.0) is None and spill_note(SPILL_NOTE * 0.99, 10.0) is None
+    note = spill_note(0.12, 10.0)  # the biker under the default
+    assert "12%" in note and "loss.w_silhouette=100 " in note and "(this run: 10)" in note
+    assert "w_silhouette=1000 " in spill_note(SPILL_NOTE, 100.0)
+    assert "w_silhouette=100 " in spill_note(0.2, 0.0)  # a config without the term

@@ -98,7 +98,7 @@ def run(args) -> int:
         raise
     if not job.dist.is_main:
         return 0
-    _summary(job.out, m, job.cfg.loss.w_tone_hold)
+    _summary(job.out, m, job.cfg.loss.w_tone_hold, job.cfg.loss.w_silhouette)
     if viewer:
         viewer[0].update("stylized", res.gaussians)
         viewer[0].set_status(f"finished: {job.out / 'stylized.ply'}")
@@ -117,7 +117,7 @@ def _announce(job, inp) -> None:
               + (RANDOM_VGG_NOTE if job.vgg.is_random else job.vgg.source) + f"; out: {job.out}")
 
 
-def _summary(out, m: dict, tone_hold: float = 0.0) -> None:
+def _summary(out, m: dict, tone_hold: float = 0.0, w_silhouette: float = 0.0) -> None:
     tp = m["time_per_phase_s"]
     print(f"{out}: alignment to its training field {m['training_field_alignment']:.3f} (un-stylized "
           f"{m['training_field_alignment_unstylized']:.3f}; `evaluate` scores all runs against one common field), "
@@ -132,6 +132,11 @@ def _summary(out, m: dict, tone_hold: float = 0.0) -> None:
         note = tone_drift_note(m["tone_covered"], m["tone_target"], tone_hold)
         if note:
             print(note)
+    from ..stylize.outputs import spill_note  # lazy: CLI startup
+
+    note = spill_note(m.get("spill_of_covered"), w_silhouette)
+    if note:
+        print(note)
 
 
 def _live_viewer(inp, cfg, args):

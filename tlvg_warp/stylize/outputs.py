@@ -22,7 +22,7 @@ from ..renderer import render
 from ..train.optim import quat_to_rotmat, rotmat_to_quat
 from ..train.reconstruct import cameras_json
 from ..types import Camera, Gaussians
-from .pipeline import LOG_TERMS
+from .pipeline import HOLE_ALPHA, LOG_TERMS
 
 RANDOM_VGG_NOTE = "VGG-16 RANDOM (not pretrained): style/content losses are not meaningful"
 ZOOM = 4  # the comparison's zoom column: the centre of the stylized view magnified this much (nearest)
@@ -359,6 +359,33 @@ def write_view(out: Path, i: int, sty: torch.Tensor, org: torch.Tensor, photo: t
     return (sty.numpy(), org.numpy(), photo.numpy()) if keep else None, score, score_orig
 
 
+# painted outside the scene's outline, as a share of the pixels the scene covers: worth a note from this share on (the
+# biker splats under the default: 0.05-0.12 on five of six paintings; lego 0.02-0.03; the biker with
+# loss.w_silhouette=100: 0.03-0.04; docs/study.md, "The silhouette held ten times harder")
+SPILL_NOTE = 0.05
+
+
+def spill_counts(alpha: torch.Tensor, coverage: torch.Tensor) -> tuple[int, int, int]:
+    """One view's (pixels the stylized render ``alpha`` [H,W] covers where the un-stylized scene's ``coverage``
+    [H,W] does not, pixels the un-stylized scene covers, all pixels); covered = alpha at least 0.5, as `evaluate`'s
+    spill and holes count."""
+    was = coverage >= HOLE_ALPHA
+    return int(((alpha >= HOLE_ALPHA) & ~was).sum()), int(was.sum()), was.numel()
+
+
+def spill_note(share: float | None, w_silhouette: float) -> str | None:
+    """One line for the user when the stylized scene paints ``SPILL_NOTE`` or more of the scene's covered area
+    outside its outline (``share``: metrics.json's spill_of_covered): a figure on an empty background swells. It
+    names the silhouette weight to use: 100 where the run had none, ten times the run's otherwise. None below the
+    share (or None: nothing covered)."""
+    if share is None or not share >= SPILL_NOTE:
+        return None
+    fix = 10 * w_silhouette if w_silhouette > 0 else 100
+    return (f"note: the stylized scene paints {share:.0%} of its own area outside the scene's outline (pixels the "
+            f"un-stylized scene leaves empty); --set loss.w_silhouette={fix:g} holds the outline (this run: "
+            f"{w_silhouette:g})")
+
+
 def _timed(fn, *args) -> tuple:
     """(fn(*args), its wall seconds)."""
     t = time.perf_counter()
@@ -406,13 +433,16 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         pick = set(np.linspace(0, len(inp.cameras) - 1, min(cfg.comparison_views, len(inp.cameras))).round().astype(int))
         views, t = [], time.perf_counter()
         tone = [0.0, 0.0]  # the stylized renders' luminance summed over the covered pixels, and their count
+        spill = [0, 0, 0]  # pixels painted outside the un-stylized scene's outline, pixels it covers, all pixels
         with torch.no_grad():  # the orbit first: its encoding is the longest job
             frames = [to_u8(render(g, cam, bg).color) for cam in orbit_path(inp.cameras, cfg.orbit_frames)]  # uint8
             video = pool.submit(_timed, write_orbit, out, frames, cfg.orbit_fps) if frames else None
             for i, cam in enumerate(inp.cameras):
-                sty = render(g, cam, bg).color.clamp(0, 1).cpu()
+                r = render(g, cam, bg)
+                sty = r.color.clamp(0, 1).cpu()
                 if i < len(res.coverage):
                     tone = [a + b for a, b in zip(tone, covered_luminance_sums(sty, res.coverage[i]))]
+                    spill = [a + b for a, b in zip(spill, spill_counts(r.alpha.cpu(), res.coverage[i]))]
                 fld = res.fields[i][..., :2].numpy() if res.fields else None
                 views.append(pool.submit(write_view, out, i, sty, res.originals[i], inp.photos[i].detach().cpu(), fld,
                                          i in pick))
@@ -449,6 +479,10 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         # the stylized views' mean luminance over the pixels the un-stylized scene covers (beside "tone_target",
         # the colour target's over the same pixels): how far the run moved the scene's tone from its palette's
         "tone_covered": tone[0] / tone[1] if tone[1] else None,
+        # painted where the un-stylized scene leaves the view empty (`evaluate`'s spill, over every view), and the
+        # same pixels as a share of the area the scene covers (what `stylize`'s note reads)
+        "spill": spill[0] / spill[2] if spill[2] else None,
+        "spill_of_covered": spill[0] / spill[1] if spill[1] else None,
         "field_mapping": cfg.loss.field_mapping,
         "bytes_in": int(input_bytes) if input_bytes is not None else int(inp.gaussians.nbytes()),
         "bytes_out": int(out_bytes),
@@ -470,4 +504,5 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
 
 
 __all__ = ["write_outputs", "comparison_grid", "zoom_crop", "wrap_text", "font_scale", "orbit_path", "write_video",
-           "loss_curves", "curve", "panel_points", "RANDOM_VGG_NOTE", "comparison_caption"]
+           "loss_curves", "curve", "panel_points", "RANDOM_VGG_NOTE", "comparison_caption", "spill_counts",
+           "spill_note", "SPILL_NOTE"]
