@@ -260,6 +260,22 @@ def test_alpha_hinges_against_the_unstylized_coverage(name, alpha, loss, grad):
     assert a.grad.tolist() == grad
 
 
+def test_silhouette_on_empty_pixels_counts_the_outline_alone():
+    """silhouette_where "empty": only pixels the un-stylized scene leaves uncovered (alpha under 0.5) cost; a
+    covered pixel whose alpha ends above its soft coverage is free, and where nothing is empty the term is 0."""
+    from tlvg_warp.stylize.pipeline import silhouette_loss
+
+    cov = torch.tensor([[0.97, 0.0], [0.4, 0.6]])[..., None]
+    a = torch.tensor([[1.0, 0.5], [0.9, 0.7]], requires_grad=True)
+    out = silhouette_loss(a, cov, "empty")  # (0.5 - 0) + (0.9 - 0.4) over 4 pixels; (0,0) and (1,1) are covered
+    assert float(out) == pytest.approx(1.0 / 4)
+    out.backward()
+    assert a.grad.tolist() == [[0.0, 0.25], [0.25, 0.0]]
+    assert float(silhouette_loss(a.detach(), cov, "all")) == pytest.approx((0.03 + 0.5 + 0.5 + 0.1) / 4)
+    full = torch.full((3, 3, 1), 0.9)
+    assert float(silhouette_loss(torch.ones(3, 3), full, "empty")) == 0.0  # a capture: covered everywhere
+
+
 @pytest.mark.parametrize("source", ["stylize_start", "unstylized"])
 def test_field_source_picks_the_render_the_field_is_matched_on(demo, monkeypatch, source):
     """loss.field_source: the painting's field is matched on the un-stylized scene's render of each view (the targets'

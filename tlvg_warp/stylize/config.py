@@ -86,6 +86,9 @@ class StyleLoss:
     w_coverage: float = 0.0  # hinge on the render's alpha below the un-stylized scene's: no holes open (ours; 0: off)
     w_silhouette: float = 0.0  # hinge on the render's alpha above the un-stylized scene's: splats may not grow into an
     # empty background, where the style terms do not look (ours; 0: off; zero on a capture covered everywhere)
+    silhouette_where: str = "all"  # where that hinge counts: all (every pixel whose alpha rises above the un-stylized
+    # scene's, inside the object too) | empty (only the pixels the un-stylized scene leaves empty, alpha under 0.5: the
+    # outline alone; exactly zero on a capture)
     w_detail: float = 0.0  # hinge (1 - E/E_painting)^2 on the render's luminance detail energy E (what a σ 2 px blur
     # removes, where the scene was) below the painting's at the view's height: nearest-neighbour matching lets a smooth
     # render match the painting's smooth passages, this asks for the painting's level of detail (ours; 0: off)
@@ -137,6 +140,7 @@ class StyleLoss:
              "stroke_along": ("of", "ratio", "bounded"),
              "stroke_contrast": ("of", "linear", "log"),
              "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1), "lab_where": ("of", "all", "covered"),
+             "silhouette_where": ("of", "all", "empty"),
              "field_canvas": ("in", 0, 1),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
              "strength": (">=", 0), "tone_margin": (">=", 0), "palette_colours": (">=", 1),

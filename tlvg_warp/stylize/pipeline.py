@@ -121,17 +121,25 @@ def chroma_tv_loss(img: torch.Tensor, space: str = "rgb") -> torch.Tensor:
     return tv_loss(chroma(img) if space == "rgb" else rgb_to_lab(img)[..., 1:] * LAB_TV_SCALE)
 
 
+HOLE_ALPHA = 0.5  # a pixel is covered at alpha >= 0.5 (SPEC §4 holes; eval.metrics.ALPHA_MIN, a layer above)
+
+
 def coverage_loss(alpha: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
     """Mean over pixels of how far the render's alpha [H,W] falls below the un-stylized scene's [H,W,1]: a hinge, so
     only holes cost, never a splat that covers more."""
     return torch.relu(coverage[..., 0] - alpha).mean()
 
 
-def silhouette_loss(alpha: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
+def silhouette_loss(alpha: torch.Tensor, coverage: torch.Tensor, where: str = "all") -> torch.Tensor:
     """Mean over pixels of how far the render's alpha [H,W] rises above the un-stylized scene's [H,W,1]: the mirror
     of ``coverage_loss``. Where the scene was empty (a Blender background) the style terms see the background, not
-    the render, so nothing else stops splats from fraying outwards."""
-    return torch.relu(alpha - coverage[..., 0]).mean()
+    the render, so nothing else stops splats from fraying outwards. ``where`` "empty" counts only the pixels the
+    un-stylized scene leaves uncovered (alpha under ``HOLE_ALPHA``): the outline, not a covered pixel whose alpha
+    ends a little above a soft 0.97."""
+    over = torch.relu(alpha - coverage[..., 0])
+    if where == "empty":
+        over = over * (coverage[..., 0] < HOLE_ALPHA)
+    return over.mean()
 
 
 def covered_mean(y: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
@@ -377,9 +385,6 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
 def content_scale(photo_feats: torch.Tensor, normalized: bool) -> float:
     """1, or 1 / the mean square of a view's photo features (read once per view, at the run's start)."""
     return 1.0 / max(float((photo_feats.double() ** 2).mean()), 1e-12) if normalized else 1.0
-
-
-HOLE_ALPHA = 0.5  # a pixel is covered at alpha >= 0.5 (SPEC §4 holes; eval.metrics.ALPHA_MIN, a layer above)
 
 
 @torch.no_grad()
@@ -658,7 +663,7 @@ class Stylize(Phase):
         if on["coverage"]:
             out.append(coverage_loss(alpha, coverage))
         if on["silhouette"]:
-            out.append(silhouette_loss(alpha, coverage))
+            out.append(silhouette_loss(alpha, coverage, self.cfg.loss.silhouette_where))
         if on["lab"]:
             lab_in = lab_input(img, self.cfg.loss.lab_block, lab_index)
             out.append(lab_chroma_loss_torch(lab_in, lab_stats) if in_graph
