@@ -183,5 +183,6 @@ def test_spill_note_from_its_share_on_with_the_weight_to_try():
     assert spill_note(None, 10.0) is None and spill_note(SPILL_NOTE * 0.99, 10.0) is None
     note = spill_note(0.12, 10.0)  # the biker under the default
     assert "12%" in note and "loss.w_silhouette=100 " in note and "(this run: 10)" in note
+    assert "loss.silhouette_where=empty" in note
     assert "w_silhouette=1000 " in spill_note(SPILL_NOTE, 100.0)
     assert "w_silhouette=100 " in spill_note(0.2, 0.0)  # a config without the term

@@ -376,14 +376,14 @@ def spill_counts(alpha: torch.Tensor, coverage: torch.Tensor) -> tuple[int, int,
 def spill_note(share: float | None, w_silhouette: float) -> str | None:
     """One line for the user when the stylized scene paints ``SPILL_NOTE`` or more of the scene's covered area
     outside its outline (``share``: metrics.json's spill_of_covered): a figure on an empty background swells. It
-    names the silhouette weight to use: 100 where the run had none, ten times the run's otherwise. None below the
-    share (or None: nothing covered)."""
+    names the silhouette weight to use (100 where the run had none, ten times the run's otherwise), on the empty
+    pixels alone so that nothing the scene covers moves. None below the share (or None: nothing covered)."""
     if share is None or not share >= SPILL_NOTE:
         return None
     fix = 10 * w_silhouette if w_silhouette > 0 else 100
     return (f"note: the stylized scene paints {share:.0%} of its own area outside the scene's outline (pixels the "
-            f"un-stylized scene leaves empty); --set loss.w_silhouette={fix:g} holds the outline (this run: "
-            f"{w_silhouette:g})")
+            f"un-stylized scene leaves empty); --set loss.w_silhouette={fix:g} --set loss.silhouette_where=empty "
+            f"holds the outline (this run: {w_silhouette:g})")
 
 
 def _timed(fn, *args) -> tuple:
