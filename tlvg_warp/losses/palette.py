@@ -3,6 +3,10 @@
 - ``arf``: ARF's mean/covariance transfer (:func:`color.color_transfer`), one affine map ``x' = M x + t``.
 - ``arf_rank`` (ours): ARF's map, then its luminance moved to the painting's at the same rank (:class:`RankPalette`),
   so the clamp to [0,1] no longer cuts the dark tail a capture's luminance distribution maps under 0.
+- ``sliced`` (ours, after Pitié et al.'s iterative distribution transfer): the photos' colours moved onto the
+  painting's whole colour distribution, one random rotation of RGB at a time, each axis matched quantile for
+  quantile. Why: one affine map cannot give a scene the many saturated hues of a Fauvist painting that its colours
+  do not span (Woman with a Hat came out pastel, docs/study.md); matching the distribution can.
 - ``tone`` (ours): luminance moved to the painting's mean and spread, chroma read from the painting at the same
   luminance rank. Why: a photo with little colour (a grey floor, a white wall) has a near-singular chroma
   covariance, and whitening it blows up its faint tints into pastel green and violet washes that the painting
@@ -167,6 +171,83 @@ def rank_palette(images, style, floor: float = 0.0, coverage=None, bins: int = R
     return RankPalette(m, t, knots, torch.quantile(y_s, q)[:, None])
 
 
+SLICED_STEPS = 10  # rotations of the sliced map: each matches three axes, so 10 match 30 directions
+SLICED_QUANTILES = 64  # knots of each axis's monotone map (piecewise linear between them)
+SLICED_MAX_PIXELS = 400_000  # the photos' and the painting's colours are read on at most this many pixels (a stride)
+
+
+def _rotation(gen: torch.Generator) -> torch.Tensor:
+    """A uniformly random 3x3 rotation, float64: QR of a Gaussian matrix with the signs fixed."""
+    q, r = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))
+    return q * torch.sign(torch.diagonal(r))[None, :]
+
+
+@dataclass
+class SlicedPalette:
+    """The photos' colour distribution moved onto the painting's: ``steps`` times, the colours are rotated, each of
+    the three rotated axes goes through the monotone map that sends the photos' quantiles there to the painting's,
+    and the colours are rotated back (sliced optimal transport in three dimensions: a colour keeps its rank along
+    every axis, so neighbouring colours stay neighbours)."""
+
+    rotations: torch.Tensor  # [K,3,3] float64
+    src: torch.Tensor  # [K,Q,3] float64: the photos' colours (after the steps before) along each rotated axis, at Q
+    # quantiles from 0 to 1
+    dst: torch.Tensor  # [K,Q,3] float64: the painting's at the same quantiles
+
+    @staticmethod
+    def _step(x: torch.Tensor, rot, src, dst) -> torch.Tensor:
+        p = x @ rot  # [N,3]
+        p = torch.stack([_interp(p[:, a], src[:, a].contiguous(), dst[:, a, None])[..., 0] for a in range(3)], -1)
+        return p @ rot.T
+
+    def apply(self, img):
+        """An image [H,W,3] (or colours [...,3]) in [0,1], numpy or torch, under the map, clamped to [0,1]; type and
+        dtype kept."""
+        x = _as_torch(img)
+        y = x.detach().double().reshape(-1, 3)
+        for rot, src, dst in zip(self.rotations.to(y.device), self.src.to(y.device), self.dst.to(y.device)):
+            y = self._step(y, rot, src, dst)
+        out = y.clamp(0.0, 1.0).reshape(x.shape).to(x.dtype)
+        return out.numpy() if isinstance(img, np.ndarray) else out
+
+    def recolor_sh(self, sh: torch.Tensor) -> torch.Tensor:
+        """SH colours [N,K,3]: each Gaussian's base colour (the DC term) through :meth:`apply`; the view-dependent
+        bands as they were (the map has no single linear part to carry them; a stylization keeps degree 0)."""
+        out = sh.double().clone()
+        base = (SH_C0 * sh[:, 0].double() + 0.5).clamp(0.0, 1.0)  # [N,3]
+        out[:, 0] = (self.apply(base).double() - 0.5) / SH_C0
+        return out.to(sh.dtype)
+
+
+def _pooled_colours(items, coverage=None, limit: int = SLICED_MAX_PIXELS) -> torch.Tensor:
+    """[N,3] float64 on the CPU: the images' colours pooled over the pixels ``coverage`` marks (all pixels without
+    it, or where it marks none), every k-th kept so that at most ``limit`` remain."""
+    xs = [_as_torch(im).detach().reshape(-1, 3).double().cpu() for im in items]
+    if coverage is not None:
+        keep = [(_as_torch(c).detach().reshape(-1) > COVERED).cpu() for c in coverage]
+        if any(bool(k.any()) for k in keep):
+            xs = [x[k] for x, k in zip(xs, keep)]
+    x = torch.cat(xs)
+    return x[::max(1, -(-x.shape[0] // limit))]
+
+
+def sliced_palette(images, style, coverage=None, steps: int = SLICED_STEPS, quantiles: int = SLICED_QUANTILES,
+                   seed: int = 0) -> SlicedPalette:
+    """The sliced map from the photos (list of [H,W,3] in [0,1]) to the painting ``style`` [h,w,3], over the pixels
+    ``coverage`` marks (None: all); the rotations from ``seed`` (the same photos and painting give the same map)."""
+    gen = torch.Generator().manual_seed(seed)
+    x, t = _pooled_colours(images, coverage), _pooled_colours([style])
+    q = torch.linspace(0.0, 1.0, quantiles, dtype=torch.float64)  # the ends too: the photos' extremes go to the painting's
+    ramp = torch.arange(quantiles, dtype=torch.float64)[:, None] * 1e-9  # strictly increasing where a photo is flat
+    rots, srcs, dsts = [], [], []
+    for _ in range(steps):  # a few steps, each vectorized over every pixel
+        rot = _rotation(gen)
+        src, dst = torch.quantile(x @ rot, q, dim=0) + ramp, torch.quantile(t @ rot, q, dim=0)  # [Q,3] each
+        x = SlicedPalette._step(x, rot, src, dst)
+        rots.append(rot), srcs.append(src), dsts.append(dst)
+    return SlicedPalette(torch.stack(rots), torch.stack(srcs), torch.stack(dsts))
+
+
 COVERED = 0.5  # a pixel belongs to the scene where the un-stylized render's alpha is above this
 
 
@@ -182,7 +263,7 @@ def dark_object_note(photos, coverage, style, mode: str, where: str) -> str | No
     ``palette_where=all`` keeps it dark. None where it does not apply: statistics over all pixels, a capture that
     fills its views (fewer than ``EMPTY_SHARE`` of the pixels uncovered), or an object within ``DARK_OBJECT_GAP`` of
     the painting's mean luminance (or lighter)."""
-    if where != "covered" or mode not in ("arf", "arf_rank"):
+    if where != "covered" or mode not in ("arf", "arf_rank", "sliced"):
         return None
     n_px = n_cov = y_sum = 0.0  # sums view by view, where the views live: no pooled copy of every pixel
     for im, c in zip(photos, coverage):
@@ -274,10 +355,10 @@ def tone_palette(images, style, bins: int = TONE_BINS, coverage=None) -> TonePal
 
 def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0, where: str = "all"):
     """``(recolored, palette)``: the photos (list of [H,W,3]) in the painting's palette by ``mode`` (arf | arf_rank |
-    tone),
-    and the map, whose ``recolor_sh`` gives the Gaussians the same palette. ``coverage`` (per view [H,W,1]) limits
-    the tone map's photo statistics to the scene, and ARF's where ``where`` is ``covered``; with ``all`` ARF pools
-    every pixel, as released (the baseline uses it). ``floor``: ARF's variance floor (:func:`color.color_transfer`)."""
+    sliced | tone), and the map, whose ``recolor_sh`` gives the Gaussians the same palette. ``coverage`` (per view
+    [H,W,1]) limits the tone map's photo statistics to the scene, and ARF's and the sliced map's where ``where`` is
+    ``covered``; with ``all`` ARF pools every pixel, as released (the baseline uses it). ``floor``: ARF's variance
+    floor (:func:`color.color_transfer`)."""
     if where not in ("all", "covered"):
         raise ValueError(f"palette statistics over all or covered pixels, got {where!r}")
     if mode == "arf":
@@ -289,7 +370,10 @@ def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0
     if mode == "arf_rank":
         pal = rank_palette(images, style, floor, coverage if where == "covered" else None)
         return [pal.apply(im) for im in images], pal
-    raise ValueError(f"palette mode must be arf, arf_rank or tone, got {mode!r}")
+    if mode == "sliced":
+        pal = sliced_palette(images, style, coverage if where == "covered" else None)
+        return [pal.apply(im) for im in images], pal
+    raise ValueError(f"palette mode must be arf, arf_rank, sliced or tone, got {mode!r}")
 
 
 # --- the painting's colours as a set: the palette-snap term of the Stylize phase (ours) -------------------------

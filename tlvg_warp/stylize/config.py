@@ -206,8 +206,10 @@ class StylizeConfig:
     palette_init: bool = True  # pre-process starts from the Gaussians recolored by the photos' palette map (ours)
     palette_map: str = "arf"  # how photos and Gaussians take the painting's palette: arf (ARF's mean/covariance
     # transfer) | arf_rank (ours: ARF's map, then luminance moved to the painting's at the same rank, so the clamp to
-    # [0,1] does not cut the dark tail ARF maps under 0) | tone (ours: luminance matched in mean and spread, chroma =
-    # the painting's at the same luminance rank; a grey photo is not blown up into pastel tints; losses/palette.py)
+    # [0,1] does not cut the dark tail ARF maps under 0) | sliced (ours: the photos' colour distribution moved onto
+    # the painting's whole distribution, axis by axis over random rotations: a painting's many hues, not their mean) |
+    # tone (ours: luminance matched in mean and spread, chroma = the painting's at the same luminance rank; a grey
+    # photo is not blown up into pastel tints; losses/palette.py)
     palette_floor: float = 0.0  # arf: a colour variance added to the photos' covariance before whitening (ours; 0 =
     # ARF): a direction the photos barely vary along is stretched by at most sqrt(painting's variance / this)
     palette_where: str = "all"  # arf: the photos' colour statistics over all pixels (ARF) | covered: over the pixels
@@ -281,7 +283,7 @@ class StylizeConfig:
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
              "stroke_scale": (">", 0), "style_max_cells": (">=", 0), "refine_radius": (">=", 0),
              "stroke_jitter": (">=", 0),
-             "stroke_jitter_mode": ("of", "luminance", "palette"), "palette_map": ("of", "arf", "arf_rank", "tone"),
+             "stroke_jitter_mode": ("of", "luminance", "palette"), "palette_map": ("of", "arf", "arf_rank", "sliced", "tone"),
              "palette_floor": (">=", 0), "palette_where": ("of", "all", "covered"), "post_chroma_blur": ("in", 0, 0.1),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
