@@ -46,8 +46,9 @@ def stylize(args, variants, styles):
             out = Path(args.out) / Path(style).stem / name
             if (out / "metrics.json").is_file():
                 continue
-            argv = ["stylize", "--scene", args.scene, *(["--data", args.data] if args.data else []), "--style", style,
-                    "--config", cfg, "--out", str(out), "--overwrite", "--quiet", *sum((["--set", s] for s in sets), [])]
+            data = ["--data", args.data] if args.data else []  # none: a splat file alone
+            argv = ["stylize", "--scene", args.scene, *data, "--style", style, "--config", cfg, "--out", str(out),
+                    "--overwrite", "--quiet", *sum((["--set", s] for s in sets), [])]
             if args.downscale:
                 argv += ["--downscale", str(args.downscale)]
             if args.iterations:

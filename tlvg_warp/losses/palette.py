@@ -237,7 +237,8 @@ def sliced_palette(images, style, coverage=None, steps: int = SLICED_STEPS, quan
     ``coverage`` marks (None: all); the rotations from ``seed`` (the same photos and painting give the same map)."""
     gen = torch.Generator().manual_seed(seed)
     x, t = _pooled_colours(images, coverage), _pooled_colours([style])
-    q = torch.linspace(0.0, 1.0, quantiles, dtype=torch.float64)  # the ends too: the photos' extremes go to the painting's
+    q = torch.linspace(0.0, 1.0, quantiles, dtype=torch.float64)  # the ends too: the photos' extremes to the
+    # painting's
     ramp = torch.arange(quantiles, dtype=torch.float64)[:, None] * 1e-9  # strictly increasing where a photo is flat
     rots, srcs, dsts = [], [], []
     for _ in range(steps):  # a few steps, each vectorized over every pixel
