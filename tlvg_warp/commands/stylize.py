@@ -134,7 +134,7 @@ def _summary(out, m: dict, tone_hold: float = 0.0, w_silhouette: float = 0.0) ->
             print(note)
     from ..stylize.outputs import spill_note  # lazy: CLI startup
 
-    note = spill_note(m.get("spill_of_covered"), w_silhouette)
+    note = spill_note(m.get("outside_outline_of_covered"), w_silhouette)
     if note:
         print(note)
 

@@ -375,7 +375,7 @@ def spill_counts(alpha: torch.Tensor, coverage: torch.Tensor) -> tuple[int, int,
 
 def spill_note(share: float | None, w_silhouette: float) -> str | None:
     """One line for the user when the stylized scene paints ``SPILL_NOTE`` or more of the scene's covered area
-    outside its outline (``share``: metrics.json's spill_of_covered): a figure on an empty background swells. It
+    outside its outline (``share``: metrics.json's outside_outline_of_covered): a figure on an empty background swells. It
     names the silhouette weight to use (100 where the run had none, ten times the run's otherwise), on the empty
     pixels alone so that nothing the scene covers moves. None below the share (or None: nothing covered)."""
     if share is None or not share >= SPILL_NOTE:
@@ -479,10 +479,11 @@ def write_outputs(out: Path, res, *, input_bytes: int | None = None, wall_start:
         # the stylized views' mean luminance over the pixels the un-stylized scene covers (beside "tone_target",
         # the colour target's over the same pixels): how far the run moved the scene's tone from its palette's
         "tone_covered": tone[0] / tone[1] if tone[1] else None,
-        # painted where the un-stylized scene leaves the view empty (`evaluate`'s spill, over every view), and the
-        # same pixels as a share of the area the scene covers (what `stylize`'s note reads)
-        "spill": spill[0] / spill[2] if spill[2] else None,
-        "spill_of_covered": spill[0] / spill[1] if spill[1] else None,
+        # painted where the un-stylized scene leaves the view empty, over every view at the training size (what
+        # `evaluate` calls spill over the views it scores; one name per number), and the same pixels as a share of
+        # the area the scene covers (what `stylize`'s note reads)
+        "outside_outline": spill[0] / spill[2] if spill[2] else None,
+        "outside_outline_of_covered": spill[0] / spill[1] if spill[1] else None,
         "field_mapping": cfg.loss.field_mapping,
         "bytes_in": int(input_bytes) if input_bytes is not None else int(inp.gaussians.nbytes()),
         "bytes_out": int(out_bytes),
