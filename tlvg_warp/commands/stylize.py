@@ -124,19 +124,17 @@ def _summary(out, m: dict, tone_hold: float = 0.0, w_silhouette: float = 0.0) ->
           f"Gaussians {m['gaussians_input']} -> {m['gaussians_final']}, {m['bytes_out'] / 1e6:.2f} MB, "
           f"phases pre {tp['pre']:.1f}s / stylize {tp['stylize']:.1f}s / post {tp['post']:.1f}s, "
           f"wall {m['wall_time_s']:.1f}s" + peak_memory_note(m))
-    print(f"open {out / 'comparison.png'} (photo, original and stylized views beside the painting); "
-          f"the stylized scene is {out / 'stylized.ply'}")
-    if m.get("tone_covered") is not None and m.get("tone_target") is not None:
-        from ..losses.palette import tone_drift_note  # lazy: CLI startup
+    from ..losses.palette import tone_drift_note  # lazy: CLI startup
+    from ..stylize.outputs import spill_note
 
-        note = tone_drift_note(m["tone_covered"], m["tone_target"], tone_hold)
+    tone = (tone_drift_note(m["tone_covered"], m["tone_target"], tone_hold)
+            if m.get("tone_covered") is not None and m.get("tone_target") is not None else None)
+    for note in (tone, spill_note(m.get("outside_outline_of_covered"), w_silhouette)):
         if note:
             print(note)
-    from ..stylize.outputs import spill_note  # lazy: CLI startup
-
-    note = spill_note(m.get("outside_outline_of_covered"), w_silhouette)
-    if note:
-        print(note)
+    # last, so that the end of the output says which file to open
+    print(f"open {out / 'comparison.png'} (photo, original and stylized views beside the painting); "
+          f"the stylized scene is {out / 'stylized.ply'}")
 
 
 def _live_viewer(inp, cfg, args):
