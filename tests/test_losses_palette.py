@@ -337,9 +337,11 @@ def test_arf_rank_recolors_the_gaussians_base_colour_like_a_pixel_and_the_bands_
     np.testing.assert_allclose(out[:, 1:].numpy(), sh[:, 1:].numpy() @ m.T, atol=1e-9)
 
 
-def test_arf_rank_takes_its_statistics_over_the_covered_pixels():
-    """With ``where='covered'`` both ARF's moments and the luminance ranks come from the pixels the scene covers: a
-    white background outside them changes nothing."""
+@pytest.mark.parametrize("mode", ["arf_rank", "sliced"])
+def test_rank_and_sliced_maps_take_their_statistics_over_the_covered_pixels(mode):
+    """With ``where='covered'`` the map's statistics (arf_rank: ARF's moments and the luminance ranks; sliced: every
+    rotation's quantiles) come from the pixels the scene covers: a white background outside them changes nothing
+    (for sliced this also needs the same rotations on every call: they come from a fixed seed)."""
     photos = _capture_like(14)
     style = np.random.default_rng(15).random((30, 40, 3))
     cover = [np.zeros(p.shape[:2] + (1,)) for p in photos]
@@ -349,11 +351,11 @@ def test_arf_rank_takes_its_statistics_over_the_covered_pixels():
     for p in framed:
         p[:, 12:] = 1.0  # white where nothing is covered
     pt = lambda xs: [torch.from_numpy(x) for x in xs]
-    a, _ = palette_transfer(pt(photos), torch.from_numpy(style), "arf_rank", coverage=pt(cover), where="covered")
-    b, _ = palette_transfer(pt(framed), torch.from_numpy(style), "arf_rank", coverage=pt(cover), where="covered")
+    a, _ = palette_transfer(pt(photos), torch.from_numpy(style), mode, coverage=pt(cover), where="covered")
+    b, _ = palette_transfer(pt(framed), torch.from_numpy(style), mode, coverage=pt(cover), where="covered")
     for x, y in zip(a, b):
         np.testing.assert_allclose(x[:, :12].numpy(), y[:, :12].numpy(), atol=1e-9)
-    c, _ = palette_transfer(pt(framed), torch.from_numpy(style), "arf_rank")  # all pixels: the white moves the map
+    c, _ = palette_transfer(pt(framed), torch.from_numpy(style), mode)  # all pixels: the white moves the map
     assert np.abs(c[0][:, :12].numpy() - b[0][:, :12].numpy()).max() > 0.02
 
 
@@ -462,23 +464,3 @@ def test_sliced_map_gives_the_photos_the_paintings_colour_distribution():
 def test_sliced_map_recolors_the_gaussians_base_colour_like_a_pixel_and_keeps_the_bands():
     _, sh, out, _ = _recolored_like_pixels("sliced", _capture_like(23), 24)
     np.testing.assert_allclose(out[:, 1:].numpy(), sh[:, 1:].numpy(), atol=1e-12)
-
-
-def test_sliced_map_takes_its_statistics_over_the_covered_pixels_and_is_repeatable():
-    """With ``where='covered'`` a white background outside the covered pixels changes nothing; the same inputs give
-    the same map (the rotations come from a fixed seed)."""
-    photos = _capture_like(25)
-    style = np.random.default_rng(26).random((30, 40, 3))
-    cover = [np.zeros(p.shape[:2] + (1,)) for p in photos]
-    for c in cover:
-        c[:, :12] = 1.0
-    framed = [p.copy() for p in photos]
-    for p in framed:
-        p[:, 12:] = 1.0
-    pt = lambda xs: [torch.from_numpy(x) for x in xs]
-    a, _ = palette_transfer(pt(photos), torch.from_numpy(style), "sliced", coverage=pt(cover), where="covered")
-    b, _ = palette_transfer(pt(framed), torch.from_numpy(style), "sliced", coverage=pt(cover), where="covered")
-    for x, y in zip(a, b):
-        np.testing.assert_allclose(x[:, :12].numpy(), y[:, :12].numpy(), atol=1e-12)
-    c, _ = palette_transfer(pt(framed), torch.from_numpy(style), "sliced")  # all pixels: the white moves the map
-    assert np.abs(c[0][:, :12].numpy() - b[0][:, :12].numpy()).max() > 0.02
