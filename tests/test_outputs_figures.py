@@ -186,3 +186,20 @@ def test_spill_note_from_its_share_on_with_the_weight_to_try():
     assert "loss.silhouette_where=empty" in note
     assert "w_silhouette=1000 " in spill_note(SPILL_NOTE, 100.0)
     assert "w_silhouette=100 " in spill_note(0.2, 0.0)  # a config without the term
+
+
+def test_stylize_summary_prints_its_notes_before_the_line_that_says_what_to_open(tmp_path, capsys):
+    """The tone-drift and spill notes go between the run's summary and its last line, which names comparison.png
+    (a user reads the end of the output first); without either condition no note is printed."""
+    from tlvg_warp.commands.stylize import _summary
+
+    m = {"time_per_phase_s": {"pre": 1.0, "stylize": 2.0, "post": 1.0}, "training_field_alignment": 0.9,
+         "training_field_alignment_unstylized": 0.8, "gaussians_input": 10, "gaussians_final": 12, "bytes_out": 1000,
+         "wall_time_s": 5.0, "tone_covered": 0.48, "tone_target": 0.22, "outside_outline_of_covered": 0.12}
+    _summary(tmp_path, m, 1000.0, 10.0)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[-1].startswith("open ") and "comparison.png" in lines[-1]
+    assert any("lighter than its colour target" in x for x in lines[1:-1])
+    assert any("loss.w_silhouette=100 " in x for x in lines[1:-1])
+    _summary(tmp_path, {**m, "tone_covered": 0.23, "outside_outline_of_covered": 0.01}, 1000.0, 10.0)
+    assert len(capsys.readouterr().out.strip().splitlines()) == 2
