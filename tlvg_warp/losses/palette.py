@@ -321,14 +321,7 @@ def _pooled_luma(items, coverage=None) -> torch.Tensor:
     """The photos' luminance, pooled over the pixels the scene covers (all pixels without ``coverage``, or where
     it covers none): a Blender object on a white background must take the painting's tones from its own range,
     not sit in the darkest ranks below the white (lego x The Starry Night turned into a dark grey mass)."""
-    ys = [_luma64(_as_torch(im).detach()).reshape(-1).cpu() for im in items]
-    if coverage is not None:
-        keep = [(_as_torch(c).detach().reshape(-1) > COVERED).cpu() for c in coverage]
-        if any(bool(k.any()) for k in keep):
-            ys = [y[k] for y, k in zip(ys, keep)]
-    y = torch.cat(ys)
-    step = max(1, -(-y.numel() // TONE_MAX_PIXELS))
-    return y[::step]
+    return _luma64(_pooled_colours(items, coverage, TONE_MAX_PIXELS))
 
 
 def tone_palette(images, style, bins: int = TONE_BINS, coverage=None) -> TonePalette:
