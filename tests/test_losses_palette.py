@@ -464,3 +464,85 @@ def test_sliced_map_gives_the_photos_the_paintings_colour_distribution():
 def test_sliced_map_recolors_the_gaussians_base_colour_like_a_pixel_and_keeps_the_bands():
     _, sh, out, _ = _recolored_like_pixels("sliced", _capture_like(23), 24)
     np.testing.assert_allclose(out[:, 1:].numpy(), sh[:, 1:].numpy(), atol=1e-12)
+
+
+# --- the sliced map smoothed over the photos' colours (palette_smooth) --------------------------------------------
+def test_smoothed_displacement_matches_a_float64_loop_reference():
+    """Each grid point's displacement is the Gaussian-kernel average of the photo colours' displacements (numpy,
+    one grid point at a time, the grid indexed r,g,b); a very wide kernel gives their plain mean everywhere. Catches
+    a kernel of the wrong width, a grid in another axis order, a missing normalization."""
+    from tlvg_warp.losses.palette import smoothed_displacement
+
+    rng = np.random.default_rng(31)
+    x, d = rng.random((60, 3)), rng.normal(0, 0.2, (60, 3))
+    out = smoothed_displacement(torch.from_numpy(x), torch.from_numpy(d), 0.15, grid=4).numpy()
+    axis = np.linspace(0, 1, 4)
+    for i, j, k in [(0, 0, 0), (3, 1, 2), (1, 2, 3), (2, 3, 0)]:
+        w = np.exp(-((x - [axis[i], axis[j], axis[k]]) ** 2).sum(1) / (2 * 0.15 ** 2))
+        np.testing.assert_allclose(out[i, j, k], (w[:, None] * d).sum(0) / w.sum(), rtol=1e-10, atol=1e-12)
+    wide = smoothed_displacement(torch.from_numpy(x), torch.from_numpy(d), 1e4, grid=3).numpy()
+    np.testing.assert_allclose(wide.reshape(-1, 3), np.broadcast_to(d.mean(0), (27, 3)), atol=1e-9)
+
+
+def test_trilinear_lookup_reads_an_affine_table_exactly():
+    """A table of an affine function of RGB is reproduced exactly between its grid points by trilinear
+    interpolation (closed form); colours outside [0,1] read the nearest face."""
+    from tlvg_warp.losses.palette import _trilinear
+
+    a, b = np.array([[0.3, -0.2, 0.5], [0.1, 0.7, -0.4], [-0.6, 0.2, 0.9]]), np.array([0.05, -0.1, 0.2])
+    axis = np.linspace(0, 1, 6)
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1)  # [6,6,6,3]
+    lut = torch.from_numpy(grid @ a.T + b)
+    x = np.random.default_rng(32).random((500, 3))
+    np.testing.assert_allclose(_trilinear(lut, torch.from_numpy(x)).numpy(), x @ a.T + b, atol=1e-12)
+    outside = np.array([[1.3, -0.2, 0.5]])
+    np.testing.assert_allclose(_trilinear(lut, torch.from_numpy(outside)).numpy(),
+                               np.clip(outside, 0, 1) @ a.T + b, atol=1e-12)
+
+
+def _grey_and_two_hues(seed):
+    rng = np.random.default_rng(seed)
+    grey = [0.55 + rng.normal(0, 0.012, (30, 40, 3)) for _ in range(2)]  # a bare floor: faint tints only
+    hues = np.array([[0.95, 0.85, 0.2], [0.15, 0.25, 0.75], [0.85, 0.2, 0.15], [0.2, 0.55, 0.3]])
+    style = np.clip(hues[rng.integers(0, 4, (50, 60))] + rng.normal(0, 0.03, (50, 60, 3)), 0, 1)
+    return [torch.from_numpy(g) for g in grey], torch.from_numpy(style)
+
+
+def test_smoothing_keeps_a_grey_photos_tints_as_faint_as_they_were():
+    """A grey photo under a colourful painting: the sliced map itself spreads its faint tints over the painting's
+    hues (the soft colour blobs on beer's floor); smoothed over colours within 0.05 the tints move together, so the
+    displacement varies little over the photo and the colours' spread stays under twice the photo's own (the map
+    itself: over five times)."""
+    grey, style = _grey_and_two_hues(33)
+    x = torch.cat([g.reshape(-1, 3) for g in grey]).numpy()
+    raw, _ = palette_transfer(grey, style, "sliced")
+    smooth, _ = palette_transfer(grey, style, "sliced", smooth=0.05)
+    flat = lambda xs: np.concatenate([np.asarray(r).reshape(-1, 3) for r in xs])
+    spread = lambda y: float(np.std(y - y.mean(0), axis=0).mean())
+    assert spread(flat(raw)) > 5 * spread(x)  # the failure the option is for
+    assert spread(flat(smooth)) < 2 * spread(x)
+    assert np.abs(flat(smooth).mean(0) - x.mean(0)).max() > 0.02  # it still moves the photo's colour
+
+
+def test_smoothing_keeps_far_apart_hues_on_their_own_hues():
+    """Two photo colours far apart (red and blue objects) under a four-hue painting: with smoothing each keeps the
+    colour the sliced map gives it (means within 0.05), so the two still land on different hues of the painting."""
+    rng = np.random.default_rng(34)
+    red = 0.02 * rng.normal(size=(30, 40, 3)) + [0.8, 0.25, 0.2]
+    blue = 0.02 * rng.normal(size=(30, 40, 3)) + [0.2, 0.3, 0.8]
+    photos = [torch.from_numpy(np.clip(p, 0, 1)) for p in (red, blue)]
+    _, style = _grey_and_two_hues(35)
+    raw, _ = palette_transfer(photos, style, "sliced")
+    smooth, _ = palette_transfer(photos, style, "sliced", smooth=0.05)
+    for r, s in zip(raw, smooth):
+        np.testing.assert_allclose(s.reshape(-1, 3).mean(0).numpy(), r.reshape(-1, 3).mean(0).numpy(), atol=0.05)
+    assert float((smooth[0].reshape(-1, 3).mean(0) - smooth[1].reshape(-1, 3).mean(0)).abs().max()) > 0.3
+
+
+def test_palette_smooth_belongs_to_the_sliced_map():
+    from tlvg_warp.config_io import ConfigError
+    from tlvg_warp.stylize.config import config_from_dict as stylize_config
+
+    assert stylize_config({"palette_map": "sliced", "palette_smooth": 0.05}).validate().palette_smooth == 0.05
+    with pytest.raises(ConfigError, match="palette_smooth"):
+        stylize_config({"palette_map": "arf", "palette_smooth": 0.05}).validate()

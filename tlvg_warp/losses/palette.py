@@ -187,12 +187,14 @@ class SlicedPalette:
     """The photos' colour distribution moved onto the painting's: ``steps`` times, the colours are rotated, each of
     the three rotated axes goes through the monotone map that sends the photos' quantiles there to the painting's,
     and the colours are rotated back (sliced optimal transport in three dimensions: a colour keeps its rank along
-    every axis, so neighbouring colours stay neighbours)."""
+    every axis, so neighbouring colours stay neighbours). With ``lut`` the map's displacement is read from a table
+    smoothed over the photos' colours instead (:func:`smoothed_displacement`)."""
 
     rotations: torch.Tensor  # [K,3,3] float64
     src: torch.Tensor  # [K,Q,3] float64: the photos' colours (after the steps before) along each rotated axis, at Q
     # quantiles from 0 to 1
     dst: torch.Tensor  # [K,Q,3] float64: the painting's at the same quantiles
+    lut: torch.Tensor | None = None  # [G,G,G,3] float64: the smoothed displacement on a grid of RGB (index r,g,b)
 
     @staticmethod
     def _step(x: torch.Tensor, rot, src, dst) -> torch.Tensor:
@@ -200,13 +202,18 @@ class SlicedPalette:
         p = torch.stack([_interp(p[:, a], src[:, a].contiguous(), dst[:, a, None])[..., 0] for a in range(3)], -1)
         return p @ rot.T
 
+    def transport(self, y: torch.Tensor) -> torch.Tensor:
+        """Colours [N,3] float64 through the sliced map itself (unclamped, unsmoothed)."""
+        for rot, src, dst in zip(self.rotations.to(y.device), self.src.to(y.device), self.dst.to(y.device)):
+            y = self._step(y, rot, src, dst)
+        return y
+
     def apply(self, img):
         """An image [H,W,3] (or colours [...,3]) in [0,1], numpy or torch, under the map, clamped to [0,1]; type and
         dtype kept."""
         x = _as_torch(img)
         y = x.detach().double().reshape(-1, 3)
-        for rot, src, dst in zip(self.rotations.to(y.device), self.src.to(y.device), self.dst.to(y.device)):
-            y = self._step(y, rot, src, dst)
+        y = self.transport(y) if self.lut is None else y + _trilinear(self.lut.to(y.device), y)
         out = y.clamp(0.0, 1.0).reshape(x.shape).to(x.dtype)
         return out.numpy() if isinstance(img, np.ndarray) else out
 
@@ -217,6 +224,42 @@ class SlicedPalette:
         base = (SH_C0 * sh[:, 0].double() + 0.5).clamp(0.0, 1.0)  # [N,3]
         out[:, 0] = (self.apply(base).double() - 0.5) / SH_C0
         return out.to(sh.dtype)
+
+
+def _trilinear(lut: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """The table ``lut`` [G,G,G,C] (a grid over [0,1]^3, index r,g,b) read at colours ``x`` [N,3] by trilinear
+    interpolation -> [N,C]; colours outside [0,1] read the nearest face."""
+    g = lut.shape[0] - 1
+    p = x.clamp(0.0, 1.0) * g  # [N,3] in grid units
+    i0 = p.floor().clamp(max=g - 1).long()  # [N,3]: the lower corner of each colour's cell
+    f = p - i0  # [N,3] in [0,1]
+    out = torch.zeros(x.shape[0], lut.shape[-1], dtype=lut.dtype, device=x.device)
+    for corner in range(8):  # the cell's eight corners, each weighted by the product of its three axis weights
+        b = torch.tensor([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1], device=x.device)
+        w = torch.where(b.bool(), f, 1 - f).prod(-1, keepdim=True)  # [N,1]
+        i = i0 + b
+        out += w * lut[i[:, 0], i[:, 1], i[:, 2]]
+    return out
+
+
+SLICED_LUT = 25  # grid points a side of the smoothed map's table (spacing 1/24 of the RGB cube)
+SLICED_SMOOTH_SAMPLES = 8192  # photo colours the smoothing averages over (a stride of the pooled ones)
+
+
+def smoothed_displacement(x: torch.Tensor, d: torch.Tensor, sigma: float, grid: int = SLICED_LUT) -> torch.Tensor:
+    """The displacements ``d`` [M,3] of the photo colours ``x`` [M,3] averaged with a Gaussian kernel of width
+    ``sigma`` in RGB at every point of a ``grid``^3 table over [0,1]^3 -> [G,G,G,3] float64 (Nadaraya-Watson,
+    normalized per grid point, so a point far from every photo colour takes its nearest colours' displacement).
+    Why: the sliced map sends a grey floor's faint tints to far-apart hues of the painting (soft blobs on beer);
+    averaged over colours within ``sigma``, colours that close move together and keep their own differences, while
+    colours farther apart (a scene's own hues) still move to different hues of the painting."""
+    axis = torch.linspace(0.0, 1.0, grid, dtype=torch.float64, device=x.device)
+    pts = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)  # [G^3,3]
+    out = torch.empty_like(pts)
+    for lo in range(0, pts.shape[0], 2048):  # chunks of grid points: [2048,M] weights at a time
+        logits = -torch.cdist(pts[lo:lo + 2048], x).square() / (2.0 * sigma * sigma)
+        out[lo:lo + 2048] = torch.softmax(logits, dim=1) @ d
+    return out.reshape(grid, grid, grid, 3)
 
 
 def _pooled_colours(items, coverage=None, limit: int = SLICED_MAX_PIXELS) -> torch.Tensor:
@@ -232,21 +275,27 @@ def _pooled_colours(items, coverage=None, limit: int = SLICED_MAX_PIXELS) -> tor
 
 
 def sliced_palette(images, style, coverage=None, steps: int = SLICED_STEPS, quantiles: int = SLICED_QUANTILES,
-                   seed: int = 0) -> SlicedPalette:
+                   seed: int = 0, smooth: float = 0.0) -> SlicedPalette:
     """The sliced map from the photos (list of [H,W,3] in [0,1]) to the painting ``style`` [h,w,3], over the pixels
-    ``coverage`` marks (None: all); the rotations from ``seed`` (the same photos and painting give the same map)."""
+    ``coverage`` marks (None: all); the rotations from ``seed`` (the same photos and painting give the same map).
+    ``smooth`` > 0: its displacement averaged over photo colours within that RGB distance
+    (:func:`smoothed_displacement`)."""
     gen = torch.Generator().manual_seed(seed)
-    x, t = _pooled_colours(images, coverage), _pooled_colours([style])
+    x0, t = _pooled_colours(images, coverage), _pooled_colours([style])
     q = torch.linspace(0.0, 1.0, quantiles, dtype=torch.float64)  # the ends too: the photos' extremes to the
     # painting's
     ramp = torch.arange(quantiles, dtype=torch.float64)[:, None] * 1e-9  # strictly increasing where a photo is flat
-    rots, srcs, dsts = [], [], []
+    rots, srcs, dsts, x = [], [], [], x0
     for _ in range(steps):  # a few steps, each vectorized over every pixel
         rot = _rotation(gen)
         src, dst = torch.quantile(x @ rot, q, dim=0) + ramp, torch.quantile(t @ rot, q, dim=0)  # [Q,3] each
         x = SlicedPalette._step(x, rot, src, dst)
         rots.append(rot), srcs.append(src), dsts.append(dst)
-    return SlicedPalette(torch.stack(rots), torch.stack(srcs), torch.stack(dsts))
+    pal = SlicedPalette(torch.stack(rots), torch.stack(srcs), torch.stack(dsts))
+    if smooth > 0:
+        stride = max(1, -(-x0.shape[0] // SLICED_SMOOTH_SAMPLES))
+        pal.lut = smoothed_displacement(x0[::stride], x[::stride] - x0[::stride], smooth)
+    return pal
 
 
 COVERED = 0.5  # a pixel belongs to the scene where the un-stylized render's alpha is above this
@@ -347,12 +396,13 @@ def tone_palette(images, style, bins: int = TONE_BINS, coverage=None) -> TonePal
                        knots, torch.stack(tone_chroma))
 
 
-def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0, where: str = "all"):
+def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0, where: str = "all",
+                     smooth: float = 0.0):
     """``(recolored, palette)``: the photos (list of [H,W,3]) in the painting's palette by ``mode`` (arf | arf_rank |
     sliced | tone), and the map, whose ``recolor_sh`` gives the Gaussians the same palette. ``coverage`` (per view
     [H,W,1]) limits the tone map's photo statistics to the scene, and ARF's and the sliced map's where ``where`` is
     ``covered``; with ``all`` ARF pools every pixel, as released (the baseline uses it). ``floor``: ARF's variance
-    floor (:func:`color.color_transfer`)."""
+    floor (:func:`color.color_transfer`); ``smooth``: the sliced map's smoothing width (:func:`sliced_palette`)."""
     if where not in ("all", "covered"):
         raise ValueError(f"palette statistics over all or covered pixels, got {where!r}")
     if mode == "arf":
@@ -365,7 +415,7 @@ def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0
         pal = rank_palette(images, style, floor, coverage if where == "covered" else None)
         return [pal.apply(im) for im in images], pal
     if mode == "sliced":
-        pal = sliced_palette(images, style, coverage if where == "covered" else None)
+        pal = sliced_palette(images, style, coverage if where == "covered" else None, smooth=smooth)
         return [pal.apply(im) for im in images], pal
     raise ValueError(f"palette mode must be arf, arf_rank, sliced or tone, got {mode!r}")
 

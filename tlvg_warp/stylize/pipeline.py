@@ -359,7 +359,8 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
         recolored, palette = photos, AffinePalette.identity()
     else:
         recolored, palette = palette_transfer(photos, style_work.to(device), cfg.palette_map, coverage=coverage,
-                                              floor=cfg.palette_floor, where=cfg.palette_where)
+                                              floor=cfg.palette_floor, where=cfg.palette_where,
+                                              smooth=cfg.palette_smooth)
         note = dark_object_note(photos, coverage, style_work, cfg.palette_map, cfg.palette_where)
         if note:
             print(note)
