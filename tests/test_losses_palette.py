@@ -539,10 +539,31 @@ def test_smoothing_keeps_far_apart_hues_on_their_own_hues():
     assert float((smooth[0].reshape(-1, 3).mean(0) - smooth[1].reshape(-1, 3).mean(0)).abs().max()) > 0.3
 
 
-def test_palette_smooth_belongs_to_the_sliced_map():
-    from tlvg_warp.config_io import ConfigError
-    from tlvg_warp.stylize.config import config_from_dict as stylize_config
+def test_the_shipped_config_smooths_the_sliced_map_and_another_map_ignores_the_width():
+    """configs/tlvg.yaml's map is the smoothed sliced one; switching the map back to ARF's over that config is valid
+    and gives ARF's map exactly (the width belongs to the sliced map alone)."""
+    from pathlib import Path
 
-    assert stylize_config({"palette_map": "sliced", "palette_smooth": 0.05}).validate().palette_smooth == 0.05
-    with pytest.raises(ConfigError, match="palette_smooth"):
-        stylize_config({"palette_map": "arf", "palette_smooth": 0.05}).validate()
+    from tlvg_warp.stylize.config import load_config
+
+    cfg_path = Path(__file__).resolve().parents[1] / "configs" / "tlvg.yaml"
+    cfg = load_config(cfg_path)
+    assert (cfg.palette_map, cfg.palette_smooth) == ("sliced", 0.05)
+    assert load_config(cfg_path, ["palette_map=arf"]).validate().palette_map == "arf"
+    photos, style = _grey_and_two_hues(36)
+    plain, _ = palette_transfer(photos, style, "arf", floor=0.004)
+    widened, _ = palette_transfer(photos, style, "arf", floor=0.004, smooth=0.05)
+    for a, b in zip(plain, widened):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the palette on a CUDA device")
+def test_the_smoothed_sliced_map_on_cuda_matches_the_cpu():
+    """Photos on a GPU: the map is fitted there (quantiles, smoothing table) and recolours as the CPU's does."""
+    photos, style = _grey_and_two_hues(37)
+    photos = photos + [torch.from_numpy(np.random.default_rng(38).random((30, 40, 3)))]
+    cpu, _ = palette_transfer(photos, style, "sliced", smooth=0.05)
+    gpu, pal = palette_transfer([p.cuda() for p in photos], style.cuda(), "sliced", smooth=0.05)
+    assert pal.lut.is_cuda
+    for a, b in zip(cpu, gpu):
+        np.testing.assert_allclose(b.cpu().numpy(), a.numpy(), atol=1e-6)

@@ -262,12 +262,13 @@ def smoothed_displacement(x: torch.Tensor, d: torch.Tensor, sigma: float, grid: 
     return out.reshape(grid, grid, grid, 3)
 
 
-def _pooled_colours(items, coverage=None, limit: int = SLICED_MAX_PIXELS) -> torch.Tensor:
-    """[N,3] float64 on the CPU: the images' colours pooled over the pixels ``coverage`` marks (all pixels without
-    it, or where it marks none), every k-th kept so that at most ``limit`` remain."""
-    xs = [_as_torch(im).detach().reshape(-1, 3).double().cpu() for im in items]
+def _pooled_colours(items, coverage=None, limit: int = SLICED_MAX_PIXELS, device=None) -> torch.Tensor:
+    """[N,3] float64 on ``device`` (default the CPU): the images' colours pooled over the pixels ``coverage`` marks
+    (all pixels without it, or where it marks none), every k-th kept so that at most ``limit`` remain."""
+    dev = torch.device("cpu") if device is None else device
+    xs = [_as_torch(im).detach().reshape(-1, 3).to(dev, torch.float64) for im in items]
     if coverage is not None:
-        keep = [(_as_torch(c).detach().reshape(-1) > COVERED).cpu() for c in coverage]
+        keep = [(_as_torch(c).detach().reshape(-1) > COVERED).to(dev) for c in coverage]
         if any(bool(k.any()) for k in keep):
             xs = [x[k] for x, k in zip(xs, keep)]
     x = torch.cat(xs)
@@ -280,14 +281,16 @@ def sliced_palette(images, style, coverage=None, steps: int = SLICED_STEPS, quan
     ``coverage`` marks (None: all); the rotations from ``seed`` (the same photos and painting give the same map).
     ``smooth`` > 0: its displacement averaged over photo colours within that RGB distance
     (:func:`smoothed_displacement`)."""
-    gen = torch.Generator().manual_seed(seed)
-    x0, t = _pooled_colours(images, coverage), _pooled_colours([style])
-    q = torch.linspace(0.0, 1.0, quantiles, dtype=torch.float64)  # the ends too: the photos' extremes to the
-    # painting's
-    ramp = torch.arange(quantiles, dtype=torch.float64)[:, None] * 1e-9  # strictly increasing where a photo is flat
+    gen = torch.Generator().manual_seed(seed)  # on the CPU: the same rotations on every device
+    dev = _as_torch(images[0]).device  # where the photos are (a GPU: the quantiles and the smoothing in milliseconds)
+    x0, t = _pooled_colours(images, coverage, device=dev), _pooled_colours([style], device=dev)
+    q = torch.linspace(0.0, 1.0, quantiles, dtype=torch.float64, device=dev)  # the ends too: the photos' extremes
+    # to the painting's
+    ramp = torch.arange(quantiles, dtype=torch.float64, device=dev)[:, None] * 1e-9  # strictly increasing where a
+    # photo is flat
     rots, srcs, dsts, x = [], [], [], x0
     for _ in range(steps):  # a few steps, each vectorized over every pixel
-        rot = _rotation(gen)
+        rot = _rotation(gen).to(dev)
         src, dst = torch.quantile(x @ rot, q, dim=0) + ramp, torch.quantile(t @ rot, q, dim=0)  # [Q,3] each
         x = SlicedPalette._step(x, rot, src, dst)
         rots.append(rot), srcs.append(src), dsts.append(dst)
