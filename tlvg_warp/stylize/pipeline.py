@@ -4,7 +4,7 @@
     result = run_stylize(inp, StylizeConfig(), out_dir)
 
 Every step renders ONE training view (``views_per_step``), drawn at random without replacement per epoch.
-1. ``Fit("pre")``: the photos recolored to the painting's palette (ARF color transfer, once), fit with
+1. ``Fit("pre")``: the photos recolored to the painting's palette (``palette_map``, once), fit with
    0.8·L1 + 0.2·(1−SSIM), density control on (``density.phases``).
 2. ``Stylize``: style (FAST on luminance by default) + content + inverse depth + TV + opacity/scale anchors
    + Lab chroma (0.2 → 0.05) + flow alignment + anisotropy; xyz unlocked with its exponential decay, the
