@@ -156,10 +156,14 @@ def test_caption_names_the_terms_that_are_on():
     assert f"conv4 gram term x{cfg.loss.w_style_deep:g}" in on
     assert "tone hold" not in off and "conv4" not in off
     assert "3000 iterations" in on and "0.900" in on
+    # the colour map that made the picture: the smoothed sliced map by default, ARF's when set, none with keep-colours
+    assert f"palette=sliced (smoothed {cfg.palette_smooth:g})," in on
+    assert "palette=arf," in comparison_caption(load_config(configs / "tlvg.yaml", ["palette_map=arf"]), 3000, 0.9)
     # the controls a user sets, so that runs made with them can be told apart; a neutral one is left out
     assert on.startswith(f"stroke scale {cfg.stroke_scale:g}, config:") and "strength" not in on
     cfg.loss.strength, cfg.keep_colors = 0.5, True
-    assert comparison_caption(cfg, 3000, 0.9).startswith("strength 0.5, stroke scale 2, keep colours, config:")
+    assert comparison_caption(cfg, 3000, 0.9).startswith("strength 0.5, stroke scale 2, keep colours, config: "
+                                                          "palette=none,")
 
 
 def test_spill_counts_against_evaluates_spill_and_a_hand_count():
