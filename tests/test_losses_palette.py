@@ -567,3 +567,24 @@ def test_the_smoothed_sliced_map_on_cuda_matches_the_cpu():
     assert pal.lut.is_cuda
     for a, b in zip(cpu, gpu):
         np.testing.assert_allclose(b.cpu().numpy(), a.numpy(), atol=1e-6)
+
+
+@pytest.mark.parametrize("with_coverage", [False, True])
+def test_pooled_colours_are_every_kth_of_the_concatenated_pixels(with_coverage):
+    """The pooled colours are exactly every k-th colour of all the images' (covered) pixels in order, written the
+    direct way (concatenate in float64, then stride), for images of uneven sizes whose pixel counts do not divide
+    the stride; at most ``limit`` remain."""
+    from tlvg_warp.losses.palette import COVERED, _pooled_colours
+
+    rng = np.random.default_rng(39)
+    imgs = [torch.from_numpy(rng.random((h, w, 3)).astype(np.float32)) for h, w in ((7, 9), (11, 5), (3, 13))]
+    cov = [torch.from_numpy(rng.random((*im.shape[:2], 1)).astype(np.float32)) for im in imgs] if with_coverage else None
+    for limit in (1000, 50, 17):
+        got = _pooled_colours(imgs, cov, limit)
+        flat = [im.reshape(-1, 3).double() for im in imgs]
+        if with_coverage:
+            flat = [f[c.reshape(-1) > COVERED] for f, c in zip(flat, cov)]
+        ref = torch.cat(flat)
+        ref = ref[::max(1, -(-ref.shape[0] // limit))]
+        assert got.dtype == torch.float64 and got.shape[0] <= limit
+        assert torch.equal(got, ref)

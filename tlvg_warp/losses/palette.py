@@ -264,15 +264,21 @@ def smoothed_displacement(x: torch.Tensor, d: torch.Tensor, sigma: float, grid: 
 
 def _pooled_colours(items, coverage=None, limit: int = SLICED_MAX_PIXELS, device=None) -> torch.Tensor:
     """[N,3] float64 on ``device`` (default the CPU): the images' colours pooled over the pixels ``coverage`` marks
-    (all pixels without it, or where it marks none), every k-th kept so that at most ``limit`` remain."""
+    (all pixels without it, or where it marks none), every k-th of them in order kept so that at most ``limit``
+    remain. Each image gives only its own share of that stride before it is copied and widened, so a large dataset
+    is never held whole in float64 (200 photos of a megapixel would be 4.8 GB)."""
     dev = torch.device("cpu") if device is None else device
-    xs = [_as_torch(im).detach().reshape(-1, 3).to(dev, torch.float64) for im in items]
+    xs = [_as_torch(im).detach().reshape(-1, 3) for im in items]  # views of the inputs: nothing copied yet
     if coverage is not None:
-        keep = [(_as_torch(c).detach().reshape(-1) > COVERED).to(dev) for c in coverage]
+        keep = [(_as_torch(c).detach().reshape(-1) > COVERED).to(x.device) for x, c in zip(xs, coverage)]
         if any(bool(k.any()) for k in keep):
             xs = [x[k] for x, k in zip(xs, keep)]
-    x = torch.cat(xs)
-    return x[::max(1, -(-x.shape[0] // limit))]
+    stride = max(1, -(-sum(x.shape[0] for x in xs) // limit))
+    out, offset = [], 0  # the pooled index of each image's first pixel: the picks continue across images
+    for x in xs:
+        out.append(x[(-offset) % stride::stride].to(dev, torch.float64))
+        offset += x.shape[0]
+    return torch.cat(out)
 
 
 def sliced_palette(images, style, coverage=None, steps: int = SLICED_STEPS, quantiles: int = SLICED_QUANTILES,
