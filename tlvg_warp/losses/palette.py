@@ -315,10 +315,10 @@ EMPTY_SHARE = 0.1  # at least this share of the views' pixels uncovered: an obje
 
 
 def dark_object_note(photos, coverage, style, mode: str, where: str) -> str | None:
-    """One line for the user when ARF's covered-pixel statistics (``mode`` arf or arf_rank, ``where`` = covered; the
-    tone map always reads the covered pixels, so ``palette_where`` cannot help it) are about to give a dark object
-    in front of an empty background the painting's mean tone (the biker under Monet: covered luminance 0.26, the
-    painting 0.53, stylized 0.63; docs/study.md): the object comes out much lighter than it is, and
+    """One line for the user when the colour map's covered-pixel statistics (``mode`` arf, arf_rank or sliced,
+    ``where`` = covered; the tone map always reads the covered pixels, so ``palette_where`` cannot help it) are about
+    to give a dark object in front of an empty background the painting's mean tone (the biker under Monet: covered
+    luminance 0.26, the painting 0.53, stylized 0.63; docs/study.md): the object comes out much lighter than it is, and
     ``palette_where=all`` keeps it dark. None where it does not apply: statistics over all pixels, a capture that
     fills its views (fewer than ``EMPTY_SHARE`` of the pixels uncovered), or an object within ``DARK_OBJECT_GAP`` of
     the painting's mean luminance (or lighter)."""
