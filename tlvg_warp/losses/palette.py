@@ -1,4 +1,4 @@
-"""The painting's palette on the photos and on the Gaussians: the two colour maps the pre-process can start from.
+"""The painting's palette on the photos and on the Gaussians: the colour maps the pre-process can start from.
 
 - ``arf``: ARF's mean/covariance transfer (:func:`color.color_transfer`), one affine map ``x' = M x + t``.
 - ``arf_rank`` (ours): ARF's map, then its luminance moved to the painting's at the same rank (:class:`RankPalette`),
@@ -6,7 +6,9 @@
 - ``sliced`` (ours, after Pitié et al.'s iterative distribution transfer): the photos' colours moved onto the
   painting's whole colour distribution, one random rotation of RGB at a time, each axis matched quantile for
   quantile. Why: one affine map cannot give a scene the many saturated hues of a Fauvist painting that its colours
-  do not span (Woman with a Hat came out pastel, docs/study.md); matching the distribution can.
+  do not span (Woman with a Hat came out pastel, docs/study.md); matching the distribution can. With ``smooth`` (the
+  default config: 0.05) the map's displacement is averaged over nearby photo colours, so a grey floor's faint tints
+  move together instead of into far-apart hues (:func:`smoothed_displacement`).
 - ``tone`` (ours): luminance moved to the painting's mean and spread, chroma read from the painting at the same
   luminance rank. Why: a photo with little colour (a grey floor, a white wall) has a near-singular chroma
   covariance, and whitening it blows up its faint tints into pastel green and violet washes that the painting
@@ -14,7 +16,7 @@
   (The Starry Night: dark blue shadows, blue mid-tones, yellow lights), and chroma is a smooth function of
   luminance, so no photo noise is amplified into colour.
 
-Both maps act on a whole dataset at once (one map for every view) and on Gaussians' SH colours
+Every map acts on a whole dataset at once (one map for every view) and on Gaussians' SH colours
 (:meth:`recolor_sh`), so the pre-process starts from the palette it fits to.
 """
 from __future__ import annotations
