@@ -236,8 +236,8 @@ def _trilinear(lut: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     i0 = p.floor().clamp(max=g - 1).long()  # [N,3]: the lower corner of each colour's cell
     f = p - i0  # [N,3] in [0,1]
     out = torch.zeros(x.shape[0], lut.shape[-1], dtype=lut.dtype, device=x.device)
-    for corner in range(8):  # the cell's eight corners, each weighted by the product of its three axis weights
-        b = torch.tensor([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1], device=x.device)
+    corners = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], device=x.device)  # [8,3]
+    for b in corners:  # the cell's eight corners, each weighted by the product of its three axis weights
         w = torch.where(b.bool(), f, 1 - f).prod(-1, keepdim=True)  # [N,1]
         i = i0 + b
         out += w * lut[i[:, 0], i[:, 1], i[:, 2]]
