@@ -1,10 +1,10 @@
 """A dataset's photos under the palette maps, as PNGs for benchmarks/grid.py (development aid, CPU, seconds).
 
     python benchmarks/palette_photos.py DATA PAINTING OUTDIR [--images images_8] [--downscale D] [--views 0,5]
-        [--map arf:arf] [--map s05:sliced:0.05] [--map w:sliced:0.05:strokes] ...
+        [--map arf] [--map sliced] [--map s05:sliced:0.05] ...
 
-Each map (`name:mode[:smooth[:weight]]`) is fitted on every photo of DATA, as `stylize` fits it (statistics over all
-pixels of a capture; over the non-white pixels of a dataset with a white background, as the covered pixels stand in for
+Each map (`name:mode[:smooth]`) is fitted on every photo of DATA, as `stylize` fits it (statistics over all pixels
+of a capture; over the non-white pixels of a dataset with a white background, as the covered pixels stand in for
 the un-stylized render's alpha here), with the painting at the photos' height, and the chosen views are written as
 OUTDIR/NAME_vIDX.png beside the photos (photo_vIDX.png) and the painting (painting.png)."""
 from __future__ import annotations
@@ -32,8 +32,7 @@ def main() -> None:
     ap.add_argument("data"), ap.add_argument("painting"), ap.add_argument("out")
     ap.add_argument("--images"), ap.add_argument("--downscale", type=float)
     ap.add_argument("--views", default="0", help="comma-separated view indices to write")
-    ap.add_argument("--map", action="append", dest="maps",
-                    help="name:mode[:smooth[:weight]] (default: arf and sliced)")
+    ap.add_argument("--map", action="append", dest="maps", help="name:mode[:smooth] (default: arf and sliced)")
     a = ap.parse_args()
     ds = load_dataset(a.data, images=a.images, downscale=a.downscale)
     photos = [torch.as_tensor(np.asarray(ds.image(i))[..., :3]).float() for i in range(len(ds.names))]
@@ -52,8 +51,7 @@ def main() -> None:
     for spec in a.maps or ["arf:arf", "sliced:sliced"]:
         name, mode, *rest = spec.split(":")
         rec, _ = palette_transfer(photos, work, mode, coverage=cov, floor=FLOOR if mode == "arf" else 0.0,
-                                  where="covered", smooth=float(rest[0]) if rest else 0.0,
-                                  weight=rest[1] if len(rest) > 1 else "pixels")
+                                  where="covered", smooth=float(rest[0]) if rest else 0.0)
         for v in views:
             save(out / f"{name}_v{v}.png", rec[v])
         print(f"{name}: {len(photos)} photos, views {views} written")

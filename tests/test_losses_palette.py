@@ -606,8 +606,7 @@ def test_pooled_colours_are_every_kth_of_the_concatenated_pixels(with_coverage):
 
     rng = np.random.default_rng(39)
     imgs = [torch.from_numpy(rng.random((h, w, 3)).astype(np.float32)) for h, w in ((7, 9), (11, 5), (3, 13))]
-    cov = ([torch.from_numpy(rng.random((*im.shape[:2], 1)).astype(np.float32)) for im in imgs] if with_coverage
-           else None)
+    cov = [torch.from_numpy(rng.random((*im.shape[:2], 1)).astype(np.float32)) for im in imgs] if with_coverage else None
     for limit in (1000, 50, 17):
         got = _pooled_colours(imgs, cov, limit)
         flat = [im.reshape(-1, 3).double() for im in imgs]
@@ -617,65 +616,3 @@ def test_pooled_colours_are_every_kth_of_the_concatenated_pixels(with_coverage):
         ref = ref[::max(1, -(-ref.shape[0] // limit))]
         assert got.dtype == torch.float64 and got.shape[0] <= limit
         assert torch.equal(got, ref)
-
-
-# --- the painting's colours weighted by its strokes (palette_weight: strokes) -------------------------------------
-def test_weighted_quantile_matches_a_float64_loop_reference_and_uniform_weights_match_midpoints():
-    """Each column's quantiles under weights: a numpy loop that builds the piecewise-linear distribution through the
-    sorted values at the middle of their weights' shares and inverts it; with equal weights the distribution's
-    knots are the (k + 0.5) / N midpoints (numpy's 'hazen' quantiles)."""
-    from tlvg_warp.losses.palette import weighted_quantile
-
-    rng = np.random.default_rng(41)
-    v, w = rng.random((50, 3)), rng.random(50) + 0.05
-    q = np.linspace(0, 1, 17)
-    got = weighted_quantile(torch.from_numpy(v), torch.from_numpy(w), torch.from_numpy(q)).numpy()
-    for d in range(3):
-        o = np.argsort(v[:, d])
-        vs, ws = v[o, d], w[o]
-        cdf = (np.cumsum(ws) - ws / 2) / ws.sum()
-        ref = [vs[0] if t <= cdf[0] else vs[-1] if t >= cdf[-1] else
-               vs[k - 1] + (vs[k] - vs[k - 1]) * (t - cdf[k - 1]) / (cdf[k] - cdf[k - 1])
-               for t in q for k in [int(np.searchsorted(cdf, t))]]
-        np.testing.assert_allclose(got[:, d], ref, atol=1e-12)
-    flat = weighted_quantile(torch.from_numpy(v), torch.ones(50, dtype=torch.float64), torch.from_numpy(q)).numpy()
-    np.testing.assert_allclose(flat, np.quantile(v, q, axis=0, method="hazen"), atol=1e-12)
-
-
-def test_stroke_weights_are_the_local_contrast_plus_a_floor():
-    """A flat half and a striped half: the flat pixels weigh the floor alone, the stripes their 9x9 luminance
-    standard deviation (OpenCV's box filter of y and y^2, away from the border) plus the floor."""
-    import cv2
-
-    from tlvg_warp.losses.palette import STROKE_FLOOR, STROKE_WINDOW, stroke_weights
-
-    img = np.full((40, 60, 3), 0.8)
-    img[:, 30:] = np.where((np.arange(30) // 2 % 2)[None, :, None] == 1, 0.1, 0.9)
-    w = stroke_weights(torch.from_numpy(img)).numpy()
-    y = img @ np.array([0.299, 0.587, 0.114])
-    m = cv2.blur(y, (STROKE_WINDOW, STROKE_WINDOW))
-    sd = np.sqrt(np.maximum(cv2.blur(y * y, (STROKE_WINDOW, STROKE_WINDOW)) - m * m, 0))
-    inner = (slice(5, 35), slice(5, 55))
-    np.testing.assert_allclose(w[inner], sd[inner] + STROKE_FLOOR, atol=1e-6)  # sqrt of a rounded 0: ~1e-7
-    assert np.allclose(w[:, :20], STROKE_FLOOR) and w[:, 40:50].min() > 20 * STROKE_FLOOR
-
-
-def test_strokes_weight_sends_the_photos_to_the_painted_marks_not_the_empty_ground():
-    """A painting that is two thirds flat cream ground and one third blue-and-white strokes (a print on paper): matched
-    pixel for pixel the photos turn mostly cream; with the strokes weighing more, most of them take the strokes'
-    colours (their mean nearer the strokes' mean than the ground's)."""
-    rng = np.random.default_rng(42)
-    paint = np.empty((60, 90, 3))
-    paint[:, :60] = [0.93, 0.88, 0.75]  # the paper
-    stripes = (np.arange(30) // 2 % 2)[None, :, None] == 1
-    paint[:, 60:] = np.where(stripes, [0.1, 0.2, 0.55], [0.9, 0.93, 0.97])
-    photos = [torch.from_numpy(np.clip(0.5 + 0.2 * rng.normal(size=(30, 40, 3)), 0, 1)) for _ in range(2)]
-    style = torch.from_numpy(paint)
-    ground, marks = np.array([0.93, 0.88, 0.75]), paint[:, 60:].reshape(-1, 3).mean(0)
-    mean = lambda xs: np.concatenate([x.reshape(-1, 3).numpy() for x in xs]).mean(0)
-    by_pixels = mean(palette_transfer(photos, style, "sliced")[0])
-    by_strokes = mean(palette_transfer(photos, style, "sliced", weight="strokes")[0])
-    assert np.linalg.norm(by_pixels - ground) < np.linalg.norm(by_pixels - marks)
-    assert np.linalg.norm(by_strokes - marks) < np.linalg.norm(by_strokes - ground)
-    with pytest.raises(ValueError, match="pixels or strokes"):
-        palette_transfer(photos, style, "sliced", weight="paper")

@@ -283,48 +283,15 @@ def _pooled_colours(items, coverage=None, limit: int = SLICED_MAX_PIXELS, device
     return torch.cat(out)
 
 
-STROKE_WINDOW = 9  # px at the painting's working size: the window of the local contrast that weighs its colours
-STROKE_FLOOR = 0.01  # added to every pixel's local contrast: an empty ground still counts, a tenth as much or less
-
-
-def stroke_weights(style) -> torch.Tensor:
-    """[H,W] float64: each painting pixel's weight for ``palette_weight: strokes``: its luminance's standard deviation
-    over a ``STROKE_WINDOW`` square, plus ``STROKE_FLOOR``. Why: a print's empty paper or a flat sky is most of some
-    paintings' colour by area (The Great Wave: cream), and matched pixel for pixel it turns most of the scene that
-    colour; weighted by local contrast the painted marks count for more than the ground between them."""
-    y = _luma64(_as_torch(style).detach().cpu())  # [H,W]
-    box = torch.ones(1, 1, STROKE_WINDOW, STROKE_WINDOW, dtype=torch.float64) / STROKE_WINDOW ** 2
-    pad = STROKE_WINDOW // 2
-    mean = torch.nn.functional.conv2d(torch.nn.functional.pad(y[None, None], (pad,) * 4, mode="replicate"), box)
-    sq = torch.nn.functional.conv2d(torch.nn.functional.pad((y * y)[None, None], (pad,) * 4, mode="replicate"), box)
-    return (sq - mean * mean).clamp_min(0.0).sqrt()[0, 0] + STROKE_FLOOR
-
-
-def weighted_quantile(v: torch.Tensor, w: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-    """Quantiles ``q`` [Q] of each column of ``v`` [N,D] under the weights ``w`` [N] -> [Q,D]: the inverse of the
-    piecewise-linear distribution through each sorted value at the middle of its weight's share; constant beyond the
-    first and last value."""
-    order = torch.argsort(v, dim=0)  # [N,D]
-    vs, ws = torch.gather(v, 0, order), w[order]  # [N,D] each
-    cdf = (torch.cumsum(ws, 0) - 0.5 * ws) / ws.sum(0, keepdim=True)  # [N,D], increasing
-    return torch.stack([_interp(q, cdf[:, d].contiguous(), vs[:, d, None])[:, 0] for d in range(v.shape[1])], -1)
-
-
 def sliced_palette(images, style, coverage=None, steps: int = SLICED_STEPS, quantiles: int = SLICED_QUANTILES,
-                   seed: int = 0, smooth: float = 0.0, weight: str = "pixels") -> SlicedPalette:
+                   seed: int = 0, smooth: float = 0.0) -> SlicedPalette:
     """The sliced map from the photos (list of [H,W,3] in [0,1]) to the painting ``style`` [h,w,3], over the pixels
     ``coverage`` marks (None: all); the rotations from ``seed`` (the same photos and painting give the same map).
     ``smooth`` > 0: its displacement averaged over photo colours within that RGB distance
-    (:func:`smoothed_displacement`). ``weight``: each painting pixel counts once (``pixels``) or by its local
-    contrast (``strokes``, :func:`stroke_weights`)."""
+    (:func:`smoothed_displacement`)."""
     gen = torch.Generator().manual_seed(seed)  # on the CPU: the same rotations on every device
     dev = _as_torch(images[0]).device  # where the photos are (a GPU: the quantiles and the smoothing in milliseconds)
     x0, t = _pooled_colours(images, coverage, device=dev), _pooled_colours([style], device=dev)
-    wt = None
-    if weight == "strokes":  # the same picks as the painting's colours: its weights pooled as a one-channel image
-        wt = _pooled_colours([stroke_weights(style)[..., None].expand(-1, -1, 3)], device=dev)[:, 0]
-    elif weight != "pixels":
-        raise ValueError(f"palette weight must be pixels or strokes, got {weight!r}")
     q = torch.linspace(0.0, 1.0, quantiles, dtype=torch.float64, device=dev)  # the ends too: the photos' extremes
     # to the painting's
     ramp = torch.arange(quantiles, dtype=torch.float64, device=dev)[:, None] * 1e-9  # strictly increasing where a
@@ -332,9 +299,7 @@ def sliced_palette(images, style, coverage=None, steps: int = SLICED_STEPS, quan
     rots, srcs, dsts, x = [], [], [], x0
     for _ in range(steps):  # a few steps, each vectorized over every pixel
         rot = _rotation(gen).to(dev)
-        tr = t @ rot
-        src = torch.quantile(x @ rot, q, dim=0) + ramp  # [Q,3]
-        dst = torch.quantile(tr, q, dim=0) if wt is None else weighted_quantile(tr, wt, q)  # [Q,3]
+        src, dst = torch.quantile(x @ rot, q, dim=0) + ramp, torch.quantile(t @ rot, q, dim=0)  # [Q,3] each
         x = SlicedPalette._step(x, rot, src, dst)
         rots.append(rot), srcs.append(src), dsts.append(dst)
     pal = SlicedPalette(torch.stack(rots), torch.stack(srcs), torch.stack(dsts))
@@ -443,13 +408,12 @@ def tone_palette(images, style, bins: int = TONE_BINS, coverage=None) -> TonePal
 
 
 def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0, where: str = "all",
-                     smooth: float = 0.0, weight: str = "pixels"):
+                     smooth: float = 0.0):
     """``(recolored, palette)``: the photos (list of [H,W,3]) in the painting's palette by ``mode`` (arf | arf_rank |
     sliced | tone), and the map, whose ``recolor_sh`` gives the Gaussians the same palette. ``coverage`` (per view
     [H,W,1]) limits the tone map's photo statistics to the scene, and ARF's and the sliced map's where ``where`` is
     ``covered``; with ``all`` ARF pools every pixel, as released (the baseline uses it). ``floor``: ARF's variance
-    floor (:func:`color.color_transfer`); ``smooth`` and ``weight``: the sliced map's smoothing width and painting
-    weights (:func:`sliced_palette`)."""
+    floor (:func:`color.color_transfer`); ``smooth``: the sliced map's smoothing width (:func:`sliced_palette`)."""
     if where not in ("all", "covered"):
         raise ValueError(f"palette statistics over all or covered pixels, got {where!r}")
     if mode == "arf":
@@ -462,7 +426,7 @@ def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0
         pal = rank_palette(images, style, floor, coverage if where == "covered" else None)
         return [pal.apply(im) for im in images], pal
     if mode == "sliced":
-        pal = sliced_palette(images, style, coverage if where == "covered" else None, smooth=smooth, weight=weight)
+        pal = sliced_palette(images, style, coverage if where == "covered" else None, smooth=smooth)
         return [pal.apply(im) for im in images], pal
     raise ValueError(f"palette mode must be arf, arf_rank, sliced or tone, got {mode!r}")
 
