@@ -172,7 +172,8 @@ case "$cmd" in
     rm -rf "$tmp";;
   scaling) exec bash benchmarks/scaling.sh "$@";;
   cuda-tests) python3 -m pytest -q -p no:cacheprovider tests/test_raster_cuda.py tests/test_losses_vgg.py tests/test_losses_stroke.py \
-    tests/test_losses_style.py::test_cuda_chunk_budget_changes_no_match tests/test_losses_palette.py::test_the_smoothed_sliced_map_on_cuda_matches_the_cpu \
+    tests/test_losses_style.py::test_cuda_chunk_budget_changes_no_match \
+    tests/test_losses_palette.py::test_the_smoothed_sliced_map_on_cuda_matches_the_cpu \
     tests/test_stroke_hinge.py::test_field_terms_as_a_cuda_graph_match_eager tests/test_stylize_graph.py::test_stylize_terms_as_one_cuda_graph_match_eager;;  # the other tests of those two files run Warp's CPU kernels
   host-profile) exec python3 benchmarks/profile_host.py "$@";;
   intersection-drift) exec python3 benchmarks/intersection_drift.py $FERN --iterations 3000 --out "$R/drift" --overwrite \

@@ -606,7 +606,8 @@ def test_pooled_colours_are_every_kth_of_the_concatenated_pixels(with_coverage):
 
     rng = np.random.default_rng(39)
     imgs = [torch.from_numpy(rng.random((h, w, 3)).astype(np.float32)) for h, w in ((7, 9), (11, 5), (3, 13))]
-    cov = [torch.from_numpy(rng.random((*im.shape[:2], 1)).astype(np.float32)) for im in imgs] if with_coverage else None
+    cov = ([torch.from_numpy(rng.random((*im.shape[:2], 1)).astype(np.float32)) for im in imgs] if with_coverage
+           else None)
     for limit in (1000, 50, 17):
         got = _pooled_colours(imgs, cov, limit)
         flat = [im.reshape(-1, 3).double() for im in imgs]
