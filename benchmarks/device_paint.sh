@@ -47,6 +47,8 @@ D=/tmp/tlvg-data; F=/tmp/tlvg-fits; R=/tmp/tlvg-runs; mkdir -p "$D" "$F" "$R"
 export TLVG_VGG_WEIGHTS=/tmp/tlvg-gpu/vgg16_hed.pt PYTHONUNBUFFERED=1
 source "$(dirname "${BASH_SOURCE[0]}")/source_view.sh"; export PYTHONPATH=$(source_view .)${PYTHONPATH:+:$PYTHONPATH}  # kernels/ as tlvg_warp.kernels
 for d in .carry/d1 .carry/d2 .carry/d3; do [ -d "$d" ] && cp -r "$d"/. "$D/"; done
+# the held-out paintings travel with the tree: beside the shared ones, so a pair names them alike (the_scream.jpg)
+mkdir -p "$D/styles" && cp benchmarks/paintings/*.jpg "$D/styles/"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader; date -u
 
 fit_bg() {  # fit_bg DATASET NAME: reconstruct in the background, then an SH-0 SPZ copy; a fit already running is left
