@@ -8,7 +8,8 @@ abcgs and the anchors on every pair (paired intervals from `evaluate`'s comparis
 chroma noise against that run) with a count row, and each run's cost. `--paired BASE:OTHER[,OTHER...]` prints
 instead, for each OTHER, its paired per-view difference to BASE on every pair ("better" / "worse" where the 95%
 interval excludes 0, in the metric's own direction; "level" where it holds 0): how a variant is decided against
-the config it would replace.
+the config it would replace. `--missed RUN[,RUN...]` prints instead, per pair, the seven counted targets each run
+misses and how many it meets, with the sums over the tuning and the validation pairs.
 """
 from __future__ import annotations
 
@@ -133,6 +134,56 @@ def paired_rows(data: dict, order, base: str, other: str) -> list[list[str]]:
     return rows
 
 
+# the seven per-pair targets a study counts (the issue's list): (column of the target table, short name, rule)
+SEVEN = [("flow vs un-stylized", "flow vs un-stylized", "above"), ("flow vs abcgs", "flow vs abcgs", "above"),
+         ("Gram vs abcgs", "Gram", "no worse"), ("NNFM vs abcgs", "NNFM", "no worse"),
+         ("chroma vs abcgs", "chroma noise", "no worse"), ("detail inside", "detail inside", "limit"),
+         ("MV k1 / un-stylized", "k1", "limit")]
+
+
+def missed(row: dict) -> tuple[list[str], int]:
+    """One pair's row of the target table -> (the targets missed, as 'NNFM -0.012' / 'detail inside 0.39' /
+    'k1 1.69x', and how many of the seven were met). Met: 'yes' for the two flow targets (above), 'yes' or 'tie'
+    for the three 'no worse than abcgs' targets, the limit held for detail inside and k1; a target the study did not
+    measure counts as missed and says so."""
+    out, met = [], 0
+    for head, name, rule in SEVEN:
+        text, mark = row[head]
+        ok = (mark == "yes" if rule == "above" else mark in ("yes", "tie") if rule == "no worse" else mark is True)
+        if ok:
+            met += 1
+        elif mark is None:
+            out.append(f"{name} not measured")
+        elif rule == "limit":
+            out.append(f"{name} {text}{'x' if name == 'k1' else ''}")
+        else:  # 'no (-0.012) †' -> 'NNFM -0.012 †'
+            out.append(f"{name} {text.split('(', 1)[1].replace(')', '')}")
+    return out, met
+
+
+def missed_table(study: Path, data: dict, order, tuning, runs: list[str]) -> None:
+    """Per pair, the targets each run misses and how many of seven it meets; then the sums per split."""
+    per_run = {r: target_rows(study, data, order, r, None)[1] for r in runs}
+    print("\n### Targets missed (of seven per pair)\n")
+    print("| pair | split | " + " | ".join(f"missed, {r}" for r in runs) + " | met " + " / ".join(runs) + " |")
+    print("|" + " --- |" * (len(runs) + 3))
+    sums = {}
+    for i, key in enumerate(order):
+        split = "tuning" if key in tuning else "validation"
+        cells, mets = [], []
+        for r in runs:
+            miss, met = missed(per_run[r][i])
+            cells.append("; ".join(miss) or "none")
+            mets.append(met)
+            sums.setdefault((split, r), [0, 0])
+            sums[(split, r)][0] += met
+            sums[(split, r)][1] += len(SEVEN)
+        print(f"| {key[0]} x {key[1]} | {split} | " + " | ".join(cells) + " | " + " / ".join(map(str, mets)) + " |")
+    for split in ("tuning", "validation"):
+        if (split, runs[0]) in sums:
+            print(f"\n{split}: " + ", ".join(f"{r} {sums[(split, r)][0]} of {sums[(split, r)][1]}" for r in runs))
+
+
 def count(values) -> str:
     """The count row's cell: yes / tie / no for a verdict column, how many pass for a limit column."""
     vs = [v for v in values if v is not None]
@@ -152,11 +203,16 @@ def main():
                     "(e.g. the rgb_loss ablation's name)")
     ap.add_argument("--paired", default=None, metavar="BASE:OTHER[,OTHER]",
                     help="only the paired differences of each OTHER run to BASE, per pair and metric")
+    ap.add_argument("--missed", default=None, metavar="RUN[,RUN]",
+                    help="only the seven per-pair targets each RUN misses, how many it meets, and the sums per split")
     args = ap.parse_args()
     study = Path(args.study)
     data = load(study)
     tuning = {tuple(x.split(":")) for x in args.tuning.split(",")}
     order = sorted(data, key=lambda k: (k not in tuning, k))
+    if args.missed:
+        missed_table(study, data, order, tuning, args.missed.split(","))
+        return
     if args.paired:
         base, others = args.paired.split(":", 1)
         for other in others.split(","):

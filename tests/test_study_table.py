@@ -74,3 +74,20 @@ def test_target_table_reads_directions_marks_and_counts(tmp_path):
     assert against_tlvg[0][idx["detail"]] == "-"  # not compared
     assert against_tlvg[1][idx["flow_alignment"]] == "better +0.040"  # stored as "abcgs vs tlvg"
     assert study_table.paired_rows(data, order, "abcgs", "tlvg")[0][idx["style_gram"]] == "better -0.050"
+
+
+def test_missed_targets_count_the_seven_by_their_rules(tmp_path):
+    """The seven counted targets of one pair: the two flow targets need 'yes' (a tie misses), the three 'no worse
+    than abcgs' targets take a tie, detail inside and k1 their limits, and an unmeasured target counts as missed;
+    the missed ones are named with the figure that missed."""
+    tlvg = _summary(detail=0.7, detail_inside=0.4, consistency_k1=0.2)
+    _write_pair(tmp_path, "fern", "starry_night", {
+        "tlvg vs abcgs": {"flow_alignment": _cmp(0.10, 0.08, 0.12), "style_gram": _cmp(-0.05, -0.07, -0.03),
+                          "chroma_noise": _cmp(0.02, -0.01, 0.05)},
+        "tlvg vs no stylization": {"flow_alignment": _cmp(0.01, -0.01, 0.03)},
+    }, {"tlvg": tlvg, "abcgs": {}}, blind={"flow_alignment": "no stylization"})
+    data = study_table.load(tmp_path)
+    _, rows = study_table.target_rows(tmp_path, data, sorted(data), "tlvg", None)
+    miss, met = study_table.missed(rows[0])
+    assert met == 3  # flow vs abcgs, Gram, chroma noise (a tie is no worse)
+    assert miss == ["flow vs un-stylized +0.010 †", "NNFM not measured", "detail inside 0.40", "k1 2.00x"]
