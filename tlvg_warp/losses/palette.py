@@ -230,18 +230,11 @@ class SlicedPalette:
 
 def _trilinear(lut: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """The table ``lut`` [G,G,G,C] (a grid over [0,1]^3, index r,g,b) read at colours ``x`` [N,3] by trilinear
-    interpolation -> [N,C]; colours outside [0,1] read the nearest face."""
-    g = lut.shape[0] - 1
-    p = x.clamp(0.0, 1.0) * g  # [N,3] in grid units
-    i0 = p.floor().clamp(max=g - 1).long()  # [N,3]: the lower corner of each colour's cell
-    f = p - i0  # [N,3] in [0,1]
-    out = torch.zeros(x.shape[0], lut.shape[-1], dtype=lut.dtype, device=x.device)
-    corners = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], device=x.device)  # [8,3]
-    for b in corners:  # the cell's eight corners, each weighted by the product of its three axis weights
-        w = torch.where(b.bool(), f, 1 - f).prod(-1, keepdim=True)  # [N,1]
-        i = i0 + b
-        out += w * lut[i[:, 0], i[:, 1], i[:, 2]]
-    return out
+    interpolation -> [N,C] (torch's ``grid_sample``); colours outside [0,1] read the nearest face."""
+    vol = lut.permute(3, 0, 1, 2)[None]  # [1,C,G(r),G(g),G(b)]: grid_sample's depth, height, width
+    where = (x.to(lut.dtype).flip(-1) * 2.0 - 1.0).reshape(1, -1, 1, 1, 3)  # (b, g, r) = (width, height, depth)
+    out = torch.nn.functional.grid_sample(vol, where, mode="bilinear", padding_mode="border", align_corners=True)
+    return out.reshape(lut.shape[-1], -1).T  # [N,C]
 
 
 SLICED_LUT = 25  # grid points a side of the smoothed map's table (spacing 1/24 of the RGB cube)
