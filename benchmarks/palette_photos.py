@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from tlvg_warp.io.datasets import load_dataset
+from tlvg_warp.io.datasets import dataset_background, load_dataset
 from tlvg_warp.losses import resize_style
 from tlvg_warp.losses.palette import palette_transfer
 
@@ -40,7 +40,7 @@ def main() -> None:
     if paint is None:
         raise SystemExit(f"error: {a.painting}: not an image OpenCV can read")
     work = torch.from_numpy(resize_style(paint[..., ::-1].astype(np.float32) / 255, photos[0].shape[0])).contiguous()
-    white_bg = all(float(p.reshape(-1, 3).min(1).values.ge(0.99).float().mean()) > 0.2 for p in photos[:3])
+    white_bg = dataset_background(ds) == (1.0, 1.0, 1.0)  # a Blender scene's empty backdrop (the project's rule)
     cov = [(p < 0.99).any(-1, keepdim=True).float() for p in photos] if white_bg else None
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
