@@ -51,7 +51,8 @@ def main() -> None:
     for spec in a.maps or ["arf:arf", "sliced:sliced"]:
         name, mode, *rest = spec.split(":")
         rec, _ = palette_transfer(photos, work, mode, coverage=cov, floor=FLOOR if mode == "arf" else 0.0,
-                                  where="covered", smooth=float(rest[0]) if rest else 0.0)
+                                  where="covered", smooth=float(rest[0]) if rest else 0.0,
+                                  focus=float(rest[1]) if len(rest) > 1 else 0.0)
         for v in views:
             save(out / f"{name}_v{v}.png", rec[v])
         print(f"{name}: {len(photos)} photos, views {views} written")

@@ -512,6 +512,47 @@ def test_smoothed_displacement_matches_a_float64_loop_reference():
     np.testing.assert_allclose(wide.reshape(-1, 3), np.broadcast_to(d.mean(0), (27, 3)), atol=1e-9)
 
 
+def test_focused_displacement_matches_a_float64_mean_shift_loop():
+    """palette_focus: at each grid point the destinations x + d, weighted by the point's kernel over x, are climbed
+    by mean shift from their weighted mean (numpy, FOCUS_STEPS steps, one grid point at a time), and the displacement
+    is the place reached minus the kernel-weighted mean of x; an enormous focus width gives the plain smoothing back.
+    Catches the climb started elsewhere, the focus kernel on the sources instead of the destinations, a step count
+    other than the constant's, the photo colour's own offset lost."""
+    from tlvg_warp.losses.palette import FOCUS_STEPS, smoothed_displacement
+
+    rng = np.random.default_rng(41)
+    x, d = rng.random((50, 3)), rng.normal(0, 0.25, (50, 3))
+    out = smoothed_displacement(torch.from_numpy(x), torch.from_numpy(d), 0.2, grid=3, focus=0.12).numpy()
+    axis, y = np.linspace(0, 1, 3), x + d
+    for i, j, k in [(0, 0, 0), (2, 1, 0), (1, 2, 2)]:
+        w = np.exp(-((x - [axis[i], axis[j], axis[k]]) ** 2).sum(1) / (2 * 0.2 ** 2))
+        w /= w.sum()
+        m = (w[:, None] * y).sum(0)
+        for _ in range(FOCUS_STEPS):
+            kk = w * np.exp(-((y - m) ** 2).sum(1) / (2 * 0.12 ** 2))
+            m = (kk[:, None] * y).sum(0) / kk.sum()
+        np.testing.assert_allclose(out[i, j, k], m - (w[:, None] * x).sum(0), rtol=1e-9, atol=1e-11)
+    plain = smoothed_displacement(torch.from_numpy(x), torch.from_numpy(d), 0.2, grid=3).numpy()
+    wide = smoothed_displacement(torch.from_numpy(x), torch.from_numpy(d), 0.2, grid=3, focus=1e4).numpy()
+    np.testing.assert_allclose(wide, plain, atol=1e-9)
+
+
+def test_focus_sends_a_one_colour_floor_to_one_of_the_paintings_colours_not_their_mix():
+    """A grey floor whose colours the sliced map sends 60% to a blue and 40% to a yellow (the destinations given
+    directly): smoothed, the floor lands on their mix, a grey neither colour is (closed form: 0.6 blue + 0.4 yellow);
+    with a focus of 0.1 it lands on the blue, the denser of the two (within 0.01)."""
+    from tlvg_warp.losses.palette import _trilinear, smoothed_displacement
+
+    rng = np.random.default_rng(42)
+    x = 0.5 + rng.normal(0, 0.01, (1000, 3))
+    blue, yellow = np.array([0.15, 0.25, 0.75]), np.array([0.95, 0.85, 0.2])
+    dest = np.where((np.arange(1000) < 600)[:, None], blue, yellow) + rng.normal(0, 0.01, (1000, 3))
+    at = torch.tensor([[0.5, 0.5, 0.5]], dtype=torch.float64)
+    for focus, want in ((0.0, 0.6 * blue + 0.4 * yellow), (0.1, blue)):
+        lut = smoothed_displacement(torch.from_numpy(x), torch.from_numpy(dest - x), 0.05, focus=focus)
+        np.testing.assert_allclose((at + _trilinear(lut, at)).numpy()[0], want, atol=0.01)
+
+
 def test_trilinear_lookup_reads_an_affine_table_exactly():
     """A table of an affine function of RGB is reproduced exactly between its grid points by trilinear
     interpolation (closed form); colours outside [0,1] read the nearest face."""

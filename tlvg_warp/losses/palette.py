@@ -238,22 +238,39 @@ def _trilinear(lut: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 
 SLICED_LUT = 25  # grid points a side of the smoothed map's table (spacing 1/24 of the RGB cube)
+FOCUS_STEPS = 10  # mean-shift steps of the smoothed map's focus (smoothed_displacement)
 SLICED_SMOOTH_SAMPLES = 8192  # photo colours the smoothing averages over (a stride of the pooled ones)
 
 
-def smoothed_displacement(x: torch.Tensor, d: torch.Tensor, sigma: float, grid: int = SLICED_LUT) -> torch.Tensor:
+def smoothed_displacement(x: torch.Tensor, d: torch.Tensor, sigma: float, grid: int = SLICED_LUT,
+                          focus: float = 0.0) -> torch.Tensor:
     """The displacements ``d`` [M,3] of the photo colours ``x`` [M,3] averaged with a Gaussian kernel of width
     ``sigma`` in RGB at every point of a ``grid``^3 table over [0,1]^3 -> [G,G,G,3] float64 (Nadaraya-Watson,
     normalized per grid point, so a point far from every photo colour takes its nearest colours' displacement).
     Why: the sliced map sends a grey floor's faint tints to far-apart hues of the painting (soft blobs on beer);
     averaged over colours within ``sigma``, colours that close move together and keep their own differences, while
-    colours farther apart (a scene's own hues) still move to different hues of the painting."""
+    colours farther apart (a scene's own hues) still move to different hues of the painting.
+
+    ``focus`` > 0: where those nearby colours were sent is not averaged but its densest place is found (mean shift
+    over the destinations ``x + d``, each weighted by its kernel weight times a Gaussian of width ``focus`` around
+    the estimate, from the mean, ``FOCUS_STEPS`` times), and the displacement is that place minus the colours' own
+    kernel-weighted mean. Why: a floor of one colour that the map sends half to the painting's blue and half to its
+    yellow takes their mean, a grey blue neither holds; with the focus it takes the painting's blue (beer's photos x
+    The Starry Night, the floor's mean Lab chroma C*: 15.5 at ``sigma`` 0.05, 28.2 with a focus of 0.1)."""
     axis = torch.linspace(0.0, 1.0, grid, dtype=torch.float64, device=x.device)
     pts = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)  # [G^3,3]
+    y = x + d  # [M,3] where each photo colour was sent
     out = torch.empty_like(pts)
     for lo in range(0, pts.shape[0], 2048):  # chunks of grid points: [2048,M] weights at a time
-        logits = -torch.cdist(pts[lo:lo + 2048], x).square() / (2.0 * sigma * sigma)
-        out[lo:lo + 2048] = torch.softmax(logits, dim=1) @ d
+        w = torch.softmax(-torch.cdist(pts[lo:lo + 2048], x).square() / (2.0 * sigma * sigma), dim=1)  # [g,M]
+        if focus > 0:
+            m = w @ y  # [g,3] from the mean of the destinations ...
+            for _ in range(FOCUS_STEPS):  # ... uphill to the nearest dense place (a fixed count: no host sync)
+                k = w * torch.exp(-torch.cdist(m, y).square() / (2.0 * focus * focus))  # [g,M]
+                m = (k @ y) / k.sum(1, keepdim=True).clamp_min(1e-300)
+            out[lo:lo + 2048] = m - w @ x  # a colour keeps its own offset from its neighbours' mean
+        else:
+            out[lo:lo + 2048] = w @ d
     return out.reshape(grid, grid, grid, 3)
 
 
@@ -277,11 +294,11 @@ def _pooled_colours(items, coverage=None, limit: int = SLICED_MAX_PIXELS, device
 
 
 def sliced_palette(images, style, coverage=None, steps: int = SLICED_STEPS, quantiles: int = SLICED_QUANTILES,
-                   seed: int = 0, smooth: float = 0.0) -> SlicedPalette:
+                   seed: int = 0, smooth: float = 0.0, focus: float = 0.0) -> SlicedPalette:
     """The sliced map from the photos (list of [H,W,3] in [0,1]) to the painting ``style`` [h,w,3], over the pixels
     ``coverage`` marks (None: all); the rotations from ``seed`` (the same photos and painting give the same map).
-    ``smooth`` > 0: its displacement averaged over photo colours within that RGB distance
-    (:func:`smoothed_displacement`)."""
+    ``smooth`` > 0: its displacement averaged over photo colours within that RGB distance, ``focus`` > 0: sent to
+    the densest place of their destinations instead of their mean (:func:`smoothed_displacement`)."""
     gen = torch.Generator().manual_seed(seed)  # on the CPU: the same rotations on every device
     dev = _as_torch(images[0]).device  # where the photos are (a GPU: the quantiles and the smoothing in milliseconds)
     x0, t = _pooled_colours(images, coverage, device=dev), _pooled_colours([style], device=dev)
@@ -298,7 +315,7 @@ def sliced_palette(images, style, coverage=None, steps: int = SLICED_STEPS, quan
     pal = SlicedPalette(torch.stack(rots), torch.stack(srcs), torch.stack(dsts))
     if smooth > 0:
         stride = max(1, -(-x0.shape[0] // SLICED_SMOOTH_SAMPLES))
-        pal.lut = smoothed_displacement(x0[::stride], x[::stride] - x0[::stride], smooth)
+        pal.lut = smoothed_displacement(x0[::stride], x[::stride] - x0[::stride], smooth, focus=focus)
     return pal
 
 
@@ -401,12 +418,13 @@ def tone_palette(images, style, bins: int = TONE_BINS, coverage=None) -> TonePal
 
 
 def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0, where: str = "all",
-                     smooth: float = 0.0):
+                     smooth: float = 0.0, focus: float = 0.0):
     """``(recolored, palette)``: the photos (list of [H,W,3]) in the painting's palette by ``mode`` (arf | arf_rank |
     sliced | tone), and the map, whose ``recolor_sh`` gives the Gaussians the same palette. ``coverage`` (per view
     [H,W,1]) limits the tone map's photo statistics to the scene, and ARF's and the sliced map's where ``where`` is
     ``covered``; with ``all`` ARF pools every pixel, as released (the baseline uses it). ``floor``: ARF's variance
-    floor (:func:`color.color_transfer`); ``smooth``: the sliced map's smoothing width (:func:`sliced_palette`)."""
+    floor (:func:`color.color_transfer`); ``smooth``, ``focus``: the sliced map's smoothing and focus widths
+    (:func:`sliced_palette`)."""
     if where not in ("all", "covered"):
         raise ValueError(f"palette statistics over all or covered pixels, got {where!r}")
     if mode == "arf":
@@ -419,7 +437,7 @@ def palette_transfer(images, style, mode: str, coverage=None, floor: float = 0.0
         pal = rank_palette(images, style, floor, coverage if where == "covered" else None)
         return [pal.apply(im) for im in images], pal
     if mode == "sliced":
-        pal = sliced_palette(images, style, coverage if where == "covered" else None, smooth=smooth)
+        pal = sliced_palette(images, style, coverage if where == "covered" else None, smooth=smooth, focus=focus)
         return [pal.apply(im) for im in images], pal
     raise ValueError(f"palette mode must be arf, arf_rank, sliced or tone, got {mode!r}")
 

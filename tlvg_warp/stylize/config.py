@@ -219,6 +219,9 @@ class StylizeConfig:
     palette_smooth: float = 0.0  # sliced: its colour displacement averaged over photo colours within this RGB
     # distance (ours; 0 = the map itself), so a grey floor's faint tints move together instead of into far-apart hues;
     # the other maps ignore it (so `--set palette_map=arf` works on a config that sets it)
+    palette_focus: float = 0.0  # sliced, smoothed: nearby photo colours sent to the densest place of where the map
+    # sent them (mean shift with this RGB width) instead of their mean, so a floor of one colour takes one of the
+    # painting's colours, not a grey mix of several (ours; 0 = the mean); ignored without palette_smooth
     post_fresh_adam: bool = False  # the post-process starts Adam's moments for its colours and rotations afresh
     # (ours). With the stylize phase's moments it barely moves toward its targets (the stylized views in the
     # painting's colour statistics: lego x the Rhône's mean luminance 0.300 -> 0.297, afresh 0.206); an option, the
@@ -289,7 +292,7 @@ class StylizeConfig:
              "stroke_jitter_mode": ("of", "luminance", "palette"),
              "palette_map": ("of", "arf", "arf_rank", "sliced", "tone"),
              "palette_floor": (">=", 0), "palette_where": ("of", "all", "covered"),
-             "palette_smooth": ("in", 0, 1), "post_chroma_blur": ("in", 0, 0.1),
+             "palette_smooth": ("in", 0, 1), "palette_focus": ("in", 0, 1), "post_chroma_blur": ("in", 0, 0.1),
              "downscale": (">", 0), "views_per_step": (">=", 1),
              "log_every": (">=", 1), "checkpoint_every": (">=", 0), "checkpoint_seconds": (">=", 0),
              "orbit_frames": (">=", 0), "orbit_fps": (">=", 1), "comparison_views": (">=", 0)}

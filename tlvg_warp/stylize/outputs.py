@@ -112,7 +112,8 @@ def comparison_caption(cfg, iterations: int, alignment: float) -> str:
                 + (f"stroke scale {cfg.stroke_scale:g}, " if cfg.stroke_scale != 1 else "")
                 + ("keep colours, " if cfg.keep_colors else ""))
     palette = ("none" if cfg.keep_colors else cfg.palette_map
-               + (f" (smoothed {cfg.palette_smooth:g})" if cfg.palette_map == "sliced" and cfg.palette_smooth else ""))
+               + (f" (smoothed {cfg.palette_smooth:g}" + (f", focus {cfg.palette_focus:g}" if cfg.palette_focus else "")
+                  + ")" if cfg.palette_map == "sliced" and cfg.palette_smooth else ""))
     return (f"{controls}config: palette={palette}, style={cfg.loss.style_loss}, {lum}{extra}, "
             f"lock_xyz={cfg.geometry.lock_xyz}, max_travel={cfg.geometry.max_travel:g}, "
             f"colour_floor={cfg.colour_floor}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "

@@ -360,7 +360,7 @@ def prepare(inp: StylizeInputs, cfg: StylizeConfig, vgg, device, bg) -> Targets:
     else:
         recolored, palette = palette_transfer(photos, style_work.to(device), cfg.palette_map, coverage=coverage,
                                               floor=cfg.palette_floor, where=cfg.palette_where,
-                                              smooth=cfg.palette_smooth)
+                                              smooth=cfg.palette_smooth, focus=cfg.palette_focus)
         note = dark_object_note(photos, coverage, style_work, cfg.palette_map, cfg.palette_where)
         if note:
             print(note)
