@@ -627,12 +627,14 @@ def test_the_shipped_config_smooths_the_sliced_map_and_another_map_ignores_the_w
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="the palette on a CUDA device")
-def test_the_smoothed_sliced_map_on_cuda_matches_the_cpu():
-    """Photos on a GPU: the map is fitted there (quantiles, smoothing table) and recolours as the CPU's does."""
+@pytest.mark.parametrize("focus", [0.0, 0.1])
+def test_the_smoothed_sliced_map_on_cuda_matches_the_cpu(focus):
+    """Photos on a GPU: the map is fitted there (quantiles, smoothing table, its focus) and recolours as the CPU's
+    does."""
     photos, style = _grey_and_two_hues(37)
     photos = photos + [torch.from_numpy(np.random.default_rng(38).random((30, 40, 3)))]
-    cpu, _ = palette_transfer(photos, style, "sliced", smooth=0.05)
-    gpu, pal = palette_transfer([p.cuda() for p in photos], style.cuda(), "sliced", smooth=0.05)
+    cpu, _ = palette_transfer(photos, style, "sliced", smooth=0.05, focus=focus)
+    gpu, pal = palette_transfer([p.cuda() for p in photos], style.cuda(), "sliced", smooth=0.05, focus=focus)
     assert pal.lut.is_cuda
     for a, b in zip(cpu, gpu):
         np.testing.assert_allclose(b.cpu().numpy(), a.numpy(), atol=1e-6)
