@@ -537,6 +537,29 @@ def test_focused_displacement_matches_a_float64_mean_shift_loop():
     np.testing.assert_allclose(wide, plain, atol=1e-9)
 
 
+def test_focus_climbs_over_each_grid_points_largest_weights_only():
+    """More photo colours than FOCUS_NEIGHBOURS: each grid point's climb uses its FOCUS_NEIGHBOURS colours of largest
+    kernel weight, renormalized (numpy: argsort of the weights), and its offset the full kernel mean of x. Catches
+    the smallest weights kept instead, weights not renormalized, the offset taken over the kept colours only."""
+    from tlvg_warp.losses.palette import FOCUS_NEIGHBOURS, FOCUS_STEPS, smoothed_displacement
+
+    rng = np.random.default_rng(43)
+    n = FOCUS_NEIGHBOURS + 150
+    x, d = rng.random((n, 3)), rng.normal(0, 0.25, (n, 3))
+    out = smoothed_displacement(torch.from_numpy(x), torch.from_numpy(d), 0.3, grid=2, focus=0.15).numpy()
+    y = x + d
+    for i, j, k in [(0, 0, 0), (1, 0, 1)]:
+        w = np.exp(-((x - [i, j, k]) ** 2).sum(1) / (2 * 0.3 ** 2))
+        w /= w.sum()
+        keep = np.argsort(-w)[:FOCUS_NEIGHBOURS]
+        wk = w[keep] / w[keep].sum()
+        m = (wk[:, None] * y[keep]).sum(0)
+        for _ in range(FOCUS_STEPS):
+            kk = wk * np.exp(-((y[keep] - m) ** 2).sum(1) / (2 * 0.15 ** 2))
+            m = (kk[:, None] * y[keep]).sum(0) / kk.sum()
+        np.testing.assert_allclose(out[i, j, k], m - (w[:, None] * x).sum(0), rtol=1e-9, atol=1e-11)
+
+
 def test_focus_sends_a_one_colour_floor_to_one_of_the_paintings_colours_not_their_mix():
     """A grey floor whose colours the sliced map sends 60% to a blue and 40% to a yellow (the destinations given
     directly): smoothed, the floor lands on their mix, a grey neither colour is (closed form: 0.6 blue + 0.4 yellow);

@@ -239,6 +239,7 @@ def _trilinear(lut: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 SLICED_LUT = 25  # grid points a side of the smoothed map's table (spacing 1/24 of the RGB cube)
 FOCUS_STEPS = 10  # mean-shift steps of the smoothed map's focus (smoothed_displacement)
+FOCUS_NEIGHBOURS = 256  # the photo colours of largest kernel weight each grid point's focus climbs over
 SLICED_SMOOTH_SAMPLES = 8192  # photo colours the smoothing averages over (a stride of the pooled ones)
 
 
@@ -264,14 +265,29 @@ def smoothed_displacement(x: torch.Tensor, d: torch.Tensor, sigma: float, grid: 
     for lo in range(0, pts.shape[0], 2048):  # chunks of grid points: [2048,M] weights at a time
         w = torch.softmax(-torch.cdist(pts[lo:lo + 2048], x).square() / (2.0 * sigma * sigma), dim=1)  # [g,M]
         if focus > 0:
-            m = w @ y  # [g,3] from the mean of the destinations ...
-            for _ in range(FOCUS_STEPS):  # ... uphill to the nearest dense place (a fixed count: no host sync)
-                k = w * torch.exp(-torch.cdist(m, y).square() / (2.0 * focus * focus))  # [g,M]
-                m = (k @ y) / k.sum(1, keepdim=True).clamp_min(1e-300)
-            out[lo:lo + 2048] = m - w @ x  # a colour keeps its own offset from its neighbours' mean
+            out[lo:lo + 2048] = _densest(w, y, focus) - w @ x  # a colour keeps its own offset from its neighbours'
+            # mean
         else:
             out[lo:lo + 2048] = w @ d
     return out.reshape(grid, grid, grid, 3)
+
+
+def _densest(w: torch.Tensor, y: torch.Tensor, focus: float) -> torch.Tensor:
+    """For each row of weights ``w`` [g,M] (summing to 1) over the points ``y`` [M,3]: the place [g,3] that mean
+    shift reaches from the weighted mean, each step's weights ``w`` times a Gaussian of width ``focus`` around the
+    estimate, ``FOCUS_STEPS`` steps (a fixed count: no host sync). Only each row's ``FOCUS_NEIGHBOURS`` largest
+    weights take part (the rest are renormalized away): on 2 CPU cores the full product took 50 s for a table."""
+    if w.shape[1] > FOCUS_NEIGHBOURS:
+        w, idx = w.topk(FOCUS_NEIGHBOURS, dim=1)  # [g,K]
+        w = w / w.sum(1, keepdim=True)
+        ys = y[idx]  # [g,K,3]
+    else:
+        ys = y.expand(w.shape[0], -1, -1)
+    m = (w[..., None] * ys).sum(1)  # [g,3] from the mean of the destinations ...
+    for _ in range(FOCUS_STEPS):  # ... uphill to the nearest dense place
+        k = w * torch.exp(-(ys - m[:, None]).square().sum(-1) / (2.0 * focus * focus))  # [g,K]
+        m = (k[..., None] * ys).sum(1) / k.sum(1, keepdim=True).clamp_min(1e-300)
+    return m
 
 
 def _pooled_colours(items, coverage=None, limit: int = SLICED_MAX_PIXELS, device=None) -> torch.Tensor:
