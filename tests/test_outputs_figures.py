@@ -159,6 +159,8 @@ def test_caption_names_the_terms_that_are_on():
     # the colour map that made the picture: the smoothed sliced map by default, ARF's when set, none with keep-colours
     assert f"palette=sliced (smoothed {cfg.palette_smooth:g})," in on
     assert "palette=arf," in comparison_caption(load_config(configs / "tlvg.yaml", ["palette_map=arf"]), 3000, 0.9)
+    focused = comparison_caption(load_config(configs / "tlvg.yaml", ["palette_focus=0.2"]), 3000, 0.9)
+    assert f"palette=sliced (smoothed {cfg.palette_smooth:g}, focus 0.2)," in focused
     # the controls a user sets, so that runs made with them can be told apart; a neutral one is left out
     assert on.startswith(f"stroke scale {cfg.stroke_scale:g}, config:") and "strength" not in on
     cfg.loss.strength, cfg.keep_colors = 0.5, True
