@@ -512,13 +512,26 @@ def test_smoothed_displacement_matches_a_float64_loop_reference():
     np.testing.assert_allclose(wide.reshape(-1, 3), np.broadcast_to(d.mean(0), (27, 3)), atol=1e-9)
 
 
+def _mean_shift_reference(w, y, focus):
+    """numpy, float64: mean shift over the points ``y`` [K,3] with weights ``w`` [K] (summing to 1), from their
+    weighted mean, each step's weights ``w`` times a Gaussian of width ``focus`` around the estimate, FOCUS_STEPS
+    steps."""
+    from tlvg_warp.losses.palette import FOCUS_STEPS
+
+    m = (w[:, None] * y).sum(0)
+    for _ in range(FOCUS_STEPS):
+        k = w * np.exp(-((y - m) ** 2).sum(1) / (2 * focus ** 2))
+        m = (k[:, None] * y).sum(0) / k.sum()
+    return m
+
+
 def test_focused_displacement_matches_a_float64_mean_shift_loop():
     """palette_focus: at each grid point the destinations x + d, weighted by the point's kernel over x, are climbed
     by mean shift from their weighted mean (numpy, FOCUS_STEPS steps, one grid point at a time), and the displacement
     is the place reached minus the kernel-weighted mean of x; an enormous focus width gives the plain smoothing back.
     Catches the climb started elsewhere, the focus kernel on the sources instead of the destinations, a step count
     other than the constant's, the photo colour's own offset lost."""
-    from tlvg_warp.losses.palette import FOCUS_STEPS, smoothed_displacement
+    from tlvg_warp.losses.palette import smoothed_displacement
 
     rng = np.random.default_rng(41)
     x, d = rng.random((50, 3)), rng.normal(0, 0.25, (50, 3))
@@ -527,10 +540,7 @@ def test_focused_displacement_matches_a_float64_mean_shift_loop():
     for i, j, k in [(0, 0, 0), (2, 1, 0), (1, 2, 2)]:
         w = np.exp(-((x - [axis[i], axis[j], axis[k]]) ** 2).sum(1) / (2 * 0.2 ** 2))
         w /= w.sum()
-        m = (w[:, None] * y).sum(0)
-        for _ in range(FOCUS_STEPS):
-            kk = w * np.exp(-((y - m) ** 2).sum(1) / (2 * 0.12 ** 2))
-            m = (kk[:, None] * y).sum(0) / kk.sum()
+        m = _mean_shift_reference(w, y, 0.12)
         np.testing.assert_allclose(out[i, j, k], m - (w[:, None] * x).sum(0), rtol=1e-9, atol=1e-11)
     plain = smoothed_displacement(torch.from_numpy(x), torch.from_numpy(d), 0.2, grid=3).numpy()
     wide = smoothed_displacement(torch.from_numpy(x), torch.from_numpy(d), 0.2, grid=3, focus=1e4).numpy()
@@ -541,7 +551,7 @@ def test_focus_climbs_over_each_grid_points_largest_weights_only():
     """More photo colours than FOCUS_NEIGHBOURS: each grid point's climb uses its FOCUS_NEIGHBOURS colours of largest
     kernel weight, renormalized (numpy: argsort of the weights), and its offset the full kernel mean of x. Catches
     the smallest weights kept instead, weights not renormalized, the offset taken over the kept colours only."""
-    from tlvg_warp.losses.palette import FOCUS_NEIGHBOURS, FOCUS_STEPS, smoothed_displacement
+    from tlvg_warp.losses.palette import FOCUS_NEIGHBOURS, smoothed_displacement
 
     rng = np.random.default_rng(43)
     n = FOCUS_NEIGHBOURS + 150
@@ -552,11 +562,7 @@ def test_focus_climbs_over_each_grid_points_largest_weights_only():
         w = np.exp(-((x - [i, j, k]) ** 2).sum(1) / (2 * 0.3 ** 2))
         w /= w.sum()
         keep = np.argsort(-w)[:FOCUS_NEIGHBOURS]
-        wk = w[keep] / w[keep].sum()
-        m = (wk[:, None] * y[keep]).sum(0)
-        for _ in range(FOCUS_STEPS):
-            kk = wk * np.exp(-((y[keep] - m) ** 2).sum(1) / (2 * 0.15 ** 2))
-            m = (kk[:, None] * y[keep]).sum(0) / kk.sum()
+        m = _mean_shift_reference(w[keep] / w[keep].sum(), y[keep], 0.15)
         np.testing.assert_allclose(out[i, j, k], m - (w[:, None] * x).sum(0), rtol=1e-9, atol=1e-11)
 
 

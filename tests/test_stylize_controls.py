@@ -138,6 +138,19 @@ def test_palette_where_covered_takes_the_statistics_under_the_scene(demo):
         _cfg(palette_where="object")
 
 
+def test_palette_smooth_and_focus_reach_the_targets_map(demo):
+    """palette_smooth and palette_focus go from the config to the targets' sliced map: its table is sliced_palette's
+    with the same widths over the covered pixels, and the focus changes it (the demo's map)."""
+    from tlvg_warp.losses.palette import sliced_palette
+
+    base = {"palette_map": "sliced", "palette_where": "covered", "palette_smooth": 0.05}
+    plain, focused = (_targets(demo, _cfg(**base, palette_focus=f)) for f in (0.0, 0.2))
+    photos = [p.to(torch.float32) for p in demo.photos]
+    want = sliced_palette(photos, focused.style_work, focused.coverage, smooth=0.05, focus=0.2).lut
+    torch.testing.assert_close(focused.palette.lut, want)
+    assert float((focused.palette.lut - plain.palette.lut).abs().max()) > 1e-3
+
+
 def test_over_background_blends_by_the_unstylized_alpha():
     torch.manual_seed(0)
     img = torch.rand(5, 7, 3, dtype=torch.float64)
