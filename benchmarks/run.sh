@@ -23,8 +23,9 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      2) after a 300-iteration warm-up; arguments go to each run, its folder fern_$TAG$i.
                      Reproduces: "Stylization" (process wall, flow alignment).
   startup            fern stylized for 1 iteration, twice (warm caches the second time): process wall against the
-                     run's own wall, and where the import time goes (python -X importtime). Reproduces: the
-                     1-iteration figure of "Stylization".
+                     run's own wall, where the import time goes (python -X importtime), and twice the timeline from
+                     the process's creation to the first iteration (benchmarks/startup_timeline.py). Reproduces:
+                     the 1-iteration figure of "Stylization", start-up.
   quality            `evaluate` on the runs of `stylize` (first 10 views, one ruler). Reproduces: "Stylization",
                      the quality row.
   demo               the CPU demo with empty kernel and weight caches (`python -m tlvg_warp stylize`).
@@ -159,7 +160,10 @@ case "$cmd" in
       metrics "$R/one/metrics.json" wall_time_s train_time_s outputs_time_s
     done
     python3 -X importtime -c "import tlvg_warp.cli" 2> "$R/importtime.txt"
-    sort -t'|' -k2 -n "$R/importtime.txt" | tail -n 6;;
+    sort -t'|' -k2 -n "$R/importtime.txt" | tail -n 6
+    for i in 1 2; do  # from the process's creation to the first iteration, mark by mark
+      python3 benchmarks/startup_timeline.py $FERN --iterations 1 --out "$R/one" --overwrite --quiet 2>&1 | tail -n 14
+    done;;
   quality)
     runs=$(ls -d "$R"/fern_*/metrics.json 2>/dev/null | xargs -r -n1 dirname)
     [ -n "$runs" ] || { echo "no runs: run \`stylize\` first"; exit 1; }
