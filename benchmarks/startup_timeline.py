@@ -4,9 +4,9 @@ interpreter's own start-up and the imports are counted and the process's exit is
 
     python benchmarks/startup_timeline.py [STYLIZE ARGS ...]    e.g. --scene fern.spz --data fern_llff --iterations 1
 
-Marks: the script's first line, `import tlvg_warp.cli`, Warp's runtime up (wp.init), the job resolved (config and
-VGG), the inputs assembled, the painting's targets prepared, the run built, the first step begun and ended (the GPU
-synchronized), and the command returned. docs/performance.md quotes it.
+Marks: the script's first line, `import tlvg_warp.cli`, the VGG loaded, the job resolved (config, device and VGG),
+the inputs assembled, Warp's runtime up (wp.init), the painting's targets prepared, the run built, the first step
+begun and ended (the GPU synchronized), and the command returned. docs/performance.md quotes it.
 """
 from __future__ import annotations
 
@@ -60,7 +60,10 @@ def main(argv: list[str]) -> int:
         if torch.cuda.is_available() and torch.cuda.is_initialized():
             torch.cuda.synchronize()
 
+    import tlvg_warp.losses as losses
+
     wrap(wp, "init", "wp.init begins", "wp.init ends")
+    wrap(losses, "load_vgg", "VGG: begins", "VGG loaded", sync=sync)
     wrap(job.StylizeJob, "start", "job resolved: begins", "job resolved (config, device, VGG)")
     wrap(job, "assemble_inputs", None, "inputs assembled")
     wrap(pipeline, "prepare", "targets: begin", "targets prepared", sync=sync)
