@@ -161,8 +161,10 @@ case "$cmd" in
     done
     python3 -X importtime -c "import tlvg_warp.cli" 2> "$R/importtime.txt"
     sort -t'|' -k2 -n "$R/importtime.txt" | tail -n 6
-    for i in 1 2; do  # from the process's creation to the first iteration, mark by mark
-      python3 benchmarks/startup_timeline.py $FERN --iterations 1 --out "$R/one" --overwrite --quiet 2>&1 | tail -n 14
+    for w in "" --no-warmup "" --no-warmup; do  # from the process's creation to the first iteration, mark by mark,
+      # with and without the CUDA context made beside the imports
+      echo "== timeline ${w:-with the warm-up}"
+      python3 benchmarks/startup_timeline.py $w $FERN --iterations 1 --out "$R/one" --overwrite --quiet 2>&1 | tail -n 17
     done;;
   quality)
     runs=$(ls -d "$R"/fern_*/metrics.json 2>/dev/null | xargs -r -n1 dirname)

@@ -2,11 +2,13 @@
 was created (Linux: /proc/self/stat's start time against CLOCK_BOOTTIME, 10 ms resolution), so that the
 interpreter's own start-up and the imports are counted and the process's exit is not.
 
-    python benchmarks/startup_timeline.py [STYLIZE ARGS ...]    e.g. --scene fern.spz --data fern_llff --iterations 1
+    python benchmarks/startup_timeline.py [--no-warmup] [STYLIZE ARGS ...]    e.g. --scene fern.spz --iterations 1
 
-Marks: the script's first line, `import tlvg_warp.cli`, the VGG loaded, the job resolved (config, device and VGG),
-the inputs assembled, Warp's runtime up (wp.init), the painting's targets prepared, the run built, the first step
-begun and ended (the GPU synchronized), and the command returned. docs/performance.md quotes it.
+--no-warmup: without the CUDA context made in a thread beside the imports (tlvg_warp/warmup.py).
+
+Marks: the script's first line, `import tlvg_warp.cli`, `import torch`, the VGG loaded, the job resolved (config,
+device and VGG), the inputs assembled, Warp's runtime up (wp.init), the painting's targets prepared, the run built,
+the first step begun and ended (the GPU synchronized), and the command returned. docs/performance.md quotes it.
 """
 from __future__ import annotations
 
@@ -46,10 +48,15 @@ def wrap(owner, attr: str, before: str | None, after: str | None, once: bool = T
     setattr(owner, attr, wrapped)
 
 
-def main(argv: list[str]) -> int:
+def main(argv: list[str], warmup: bool = True) -> int:
+    from tlvg_warp.warmup import start_cuda_warmup
+
+    if warmup:  # as `python -m tlvg_warp` does (tlvg_warp/__main__.py)
+        start_cuda_warmup(argv)
     import tlvg_warp.cli as cli
     mark("import tlvg_warp.cli")
     import torch
+    mark("import torch")
     import warp as wp
 
     import tlvg_warp.stylize.job as job
@@ -82,4 +89,5 @@ def main(argv: list[str]) -> int:
 
 if __name__ == "__main__":
     import sys
-    raise SystemExit(main(["stylize", *sys.argv[1:]]))
+    args = sys.argv[1:]
+    raise SystemExit(main(["stylize", *(a for a in args if a != "--no-warmup")], warmup="--no-warmup" not in args))

@@ -1,11 +1,14 @@
 """tlvg_warp: flow-guided 3D Gaussian Splatting stylization ("Thinking Like Van Gogh") on NVIDIA Warp."""
 from .errors import InputError
-from .types import Camera, Gaussians
 
 __all__ = ["Camera", "Gaussians", "InputError", "render", "RenderOutput", "load_ply", "save_ply", "load_dataset"]
 
 
-def __getattr__(name):  # lazy: importing the package must not initialize Warp
+def __getattr__(name):  # lazy: importing the package must not initialize Warp, nor import torch (`python -m
+    # tlvg_warp` starts CUDA in a thread first: warmup.py)
+    if name in ("Camera", "Gaussians"):
+        from . import types
+        return getattr(types, name)
     if name in ("render", "RenderOutput"):
         from . import renderer
         return getattr(renderer, name)

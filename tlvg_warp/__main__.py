@@ -1,3 +1,9 @@
-from .cli import main
+import sys
+
+from .warmup import start_cuda_warmup
+
+start_cuda_warmup(sys.argv[1:])  # before the imports below bring torch in: the two overlap
+
+from .cli import main  # noqa: E402
 
 raise SystemExit(main())

@@ -1,0 +1,54 @@
+"""CUDA's primary context made in a background thread while Python imports torch and the package.
+
+Why: the first CUDA call waits for the context to be made (the driver started, the GPU's memory mapped), and
+Python spends over a second importing torch before that call. The driver calls go
+through ctypes, which releases the interpreter lock, so the two overlap; torch and Warp both use the device's
+primary context and find it made. Only for the commands that run on a GPU, and never when the command line asks
+for the CPU; without an NVIDIA driver it does nothing."""
+from __future__ import annotations
+
+import ctypes
+import os
+import sys
+import threading
+
+GPU_COMMANDS = ("stylize", "reconstruct")
+_LIBCUDA = "nvcuda.dll" if sys.platform == "win32" else "libcuda.so.1"
+
+
+def wants_gpu(argv: list[str]) -> bool:
+    """Whether the command line ``argv`` (without the program) runs a GPU command that may use CUDA."""
+    if not argv or argv[0] not in GPU_COMMANDS or "-h" in argv or "--help" in argv:
+        return False
+    for i, a in enumerate(argv):
+        if a == "--device" and i + 1 < len(argv) and argv[i + 1] == "cpu":
+            return False
+        if a in ("--device=cpu", "--set=device=cpu") or (a == "--set" and argv[i + 1:i + 2] == ["device=cpu"]):
+            return False
+    return os.environ.get("CUDA_VISIBLE_DEVICES", None) != ""
+
+
+def start_cuda_warmup(argv: list[str]) -> threading.Thread | None:
+    """Retain the primary context of this process's GPU (LOCAL_RANK under torchrun, else 0) in a daemon thread
+    when ``argv`` asks for a GPU command; returns the thread, or None when nothing was started."""
+    if not wants_gpu(argv):
+        return None
+    try:
+        index = int(os.environ.get("LOCAL_RANK", "0"))
+    except ValueError:
+        index = 0
+    t = threading.Thread(target=retain_primary_context, args=(index,), name="cuda-warmup", daemon=True)
+    t.start()
+    return t
+
+
+def retain_primary_context(index: int) -> bool:
+    """cuInit and cuDevicePrimaryCtxRetain for device ``index``; False where there is no driver or no such device
+    (the first CUDA call then reports it as it would have)."""
+    try:
+        cu = ctypes.CDLL(_LIBCUDA)
+    except OSError:
+        return False
+    dev, ctx = ctypes.c_int(), ctypes.c_void_p()
+    return (cu.cuInit(0) == 0 and cu.cuDeviceGet(ctypes.byref(dev), index) == 0
+            and cu.cuDevicePrimaryCtxRetain(ctypes.byref(ctx), dev) == 0)
