@@ -23,9 +23,9 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      2) after a 300-iteration warm-up; arguments go to each run, its folder fern_$TAG$i.
                      Reproduces: "Stylization" (process wall, flow alignment).
   startup            fern stylized for 1 iteration, twice (warm caches the second time): process wall against the
-                     run's own wall, where the import time goes (python -X importtime), and twice the timeline from
-                     the process's creation to the first iteration (benchmarks/startup_timeline.py). Reproduces:
-                     the 1-iteration figure of "Stylization", start-up.
+                     run's own wall, where the import time goes (python -X importtime), and the timeline from the
+                     process's creation to the first iteration (benchmarks/startup_timeline.py), twice with and twice
+                     without the CUDA warm-up. Reproduces: the 1-iteration figure of "Stylization", start-up.
   quality            `evaluate` on the runs of `stylize` (first 10 views, one ruler). Reproduces: "Stylization",
                      the quality row.
   demo               the CPU demo with empty kernel and weight caches (`python -m tlvg_warp stylize`).
@@ -159,7 +159,7 @@ case "$cmd" in
         --out "$R/one" --overwrite --quiet 2>&1 | tail -n 1
       metrics "$R/one/metrics.json" wall_time_s train_time_s outputs_time_s
     done
-    python3 -X importtime -c "import tlvg_warp.cli" 2> "$R/importtime.txt"
+    python3 -X importtime -c "import tlvg_warp.cli, tlvg_warp.stylize.job" 2> "$R/importtime.txt"  # what stylize imports
     sort -t'|' -k2 -n "$R/importtime.txt" | tail -n 6
     for w in "" --no-warmup "" --no-warmup; do  # from the process's creation to the first iteration, mark by mark,
       # with and without the CUDA context made beside the imports
