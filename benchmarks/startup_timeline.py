@@ -30,7 +30,7 @@ def mark(name: str) -> None:
     MARKS.append((name, since_process_start()))
 
 
-def wrap(owner, attr: str, before: str | None, after: str | None, once: bool = True, sync=None):
+def wrap(owner, attr: str, before: str | None, after: str | None, sync=None):
     """Replace owner.attr with a version that marks its first call's start and end."""
     fn, seen = getattr(owner, attr), []
 
@@ -57,8 +57,11 @@ def main(argv: list[str], warmup: bool = True) -> int:
     mark("import tlvg_warp.cli")
     import torch
     mark("import torch")
+    # up front, so that their functions can be wrapped: the command imports them inside its run (the time is the
+    # same; the marks after this one start later by it)
     import warp as wp
 
+    import tlvg_warp.losses as losses
     import tlvg_warp.stylize.job as job
     import tlvg_warp.stylize.pipeline as pipeline
     import tlvg_warp.train.loop as loop
@@ -66,8 +69,6 @@ def main(argv: list[str], warmup: bool = True) -> int:
     def sync():
         if torch.cuda.is_available() and torch.cuda.is_initialized():
             torch.cuda.synchronize()
-
-    import tlvg_warp.losses as losses
 
     wrap(wp, "init", "wp.init begins", "wp.init ends")
     wrap(losses, "load_vgg", "VGG: begins", "VGG loaded", sync=sync)
