@@ -1,5 +1,6 @@
 """The CUDA warm-up of `python -m tlvg_warp` (tlvg_warp/warmup.py): which command lines start it, that it does
 nothing without a driver, and that the package imports without torch so that the warm-up can overlap that import."""
+import os
 import subprocess
 import sys
 
@@ -47,3 +48,18 @@ def test_the_package_imports_without_torch():
             "from tlvg_warp import Camera; print(Camera.__module__, 'torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["False", "tlvg_warp.types", "True"]
+
+
+@pytest.mark.parametrize("flags, started", [([], True), (["--device", "cpu"], False)])
+def test_python_m_tlvg_warp_starts_it_before_the_command(flags, started):
+    # `python -m tlvg_warp` (__main__.py) is where the warm-up is wired in: a bad flag ends the command at once, after
+    # the warm-up would have started
+    code = ("import runpy, sys, threading\n"
+            "names, start = [], threading.Thread.start\n"
+            "threading.Thread.start = lambda self: (names.append(self.name), start(self))[1]\n"
+            f"sys.argv = ['tlvg_warp', 'stylize', '--no-such-flag', *{flags!r}]\n"
+            "try:\n    runpy.run_module('tlvg_warp', run_name='__main__')\nexcept SystemExit as e:\n    code = e.code\n"
+            "print(code, 'cuda-warmup' in names)")
+    env = {k: v for k, v in os.environ.items() if k != "CUDA_VISIBLE_DEVICES"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
+    assert out.split() == ["2", str(started)]

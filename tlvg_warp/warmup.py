@@ -1,10 +1,11 @@
 """CUDA's primary context made in a background thread while Python imports torch and the package.
 
 Why: the first CUDA call waits for the context to be made (the driver started, the GPU's memory mapped), and
-Python spends over a second importing torch before that call. The driver calls go
-through ctypes, which releases the interpreter lock, so the two overlap; torch and Warp both use the device's
-primary context and find it made. Only for the commands that run on a GPU, and never when the command line asks
-for the CPU; without an NVIDIA driver it does nothing."""
+Python spends over a second importing torch before that call. The driver calls go through ctypes, which releases
+the interpreter lock, so the two overlap; torch and Warp both use the device's primary context and find it made.
+Only for the commands that run on a GPU, and never when the command line asks for the CPU; without an NVIDIA
+driver it does nothing. (LOCAL_RANK is read here by hand: distributed.py, which reads it for the run, imports
+torch.)"""
 from __future__ import annotations
 
 import ctypes
@@ -25,7 +26,7 @@ def wants_gpu(argv: list[str]) -> bool:
             return False
         if a in ("--device=cpu", "--set=device=cpu") or (a == "--set" and argv[i + 1:i + 2] == ["device=cpu"]):
             return False
-    return os.environ.get("CUDA_VISIBLE_DEVICES", None) != ""
+    return os.environ.get("CUDA_VISIBLE_DEVICES") != ""  # set and empty: torch sees no GPU
 
 
 def start_cuda_warmup(argv: list[str]) -> threading.Thread | None:
