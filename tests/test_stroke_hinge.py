@@ -395,13 +395,28 @@ def test_stylize_logs_the_stroke_term_when_weighted(demo, monkeypatch):
     assert all(isinstance(v, float) for v in sty2.stroke_target)
 
 
+def test_along_none_is_the_across_half_alone():
+    """along="none": relu(1 - E_across/T_across)^2 and nothing for contrast along the field, however far E_along is
+    above T_along (closed form); an unknown form is refused."""
+    img, d, cov = _random_case(3)
+    ea, el = stroke_energies(img, d, cov)
+    for ka, kl in ((2.0, 0.01), (0.5, 0.01), (4.0, 1e-6)):  # the along half far above its target each time
+        across = max(0.0, 1.0 - 1.0 / ka) ** 2  # T_across = ka x E_across
+        assert float(stroke_hinge(ea, el, ka * float(ea), kl * float(el), along="none")) == pytest.approx(across,
+                                                                                                        rel=1e-12)
+        assert float(stroke_hinge(ea, el, ka * float(ea), kl * float(el), along="bounded")) > across + 0.9
+    with pytest.raises(ValueError, match="along must be"):
+        stroke_hinge(ea, el, 1.0, 1.0, along="across")
+
+
 def test_stylize_passes_the_along_form_to_the_hinge(demo, monkeypatch):
     """loss.stroke_along reaches the hinge: with the targets far below the render's energies the along half is
-    (E_along/T_along - 1)^2 >> 1 in the ratio form and under 1 in the bounded form; the across half is 0."""
+    (E_along/T_along - 1)^2 >> 1 in the ratio form, under 1 in the bounded form and absent with none; the across half
+    is 0."""
     from tlvg_warp.train.loop import train
 
     logged = {}
-    for form in ("ratio", "bounded"):
+    for form in ("ratio", "bounded", "none"):
         run, cfg, _ = _stylize_run(demo, **{"loss.w_stroke": 0.5, "loss.stroke_along": form})
         assert cfg.loss.stroke_along == form
         run.phase("stylize").stroke_target = (1e-9, 1e-6)
@@ -409,6 +424,7 @@ def test_stylize_passes_the_along_form_to_the_hinge(demo, monkeypatch):
         logged[form] = [r["stroke"] for r in run.log if r["phase"] == "stylize"]
     assert all(v > 10.0 for v in logged["ratio"])
     assert all(0.5 < v < 1.0 for v in logged["bounded"])
+    assert all(v == 0.0 for v in logged["none"])  # the across half met (its target far below), the along half gone
 
 
 def test_stylize_passes_the_log_form_to_the_hinge(demo, monkeypatch):

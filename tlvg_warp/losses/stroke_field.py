@@ -287,14 +287,17 @@ def painting_stroke_energies(style_img, view_h: int, log_eps: float | None = Non
 def stroke_hinge(e_across: torch.Tensor, e_along: torch.Tensor, t_across: float, t_along: float,
                  along: str = "ratio") -> torch.Tensor:
     """relu(1 − E_across/T_across)² plus, while E_along is above T_along, (E_along/T_along − 1)² (``along`` "ratio")
-    or (1 − T_along/E_along)² ("bounded", below 1 however far E_along goes): contrast across the strokes is asked for
+    or (1 − T_along/E_along)² ("bounded", below 1 however far E_along goes), or nothing ("none": contrast along the
+    strokes left as it is, an object's studs and brick edges among it): contrast across the strokes is asked for
     up to the painting's level, contrast along them is allowed up to the painting's level; 0 when both hold.
     ``t_*`` floats."""
     across = torch.relu(1.0 - e_across / max(t_across, 1e-12)) ** 2
+    if along == "none":
+        return across
     if along == "bounded":
         return across + torch.relu(1.0 - max(t_along, 1e-12) / e_along.clamp_min(1e-12)) ** 2
     if along != "ratio":
-        raise ValueError(f"along must be 'ratio' or 'bounded', got {along!r}")
+        raise ValueError(f"along must be 'ratio', 'bounded' or 'none', got {along!r}")
     return across + torch.relu(e_along / max(t_along, 1e-12) - 1.0) ** 2
 
 

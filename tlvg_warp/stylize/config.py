@@ -98,7 +98,8 @@ class StyleLoss:
     # contrast in every direction; this asks for stripes that run along the strokes (ours; 0: off)
     stroke_along: str = "ratio"  # the hinge's second half: ratio (E_along/T_along - 1)^2, unbounded, or bounded
     # (1 - T_along/E_along)^2 in [0, 1). A scene with more contrast along the field than the painting (lego's bricks)
-    # makes the ratio dominate the loss and smooths its edges (configs/tlvg.yaml uses bounded; docs/study.md)
+    # makes the ratio dominate the loss and smooths its edges (configs/tlvg.yaml uses bounded; docs/study.md); none:
+    # the across half alone (an object's studs carry 2-4x the painting's contrast along the field; docs/study.md)
     stroke_contrast: str = "linear"  # the stroke hinge's contrast: on luminance Y (linear) or on log(Y + 0.05) (log)
     # for the render and the painting's target alike: contrast relative to the tone, met in a dark passage by small
     # steps (ours; made against dark objects drifting pale, which it did not prevent: docs/study.md)
@@ -137,7 +138,7 @@ class StyleLoss:
              "field_source": ("of", "stylize_start", "unstylized"),
              "luminance_grad": ("of", "luma", "gray"), "chroma_tv_space": ("of", "rgb", "lab"),
              "content_on": ("of", "rgb", "luminance"),
-             "stroke_along": ("of", "ratio", "bounded"),
+             "stroke_along": ("of", "ratio", "bounded", "none"),
              "stroke_contrast": ("of", "linear", "log"),
              "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1), "lab_where": ("of", "all", "covered"),
              "silhouette_where": ("of", "all", "empty"),
