@@ -459,3 +459,63 @@ def test_stylize_never_computes_the_stroke_term_at_weight_zero(demo, monkeypatch
     train(run, progress=False)
     assert not sty.on["stroke"] and sty.stroke_target is None and calls == []
     assert all(r["stroke"] == 0 for r in run.log)
+
+
+def test_interior_weight_is_opencv_erosion_by_the_gradients_reach():
+    """interior_weight: the coverage's minimum over a (2r + 1)² square, as cv2.erode computes it (its default border
+    does not erode), for a soft coverage and for a disc on an empty background; r = the pre-blur kernel's half-width
+    plus Scharr's 1 (an edge moves the gradients that far: a pixel r + 1 away from a step reads none of it)."""
+    from tlvg_warp.losses.stroke_field import _ksize, PRE_SIGMA, gradient_reach, interior_weight
+
+    r = gradient_reach()
+    assert r == _ksize(PRE_SIGMA) // 2 + 1
+    step = np.zeros((40, 40)); step[:, 20:] = 1.0
+    y = cv2.GaussianBlur(step, (_ksize(PRE_SIGMA),) * 2, PRE_SIGMA, borderType=cv2.BORDER_REFLECT_101)
+    gx = cv2.Scharr(y, cv2.CV_64F, 1, 0, borderType=cv2.BORDER_REFLECT_101)
+    assert abs(gx[20, 20 - r]) > 0 and gx[20, 20 - r - 1] == 0.0 and gx[20, 19 + r] > 0 and gx[20, 20 + r] == 0.0
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[:37, :45]
+    disc = ((yy - 18) ** 2 + (xx - 20) ** 2 <= 12 ** 2).astype(np.float64)
+    for cov in (rng.random((37, 45)), disc):
+        got = interior_weight(torch.from_numpy(cov)[..., None], r)[..., 0].numpy()
+        want = cv2.erode(cov, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+        assert np.array_equal(got, want)
+    full = torch.ones(9, 11, 1, dtype=torch.float64)  # a capture: covered everywhere, nothing eroded at the border
+    assert torch.equal(interior_weight(full, r), full)
+
+
+def test_field_terms_interior_weighs_the_eroded_coverage():
+    """field_terms(interior=True): the hinge of the energies over the eroded coverage (an implementation that kept
+    the coverage, or eroded the orientation term's weight too, fails); on a bright disc over black the outline alone
+    meets the across half over the coverage, and over the interior it does not."""
+    from tlvg_warp.losses.stroke_field import gradient_reach
+
+    h, w = 48, 56
+    yy, xx = np.mgrid[:h, :w]
+    disc = ((yy - 24) ** 2 + (xx - 28) ** 2 <= 18 ** 2).astype(np.float64)
+    img = torch.from_numpy(np.repeat(disc[..., None], 3, -1) * 0.8)  # a flat bright disc: contrast at its outline
+    th = np.arctan2(yy - 24, xx - 28) + math.pi / 2  # the field runs around the disc: the outline is across it
+    d = torch.from_numpy(np.stack([np.cos(2 * th), np.sin(2 * th)], -1))
+    cov = torch.from_numpy(disc)[..., None]
+    eroded = torch.from_numpy(cv2.erode(disc, np.ones((2 * gradient_reach() + 1,) * 2, np.uint8)))[..., None]
+    ea, el = stroke_energies(img, d, cov)
+    targets = (0.5 * float(ea), 2.0 * float(el) + 1e-3)  # the along half off
+    covered = field_terms(img, d, cov, stroke_target=targets, along="bounded")
+    inside = field_terms(img, d, cov, stroke_target=targets, along="bounded", interior=True)
+    want = stroke_hinge(*stroke_energies(img, d, eroded), *targets, along="bounded")
+    assert float(covered[1]) == pytest.approx(0.0, abs=1e-12)  # the outline meets the across target
+    assert float(inside[1]) == pytest.approx(float(want), rel=1e-12) and float(inside[1]) > 0.9  # a flat interior
+    assert float(inside[0]) == float(covered[0])  # the orientation term is untouched
+
+
+def test_stylize_passes_the_interior_choice_to_the_hinge(demo):
+    """loss.stroke_where reaches the field terms (covered: the coverage as it is; interior: eroded); other values
+    are refused by the config."""
+    from tlvg_warp.stylize.config import config_from_dict
+
+    for where, interior in (("covered", False), ("interior", True)):
+        run, cfg, _ = _stylize_run(demo, **{"loss.w_stroke": 0.5, "loss.stroke_where": where})
+        fn = run.phase("stylize").make_field_terms()
+        assert getattr(fn, "fn", fn).keywords["interior"] is interior
+    with pytest.raises(Exception, match="stroke_where"):
+        config_from_dict({"loss.stroke_where": "outline"}).validate()

@@ -301,21 +301,40 @@ def stroke_hinge(e_across: torch.Tensor, e_along: torch.Tensor, t_across: float,
     return across + torch.relu(e_along / max(t_along, 1e-12) - 1.0) ** 2
 
 
+def gradient_reach() -> int:
+    """Pixels an edge reaches into the luminance gradients :func:`stroke_energies` reads: the pre-blur's kernel
+    half-width plus the Scharr stencil's one."""
+    return _ksize(PRE_SIGMA) // 2 + 1
+
+
+def interior_weight(weight: torch.Tensor, reach: int) -> torch.Tensor:
+    """``weight`` [H,W,1] (a coverage) eroded by ``reach`` px: each pixel takes the smallest weight within its
+    (2 reach + 1)² square, so that an outline against an empty background, whose gradients reach that far in, counts
+    for nothing; the image border does not erode (a capture, covered everywhere, keeps every pixel). [H,W,1]"""
+    if reach <= 0:
+        return weight
+    w = weight.permute(2, 0, 1).unsqueeze(0)  # [1,1,H,W]; max_pool pads with -inf: no erosion from the border
+    return (-F.max_pool2d(-w, 2 * reach + 1, stride=1, padding=reach))[0].permute(1, 2, 0)
+
+
 def field_terms(img: torch.Tensor, doubled: torch.Tensor, weight: torch.Tensor, *, orient: bool = True,
                 stroke_target: tuple[float, float] | None = None, along: str = "ratio",
-                stroke_log_eps: float | None = None) -> torch.Tensor:
+                stroke_log_eps: float | None = None, interior: bool = False) -> torch.Tensor:
     """The two loss terms read off the render's luminance gradients against the view's stroke field, from ONE
     gradient pass: [1 − :func:`flow_alignment_score_torch`, :func:`stroke_hinge` of :func:`stroke_energies`] [2],
     an entry 0 where its term is off (``orient`` False, ``stroke_target`` None). img [H,W,3], doubled [H,W,2],
     weight [H,W,1] (the stroke hinge's coverage). ``stroke_log_eps``: the hinge's energies of log luminance (a
-    second gradient pass; ``stroke_target`` then the painting's in the same form). One tensor out, so that
-    ``GraphedFn`` replays both as one graph."""
+    second gradient pass; ``stroke_target`` then the painting's in the same form). ``interior``: the hinge weighs
+    the coverage eroded by :func:`gradient_reach` (:func:`interior_weight`), so that an object's outline does not
+    meet the across half for it. One tensor out, so that ``GraphedFn`` replays both as one graph."""
     x = img.permute(2, 0, 1).unsqueeze(0)
     gx, gy = _luma_gradients(x)  # [1,1,H,W] each
     zero = img.new_zeros(())
     orient_term = 1.0 - _alignment(_orientation(gx, gy)[2][0], doubled) if orient else zero
     if stroke_target is not None and stroke_log_eps is not None:
         gx, gy = _luma_gradients(x, stroke_log_eps)
+    if interior and stroke_target is not None:
+        weight = interior_weight(weight, gradient_reach())
     stroke_term = zero if stroke_target is None else stroke_hinge(
         *_energies(gx[0, 0], gy[0, 0], doubled, weight), *stroke_target, along=along)
     return torch.stack([orient_term, stroke_term])

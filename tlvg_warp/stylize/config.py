@@ -100,6 +100,9 @@ class StyleLoss:
     # (1 - T_along/E_along)^2 in [0, 1). A scene with more contrast along the field than the painting (lego's bricks)
     # makes the ratio dominate the loss and smooths its edges (configs/tlvg.yaml uses bounded; docs/study.md); none:
     # the across half alone (an object's studs carry 2-4x the painting's contrast along the field; docs/study.md)
+    stroke_where: str = "covered"  # the pixels the stroke hinge weighs: covered (the un-stylized scene's alpha) or
+    # interior (that eroded by the gradients' reach: an object's outline against an empty background no longer meets
+    # the across half, which then asks the object's own surface for the painting's contrast; ours)
     stroke_contrast: str = "linear"  # the stroke hinge's contrast: on luminance Y (linear) or on log(Y + 0.05) (log)
     # for the render and the painting's target alike: contrast relative to the tone, met in a dark passage by small
     # steps (ours; made against dark objects drifting pale, which it did not prevent: docs/study.md)
@@ -139,7 +142,7 @@ class StyleLoss:
              "luminance_grad": ("of", "luma", "gray"), "chroma_tv_space": ("of", "rgb", "lab"),
              "content_on": ("of", "rgb", "luminance"),
              "stroke_along": ("of", "ratio", "bounded", "none"),
-             "stroke_contrast": ("of", "linear", "log"),
+             "stroke_contrast": ("of", "linear", "log"), "stroke_where": ("of", "covered", "interior"),
              "lab_sigma": ("of", "photo", "painting"), "lab_block": ("in", 0, 1), "lab_where": ("of", "all", "covered"),
              "silhouette_where": ("of", "all", "empty"),
              "field_canvas": ("in", 0, 1),

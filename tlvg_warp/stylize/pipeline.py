@@ -539,7 +539,7 @@ class Stylize(Phase):
 
         fn = partial(field_terms, orient=self.on["orient"], along=self.cfg.loss.stroke_along,
                      stroke_target=self.stroke_target if self.on["stroke"] else None,
-                     stroke_log_eps=self.stroke_log_eps)
+                     stroke_log_eps=self.stroke_log_eps, interior=self.cfg.loss.stroke_where == "interior")
         return GraphedFn(fn) if self.cfg.orient_cuda_graphs else fn
 
     def jitter(self, p: GaussianParams, view_h: int) -> None:
