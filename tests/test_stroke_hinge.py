@@ -280,16 +280,16 @@ def test_field_terms_are_the_separate_terms_from_one_pass():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-@pytest.mark.parametrize("log_eps", [None, STROKE_LOG_EPS])
-def test_field_terms_as_a_cuda_graph_match_eager(log_eps):
+@pytest.mark.parametrize("log_eps, interior", [(None, False), (STROKE_LOG_EPS, False), (None, True)])
+def test_field_terms_as_a_cuda_graph_match_eager(log_eps, interior):
     """The phase's call replayed as CUDA graphs gives the eager values and image gradient for renders, fields and
     coverage that change between calls (a graph that kept its first field or coverage fails), one graph per shape;
-    with the log form's second gradient pass too."""
+    with the log form's second gradient pass too, and with the hinge over the eroded coverage."""
     from functools import partial
 
     dev = torch.device("cuda")
     fn = partial(field_terms, stroke_target=(0.05, 0.01) if log_eps is None else (50.0, 1.0), along="ratio",
-                 stroke_log_eps=log_eps)
+                 stroke_log_eps=log_eps, interior=interior)
     graphed = GraphedFn(fn)
     for k, (h, w) in enumerate(((40, 56), (40, 56), (40, 56), (32, 30))):
         img, d, cov = (t.float().to(dev) for t in _random_case(10 + k, h, w))
