@@ -8,7 +8,8 @@
 #   PART=stage2  carry .gpu/b and .carry/d2 (styles, beer): `source .gpu/b/setup.sh` first; starts beer's fit
 #   PART=fit     carry .carry/d3 (fern, lego at 400 px): fits fern and lego (7000 iterations), waits for all three
 #   PART=study   launch the study in the background (two queues of pairs: tuning, validation; PAIRS_A and PAIRS_B
-#                replace them, PAIRS_C, PAIRS_D and PAIRS_E add queues); PART=wait collects it (PACK=0: no archive,
+#                replace them, PAIRS_C to PAIRS_G add queues: seven pairs of four variants, one queue each, finish
+#                in one call where two queues of two pairs did not); PART=wait collects it (PACK=0: no archive,
 #                for every collecting call but the last). A pair whose scene's fit failed is skipped ("skipped ...
 #                (no fit)" and the fit's last log lines in the wait's output):
 #                `SCENES=name PART=fit` fits it again, then a study of those pairs alone
@@ -150,7 +151,7 @@ EOF
     SEEDV=${SEEDS_VARIANTS:-tlvg: seed1:seed=1 seed2:seed=2}  # the seeds' runs (e.g. abcgs's: abcgs:config=... abcgs_s1:config=...;seed=1)
     T=${PAIRS_A:-$T}; V=${PAIRS_B:-$V}  # other pair lists (e.g. an ablation on a few pairs); SEEDS_PAIR=none: no seeds
     [ "$SP" = none ] && touch "$R/seeds/pairs/queue_seeds.done"
-    for q in C D E; do  # more queues, one per list given (the GPU has room when each run is host-bound)
+    for q in C D E F G; do  # more queues, one per list given (the GPU has room when each run is host-bound)
       pv=PAIRS_$q
       if [ -n "${!pv:-}" ]; then
         setsid nohup bash -c "$(declare -f fit_of); queue q$q '$SV' ${!pv}" > /dev/null 2>&1 &
@@ -165,6 +166,7 @@ EOF
     deadline=$((SECONDS + ${WAIT:-500}))
     while [ $SECONDS -lt $deadline ] && { [ ! -f "$R/pairs/queue_tuning.done" ] || [ ! -f "$R/pairs/queue_validation.done" ] ||
       [ ! -f "$R/pairs/queue_qC.done" ] || [ ! -f "$R/pairs/queue_qD.done" ] || [ ! -f "$R/pairs/queue_qE.done" ] ||
+      [ ! -f "$R/pairs/queue_qF.done" ] || [ ! -f "$R/pairs/queue_qG.done" ] ||
       [ ! -f "$R/seeds/pairs/queue_seeds.done" ]; }; do sleep 5; done
     # the fits ran in the background (PART=fit FIT_LIMIT=1 returns at once): their held-out PSNR and size, here
     for s in $SCENES; do echo "fit $s: $(grep -h 'PSNR\|fitted' "$R/fit_$s.log" 2>/dev/null | tail -n 2 | tr '\n' ' ')"; done
