@@ -68,7 +68,7 @@ def instrument(views: list[int]) -> None:
 
 def detail_inside(img: np.ndarray, alpha: np.ndarray, painting_hf: float, eval_height: int) -> float:
     ev = M.resize_to_height(img, eval_height)
-    return M.hf_energy(M.luma(ev), M.interior(alpha, ev.shape[:2])) / max(painting_hf, 1e-12)
+    return M.detail(ev, painting_hf, M.interior(alpha, ev.shape[:2]))
 
 
 def main() -> int:

@@ -416,3 +416,19 @@ def test_an_image_seen_twice_reuses_its_features_only_where_its_masks_agree():
         assert not torch.allclose(fa["grams_inside"][k], fb["grams_inside"][k])
         alone = M.vgg_feats_batch(net, [img], [b])[0]["grams_inside"][k]  # a batch of one: float32 rounding apart
         assert torch.allclose(fb["grams_inside"][k], alone, rtol=1e-4, atol=1e-7)
+
+
+def test_detail_is_the_views_luma_residual_over_the_paintings():
+    """M.detail, the figure `evaluate` reports as detail and detail_inside: a grey view's blur residual energy (in
+    float64 OpenCV, over the interior when given) divided by the painting's; a painting without detail gives a
+    finite figure, not a division by zero."""
+    import cv2
+
+    light, alpha = _object_on_white(0.2)
+    view = np.repeat(light[..., None], 3, -1)  # grey: luma is the value itself
+    inside = M.interior(alpha, light.shape)
+    y = light.astype(np.float64)
+    res2 = (y - cv2.GaussianBlur(y, (0, 0), M.HF_SIGMA, borderType=cv2.BORDER_REFLECT_101)) ** 2
+    assert M.detail(view, 0.004) == pytest.approx(res2.mean() / 0.004, rel=1e-4)
+    assert M.detail(view, 0.004, inside) == pytest.approx(res2[inside].mean() / 0.004, rel=1e-4)
+    assert np.isfinite(M.detail(view, 0.0))

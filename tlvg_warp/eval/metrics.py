@@ -238,6 +238,13 @@ def hf_energy(x: np.ndarray, mask: np.ndarray | None = None) -> float:
     return float(r2[mask].mean()) if mask.any() else 0.0
 
 
+def detail(view: np.ndarray, painting_hf: float, inside: np.ndarray | None = None) -> float:
+    """SPEC §4's detail: the luminance detail (:func:`hf_energy`) of ``view`` [H,W,3] at the evaluation size over the
+    painting's ``painting_hf`` at the same height; with ``inside`` ([H,W] bool, :func:`interior`) the detail inside
+    the scene."""
+    return hf_energy(luma(view), inside) / max(painting_hf, 1e-12)
+
+
 def interior(alpha: np.ndarray, shape: tuple) -> np.ndarray:
     """The pixels of an image of ``shape`` (h, w) inside the scene: the un-stylized alpha ([H,W] or [H,W,1] at
     training size) resized, >= ALPHA_MIN, eroded by the blur's reach (4 HF_SIGMA, the support of OpenCV's kernel

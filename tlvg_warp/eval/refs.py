@@ -207,8 +207,8 @@ def score_views(views: list, alpha2x: list, refs: Refs, net) -> dict:
         img, ev, f, inside = imgs[i], evs[i], feats[i], insides[i]
         per["stroke_scales"].append(M.stroke_distance(M.stroke_descriptor(img, refs.base[i]["alpha"]),
                                                       ps["strokes"]))
-        per["detail"].append(M.hf_energy(M.luma(ev)) / max(ps["hf"], 1e-12))
-        per["detail_inside"].append(M.hf_energy(M.luma(ev), inside) / max(ps["hf"], 1e-12))
+        per["detail"].append(M.detail(ev, ps["hf"]))
+        per["detail_inside"].append(M.detail(ev, ps["hf"], inside))
         per["holes_1x"].append(M.holes(v["alpha"], refs.base[i]["alpha"]))
         per["holes_2x"].append(M.holes(alpha2x[i], refs.alpha2x[i]))
         per["spill"].append(M.spill(v["alpha"], refs.base[i]["alpha"]))
