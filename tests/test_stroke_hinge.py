@@ -287,12 +287,15 @@ def test_field_terms_as_a_cuda_graph_match_eager(log_eps, interior):
     with the log form's second gradient pass too, and with the hinge over the eroded coverage."""
     from functools import partial
 
+    from tlvg_warp.losses.stroke_field import gradient_reach, interior_weight
+
     dev = torch.device("cuda")
     fn = partial(field_terms, stroke_target=(0.05, 0.01) if log_eps is None else (50.0, 1.0), along="ratio",
-                 stroke_log_eps=log_eps, interior=interior)
+                 stroke_log_eps=log_eps)
     graphed = GraphedFn(fn)
     for k, (h, w) in enumerate(((40, 56), (40, 56), (40, 56), (32, 30))):
         img, d, cov = (t.float().to(dev) for t in _random_case(10 + k, h, w))
+        cov = interior_weight(cov, gradient_reach()) if interior else cov
         out = []
         for f in (fn, graphed):
             x = img.clone().requires_grad_(True)
@@ -485,10 +488,11 @@ def test_interior_weight_is_opencv_erosion_by_the_gradients_reach():
 
 
 def test_field_terms_interior_weighs_the_eroded_coverage():
-    """field_terms(interior=True): the hinge of the energies over the eroded coverage (an implementation that kept
-    the coverage, or eroded the orientation term's weight too, fails); on a bright disc over black the outline alone
-    meets the across half over the coverage, and over the interior it does not."""
-    from tlvg_warp.losses.stroke_field import gradient_reach
+    """field_terms over interior_weight(coverage): the hinge of the energies over the coverage eroded as OpenCV
+    erodes it (an implementation that kept the coverage, or let the weight reach the orientation term, fails); on a
+    bright disc over black the outline alone meets the across half over the coverage, and over the interior it does
+    not."""
+    from tlvg_warp.losses.stroke_field import gradient_reach, interior_weight
 
     h, w = 48, 56
     yy, xx = np.mgrid[:h, :w]
@@ -501,21 +505,39 @@ def test_field_terms_interior_weighs_the_eroded_coverage():
     ea, el = stroke_energies(img, d, cov)
     targets = (0.5 * float(ea), 2.0 * float(el) + 1e-3)  # the along half off
     covered = field_terms(img, d, cov, stroke_target=targets, along="bounded")
-    inside = field_terms(img, d, cov, stroke_target=targets, along="bounded", interior=True)
+    inside = field_terms(img, d, interior_weight(cov, gradient_reach()), stroke_target=targets, along="bounded")
     want = stroke_hinge(*stroke_energies(img, d, eroded), *targets, along="bounded")
     assert float(covered[1]) == pytest.approx(0.0, abs=1e-12)  # the outline meets the across target
     assert float(inside[1]) == pytest.approx(float(want), rel=1e-12) and float(inside[1]) > 0.9  # a flat interior
     assert float(inside[0]) == float(covered[0])  # the orientation term is untouched
 
 
-def test_stylize_passes_the_interior_choice_to_the_hinge(demo):
-    """loss.stroke_where reaches the field terms (covered: the coverage as it is; interior: eroded); other values
-    are refused by the config."""
+def test_stylize_passes_the_interior_choice_to_the_hinge(demo, monkeypatch):
+    """loss.stroke_where reaches the stroke hinge: every call that computes it during a run gets a view's coverage
+    as it is (covered) or that coverage eroded as cv2.erode erodes it (interior), made once per run; other values are
+    refused by the config."""
+    import tlvg_warp.losses as L
+    from tlvg_warp.losses.stroke_field import gradient_reach
     from tlvg_warp.stylize.config import config_from_dict
+    from tlvg_warp.train.loop import train
 
-    for where, interior in (("covered", False), ("interior", True)):
-        run, cfg, _ = _stylize_run(demo, **{"loss.w_stroke": 0.5, "loss.stroke_where": where})
-        fn = run.phase("stylize").make_field_terms()
-        assert getattr(fn, "fn", fn).keywords["interior"] is interior
+    seen, real = [], L.field_terms
+
+    def recording(*a, **k):  # the weight of each call that computes the stroke hinge
+        if k.get("stroke_target") is not None:
+            seen.append(a[2].detach().numpy().copy())
+        return real(*a, **k)
+    monkeypatch.setattr(L, "field_terms", recording)
+    kernel = np.ones((2 * gradient_reach() + 1,) * 2, np.uint8)
+    for where in ("covered", "interior"):
+        seen.clear()
+        run, cfg, tg = _stylize_run(demo, **{"loss.w_stroke": 0.5, "loss.stroke_where": where})
+        covs = [c.numpy()[..., 0] for c in tg.coverage]
+        want = covs if where == "covered" else [cv2.erode(c, kernel) for c in covs]
+        train(run, progress=False)
+        assert len(seen) == run.phase("stylize").steps > 0
+        assert all(any(np.array_equal(w[..., 0], x) for x in want) for w in seen)
+        if where == "interior":  # the demo's views have edges to erode: the two forms differ
+            assert not all(any(np.array_equal(w[..., 0], c) for c in covs) for w in seen)
     with pytest.raises(Exception, match="stroke_where"):
         config_from_dict({"loss.stroke_where": "outline"}).validate()

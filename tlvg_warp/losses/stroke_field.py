@@ -319,22 +319,19 @@ def interior_weight(weight: torch.Tensor, reach: int) -> torch.Tensor:
 
 def field_terms(img: torch.Tensor, doubled: torch.Tensor, weight: torch.Tensor, *, orient: bool = True,
                 stroke_target: tuple[float, float] | None = None, along: str = "ratio",
-                stroke_log_eps: float | None = None, interior: bool = False) -> torch.Tensor:
+                stroke_log_eps: float | None = None) -> torch.Tensor:
     """The two loss terms read off the render's luminance gradients against the view's stroke field, from ONE
     gradient pass: [1 − :func:`flow_alignment_score_torch`, :func:`stroke_hinge` of :func:`stroke_energies`] [2],
     an entry 0 where its term is off (``orient`` False, ``stroke_target`` None). img [H,W,3], doubled [H,W,2],
-    weight [H,W,1] (the stroke hinge's coverage). ``stroke_log_eps``: the hinge's energies of log luminance (a
-    second gradient pass; ``stroke_target`` then the painting's in the same form). ``interior``: the hinge weighs
-    the coverage eroded by :func:`gradient_reach` (:func:`interior_weight`), so that an object's outline does not
-    meet the across half for it. One tensor out, so that ``GraphedFn`` replays both as one graph."""
+    weight [H,W,1] (the stroke hinge's: the coverage, or :func:`interior_weight` of it). ``stroke_log_eps``: the
+    hinge's energies of log luminance (a second gradient pass; ``stroke_target`` then the painting's in the same
+    form). One tensor out, so that ``GraphedFn`` replays both as one graph."""
     x = img.permute(2, 0, 1).unsqueeze(0)
     gx, gy = _luma_gradients(x)  # [1,1,H,W] each
     zero = img.new_zeros(())
     orient_term = 1.0 - _alignment(_orientation(gx, gy)[2][0], doubled) if orient else zero
     if stroke_target is not None and stroke_log_eps is not None:
         gx, gy = _luma_gradients(x, stroke_log_eps)
-    if interior and stroke_target is not None:
-        weight = interior_weight(weight, gradient_reach())
     stroke_term = zero if stroke_target is None else stroke_hinge(
         *_energies(gx[0, 0], gy[0, 0], doubled, weight), *stroke_target, along=along)
     return torch.stack([orient_term, stroke_term])

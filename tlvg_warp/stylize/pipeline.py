@@ -454,6 +454,7 @@ class Stylize(Phase):
         self.stroke_target = None  # the painting's (E_across, E_along) at the views' height (the stroke hinge's)
         self.stroke_log_eps = stroke_log_eps(w.stroke_contrast)  # None: the hinge reads linear luminance
         self.tone_targets = None  # per view: the recoloured photo's mean luminance over the covered pixels (tone_hold)
+        self.stroke_weights = None  # per view [H,W,1]: the pixels the stroke hinge weighs (make_stroke_weights)
         k = w.style_scale  # --strength
         self.const = {"style": w.w_style * k, "style_coarse": w.w_style_coarse * k,
                       "style_deep": w.w_style_deep * k,
@@ -509,6 +510,8 @@ class Stylize(Phase):
             self.stroke_target = painting_stroke(self.tg.style_work, view_h, self.stroke_log_eps)
         if self.tone_targets is None:  # the colour target's tone per view, once (zeros where the hold is off)
             self.tone_targets = self.make_tone_targets()
+        if self.stroke_weights is None:
+            self.stroke_weights = self.make_stroke_weights()
         if (self.on["orient"] or self.on["stroke"]) and self.field_terms is None:
             self.field_terms = self.make_field_terms()
         self.over_bg = run.background
@@ -531,6 +534,18 @@ class Stylize(Phase):
             return [torch.zeros((), dtype=c.dtype, device=c.device) for c in cov]
         return [covered_mean(luminance(r.to(c)), c) for r, c in zip(self.tg.recolored, cov)]
 
+    @torch.no_grad()
+    def make_stroke_weights(self) -> list:
+        """Per view the stroke hinge's weight [H,W,1]: the un-stylized scene's coverage, or with ``stroke_where``
+        interior that coverage eroded by the gradients' reach (an object's outline does not meet the hinge's across
+        half for its surface). Once per run: a view constant, like the coverage."""
+        from ..losses.stroke_field import gradient_reach, interior_weight  # lazy: imports Warp
+
+        cov = self.tg.coverage
+        if self.cfg.loss.stroke_where != "interior":
+            return list(cov)
+        return [interior_weight(c, gradient_reach()).contiguous() for c in cov]
+
     def make_field_terms(self):
         """The orientation and stroke terms from one luminance-gradient pass: ~100 small torch ops forward and
         backward, so on CUDA one graph replay each way (orient_cuda_graphs)."""
@@ -539,7 +554,7 @@ class Stylize(Phase):
 
         fn = partial(field_terms, orient=self.on["orient"], along=self.cfg.loss.stroke_along,
                      stroke_target=self.stroke_target if self.on["stroke"] else None,
-                     stroke_log_eps=self.stroke_log_eps, interior=self.cfg.loss.stroke_where == "interior")
+                     stroke_log_eps=self.stroke_log_eps)
         return GraphedFn(fn) if self.cfg.orient_cuda_graphs else fn
 
     def jitter(self, p: GaussianParams, view_h: int) -> None:
@@ -608,13 +623,14 @@ class Stylize(Phase):
             self.terms_graph = None
             return None
 
-    def image_terms(self, color, alpha, depth, coverage, field, photo_feats, content_scale, inv_depth, lab_stats,
-                    tone_target, in_graph: bool = False, lab_index: torch.Tensor | None = None) -> torch.Tensor:
+    def image_terms(self, color, alpha, depth, coverage, field, stroke_weight, photo_feats, content_scale, inv_depth,
+                    lab_stats, tone_target, in_graph: bool = False,
+                    lab_index: torch.Tensor | None = None) -> torch.Tensor:
         """The terms read off the render alone and the VGG features the style terms match, packed: [T + F], the
         ``image_names`` terms, then (with VGG on) the style term's features [768, Nc] flat (the match reads
         and caches per view, so it stays outside), and with ``style_color`` the RGB ones after them. From the
         render's colour [H,W,3], alpha [H,W] and depth [H,W] and the view's constants: coverage [H,W,1], stroke
-        field [H,W,2], photo features [768,Nc], content scale [], inverse depth [H,W], Lab target statistics [4],
+        field [H,W,2], the stroke hinge's weight [H,W,1] (``make_stroke_weights``), photo features [768,Nc], content scale [], inverse depth [H,W], Lab target statistics [4],
         the colour target's covered tone [] (``tone_hold``; 0 where it is off). The deep term as Gram distances
         (``deep_in_terms``) is the last of the terms; its other kind's conv4 features [1536, Nc/4] come last.
         One tensor in terms of tensors only, so that on CUDA the call replays as one graph each way (``in_graph``:
@@ -658,7 +674,7 @@ class Stylize(Phase):
             # orient: the render's own orientation against the view's stroke field; stroke: contrast across the
             # field up to the painting's, along it no more than it
             fn = self.field_terms
-            orient, stroke = (getattr(fn, "fn", fn) if in_graph else fn)(img_y, field, coverage).unbind()
+            orient, stroke = (getattr(fn, "fn", fn) if in_graph else fn)(img_y, field, stroke_weight).unbind()
             if on["stroke"]:
                 out.append(stroke)
         if on["coverage"]:
@@ -686,8 +702,8 @@ class Stylize(Phase):
     def terms(self, run: Run, view: View) -> dict:
         tg, on, t, vi, o = self.tg, self.on, run.timer, view.index, view.out
         p, anchors = run.params, run.density.tracked
-        args = (o.color, o.alpha, o.depth, tg.coverage[vi], self.fields[vi][..., :2], tg.photo_feats[vi],
-                self.content_scales[vi], tg.inv_depth[vi], tg.lab_stats[vi], self.tone_targets[vi])
+        args = (o.color, o.alpha, o.depth, tg.coverage[vi], self.fields[vi][..., :2], self.stroke_weights[vi],
+                tg.photo_feats[vi], self.content_scales[vi], tg.inv_depth[vi], tg.lab_stats[vi], self.tone_targets[vi])
         packed = self.graphed_terms(args) if o.color.is_cuda and torch.is_grad_enabled() else None
         if packed is None:
             packed = self.image_terms(*args, lab_index=tg.lab_index[vi])
