@@ -311,8 +311,6 @@ def interior_weight(weight: torch.Tensor, reach: int) -> torch.Tensor:
     """``weight`` [H,W,1] (a coverage) eroded by ``reach`` px: each pixel takes the smallest weight within its
     (2 reach + 1)² square, so that an outline against an empty background, whose gradients reach that far in, counts
     for nothing; the image border does not erode (a capture, covered everywhere, keeps every pixel). [H,W,1]"""
-    if reach <= 0:
-        return weight
     w = weight.permute(2, 0, 1).unsqueeze(0)  # [1,1,H,W]; max_pool pads with -inf: no erosion from the border
     return (-F.max_pool2d(-w, 2 * reach + 1, stride=1, padding=reach))[0].permute(1, 2, 0)
 
