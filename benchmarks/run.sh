@@ -23,9 +23,11 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      2) after a 300-iteration warm-up; arguments go to each run, its folder fern_$TAG$i.
                      Reproduces: "Stylization" (process wall, flow alignment).
   startup            fern stylized for 1 iteration, twice (warm caches the second time): process wall against the
-                     run's own wall, where the import time goes (python -X importtime), and the timeline from the
-                     process's creation to the first iteration (benchmarks/startup_timeline.py), twice with and twice
-                     without the CUDA warm-up. Reproduces: the 1-iteration figure of "Stylization", start-up.
+                     run's own wall, where the import time goes (python -X importtime), the process wall with the
+                     fast exit against the interpreter's teardown (alternating, twice each), and the timeline from
+                     the process's creation to the first iteration (benchmarks/startup_timeline.py), twice with and
+                     twice without Warp's runtime started in a thread. Reproduces: the 1-iteration figure of
+                     "Stylization", start-up.
   quality            `evaluate` on the runs of `stylize` (first 10 views, one ruler). Reproduces: "Stylization",
                      the quality row.
   demo               the CPU demo with empty kernel and weight caches (`python -m tlvg_warp stylize`).
@@ -161,9 +163,16 @@ case "$cmd" in
     done
     python3 -X importtime -c "import tlvg_warp.cli, tlvg_warp.stylize.job" 2> "$R/importtime.txt"  # what stylize imports
     sort -t'|' -k2 -n "$R/importtime.txt" | tail -n 6
-    for w in "" --no-warmup "" --no-warmup; do  # from the process's creation to the first iteration, mark by mark,
-      # with and without the CUDA context made beside the imports
-      echo "== timeline ${w:-with the warm-up}"
+    for e in full fast full fast; do  # the process's end: `python -m tlvg_warp` (fast: os._exit after the outputs)
+      # against the same command ended by the interpreter's teardown
+      if [ $e = fast ]; then cmd=(-m tlvg_warp); else cmd=(-c 'import sys; from tlvg_warp.warmup import start_cuda_warmup
+start_cuda_warmup(sys.argv[1:]); from tlvg_warp.cli import main; sys.exit(main())'); fi
+      /usr/bin/time -f "1-iteration stylize, $e exit: process wall %e s" python3 "${cmd[@]}" stylize $FERN --iterations 1 \
+        --out "$R/one" --overwrite --quiet 2>&1 | tail -n 1
+    done
+    for w in "" --no-warp-thread "" --no-warp-thread; do  # from the process's creation to the first iteration, mark by
+      # mark, with and without Warp's runtime started beside the VGG's and the inputs' loading
+      echo "== timeline ${w:-with Warp started in a thread}"
       python3 benchmarks/startup_timeline.py $w $FERN --iterations 1 --out "$R/one" --overwrite --quiet 2>&1 | tail -n 17
     done;;
   quality)

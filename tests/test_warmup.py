@@ -1,5 +1,7 @@
 """The CUDA warm-up of `python -m tlvg_warp` (tlvg_warp/warmup.py): which command lines start it, that it does
-nothing without a driver, and that the package imports without torch so that the warm-up can overlap that import."""
+nothing without a driver, and that the package imports without torch so that the warm-up can overlap that import;
+the end of a GPU command without the interpreter's teardown (warmup.leave); Warp's runtime started in a thread
+(launch.init_warp_in_background)."""
 import os
 import subprocess
 import sys
@@ -53,13 +55,90 @@ def test_the_package_imports_without_torch():
 @pytest.mark.parametrize("flags, started", [([], True), (["--device", "cpu"], False)])
 def test_python_m_tlvg_warp_starts_it_before_the_command(flags, started):
     # `python -m tlvg_warp` (__main__.py) is where the warm-up is wired in: a bad flag ends the command at once, after
-    # the warm-up would have started
+    # the warm-up would have started (the threads' names are printed as they start: a GPU command ends by os._exit)
     code = ("import runpy, sys, threading\n"
-            "names, start = [], threading.Thread.start\n"
-            "threading.Thread.start = lambda self: (names.append(self.name), start(self))[1]\n"
+            "start = threading.Thread.start\n"
+            "threading.Thread.start = lambda self: (print(self.name, flush=True), start(self))[1]\n"
             f"sys.argv = ['tlvg_warp', 'stylize', '--no-such-flag', *{flags!r}]\n"
-            "try:\n    runpy.run_module('tlvg_warp', run_name='__main__')\nexcept SystemExit as e:\n    code = e.code\n"
-            "print(code, 'cuda-warmup' in names)")
+            "runpy.run_module('tlvg_warp', run_name='__main__')\n")
     env = {k: v for k, v in os.environ.items() if k != "CUDA_VISIBLE_DEVICES"}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
-    assert out.split() == ["2", str(started)]
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert r.returncode == 2, r.stderr
+    assert ("cuda-warmup" in r.stdout.split()) is started
+
+
+def test_a_gpu_command_ends_without_the_teardown_and_keeps_its_output(tmp_path):
+    # an exit handler stands for the interpreter's teardown: it runs after `evaluate` and not after `stylize`, whose
+    # buffered output (stdout is a pipe here) must still arrive, with main's return code
+    code = ("import atexit, sys\nfrom tlvg_warp.warmup import leave\n"
+            "atexit.register(lambda: open(sys.argv[1], 'w').close())\n"
+            "print('written', end='')\nleave(3, [sys.argv[2]])\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("CUDA_VISIBLE_DEVICES", "PYTHONUNBUFFERED")}
+    for command, teardown in (("stylize", False), ("evaluate", True)):
+        marker = tmp_path / command
+        r = subprocess.run([sys.executable, "-c", code, str(marker), command], capture_output=True, text=True, env=env)
+        assert (r.returncode, r.stdout) == (3, "written"), (command, r.stderr)
+        assert marker.exists() is teardown, command
+
+
+def test_leave_maps_main_results_to_exit_codes(monkeypatch):
+    codes = []
+
+    class Exited(Exception):
+        pass
+
+    def record(code):
+        codes.append(code)
+        raise Exited
+    monkeypatch.setattr(warmup.os, "_exit", record)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    for result in (None, 0, 2):
+        with pytest.raises(Exited):
+            warmup.leave(result, ["stylize"])
+    assert codes == [0, 0, 2]
+    with pytest.raises(SystemExit) as e:
+        warmup.leave(2, ["evaluate"])
+    assert e.value.code == 2
+
+
+def test_warp_started_in_a_thread_starts_once_and_the_first_use_waits_for_it(monkeypatch):
+    # Warp's runtime is up in this process already: a slow stand-in for wp.init shows whether a foreground
+    # init_warp during the thread's start waits for it (one start, finished when it returns) or starts Warp again
+    import threading
+    import time
+
+    from tlvg_warp import launch
+    calls, done = [], threading.Event()
+
+    def slow_init():
+        calls.append(threading.current_thread().name)
+        time.sleep(0.3)
+        done.set()
+    monkeypatch.setattr(launch.wp, "init", slow_init)
+    monkeypatch.setattr(launch, "cuda_driver_present", lambda: True)
+    monkeypatch.setattr(launch, "_initialized", False)
+    t = launch.init_warp_in_background()
+    while not calls:
+        time.sleep(0.005)
+    launch.init_warp()
+    assert done.is_set() and calls == ["warp-init"]
+    t.join(5)
+    launch.init_warp()
+    assert calls == ["warp-init"]
+
+
+def test_an_error_in_the_thread_is_raised_by_the_first_use(monkeypatch):
+    from tlvg_warp import launch
+    tries = []
+
+    def failing_init():
+        tries.append(1)
+        raise RuntimeError("no CUDA device could be used")
+    monkeypatch.setattr(launch.wp, "init", failing_init)
+    monkeypatch.setattr(launch, "cuda_driver_present", lambda: True)
+    monkeypatch.setattr(launch, "_initialized", False)
+    launch.init_warp_in_background().join(5)  # quietly: no traceback from the thread
+    assert tries == [1] and launch._initialized is False
+    with pytest.raises(RuntimeError, match="no CUDA device"):
+        launch.init_warp()
+    assert tries == [1, 1]

@@ -16,6 +16,7 @@ import inspect
 import os
 import sys
 import tempfile
+import threading
 import weakref
 
 import torch
@@ -26,14 +27,20 @@ from .kernels.camera import camera_struct
 from .kernels.flow import flow_targets_kernel
 
 _initialized = False
+_init_lock = threading.Lock()
 
 
 NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"  # what Warp's C library prints without a GPU driver
 
 
 def init_warp() -> None:
+    """Start Warp's runtime once (quiet unless TLVG_WARP_VERBOSE is set)."""
     global _initialized
-    if not _initialized:
+    if _initialized:
+        return
+    with _init_lock:  # a call during init_warp_in_background's waits for it instead of starting Warp twice
+        if _initialized:
+            return
         if os.environ.get("TLVG_WARP_VERBOSE", "") == "":  # no banner, no per-module load lines
             wp.config.quiet = True  # Warp before 1.19
             if hasattr(wp, "LOG_WARNING"):
@@ -46,6 +53,21 @@ def init_warp() -> None:
                 return
         wp.init()
         _initialized = True
+
+
+def init_warp_in_background() -> threading.Thread:
+    """Start Warp's runtime (``init_warp``) in a daemon thread and return it. On a GPU, ``wp.init`` spends a few
+    tenths of a second in the CUDA driver (which releases the interpreter lock); a job starts it here before it
+    loads the VGG and its inputs, so the two overlap, and the first ``init_warp`` of the pipeline waits for it.
+    Only where a CUDA driver is present (without one, ``init_warp`` redirects file descriptor 2 while Warp starts,
+    which must not happen beside the main thread's output). An error in the thread is left for that first
+    foreground call to raise, where it says which command failed."""
+    def start() -> None:
+        with contextlib.suppress(Exception):
+            init_warp()
+    t = threading.Thread(target=start, name="warp-init", daemon=True)
+    t.start()
+    return t
 
 
 def cuda_driver_present() -> bool:

@@ -1,4 +1,5 @@
-"""CUDA's primary context made in a background thread while Python imports torch and the package.
+"""CUDA's primary context made in a background thread while Python imports torch and the package; and the
+process's end after a GPU command without the interpreter's teardown.
 
 Why: the first CUDA call waits for the context to be made (the driver started, the GPU's memory mapped), and
 Python spends over a second importing torch before that call. The driver calls go through ctypes, which releases
@@ -8,10 +9,12 @@ driver it does nothing. (LOCAL_RANK is read here by hand: distributed.py, which 
 torch.)"""
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import sys
 import threading
+from typing import NoReturn
 
 GPU_COMMANDS = ("stylize", "reconstruct")
 _LIBCUDA = "nvcuda.dll" if sys.platform == "win32" else "libcuda.so.1"
@@ -53,3 +56,20 @@ def retain_primary_context(index: int) -> bool:
     dev, ctx = ctypes.c_int(), ctypes.c_void_p()
     return (cu.cuInit(0) == 0 and cu.cuDeviceGet(ctypes.byref(dev), index) == 0
             and cu.cuDevicePrimaryCtxRetain(ctypes.byref(ctx), dev) == 0)
+
+
+def leave(code, argv: list[str]) -> NoReturn:
+    """End the process with ``code`` (what ``main`` returned). After a GPU command (``wants_gpu``), once Python's
+    streams are flushed, ``os._exit``: the interpreter's teardown would otherwise spend a large part of a second
+    unloading Warp's CUDA modules and freeing torch's and Warp's device memory one object at a time, which the
+    driver does at once when the process ends. Nothing is lost: every output file is written, closed and renamed
+    before ``main`` returns (the output writers' threads are joined), and no exit handler of this package, torch
+    or Warp writes a file. Other commands end normally."""
+    code = 0 if code is None else code if isinstance(code, int) else 1
+    if wants_gpu(argv):
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+        with contextlib.suppress(Exception):
+            sys.stderr.flush()
+        os._exit(code)
+    raise SystemExit(code)
