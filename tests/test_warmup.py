@@ -81,6 +81,18 @@ def test_a_gpu_command_ends_without_the_teardown_and_keeps_its_output(tmp_path):
         assert marker.exists() is teardown, command
 
 
+def test_a_profiled_gpu_command_ends_normally_so_that_the_profile_is_written(tmp_path):
+    script = tmp_path / "command.py"
+    script.write_text("from tlvg_warp.warmup import leave\nleave(0, ['stylize'])\n")
+    prof = tmp_path / "out.prof"
+    env = {k: v for k, v in os.environ.items() if k != "CUDA_VISIBLE_DEVICES"}
+    r = subprocess.run([sys.executable, "-m", "cProfile", "-o", str(prof), str(script)], capture_output=True,
+                       text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    import pstats
+    assert any(name == "leave" for _, _, name in pstats.Stats(str(prof)).stats)
+
+
 def test_leave_maps_main_results_to_exit_codes(monkeypatch):
     codes = []
 

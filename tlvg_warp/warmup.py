@@ -64,12 +64,22 @@ def leave(code, argv: list[str]) -> NoReturn:
     unloading Warp's CUDA modules and freeing torch's and Warp's device memory one object at a time, which the
     driver does at once when the process ends. Nothing is lost: every output file is written, closed and renamed
     before ``main`` returns (the output writers' threads are joined), and no exit handler of this package, torch
-    or Warp writes a file. Other commands end normally."""
+    or Warp writes a file. Other commands end normally, and so does a process that a profiler, tracer or coverage
+    tool watches (it writes its results at the end)."""
     code = 0 if code is None else code if isinstance(code, int) else 1
-    if wants_gpu(argv):
+    if wants_gpu(argv) and not watched():
         with contextlib.suppress(Exception):
             sys.stdout.flush()
         with contextlib.suppress(Exception):
             sys.stderr.flush()
         os._exit(code)
     raise SystemExit(code)
+
+
+def watched() -> bool:
+    """Whether a tracer, profiler or coverage tool watches this process (sys.settrace / setprofile, or a tool
+    registered with sys.monitoring, as Python 3.12's cProfile and coverage are)."""
+    if sys.gettrace() is not None or sys.getprofile() is not None:
+        return True
+    monitoring = getattr(sys, "monitoring", None)
+    return monitoring is not None and any(monitoring.get_tool(i) is not None for i in range(6))
