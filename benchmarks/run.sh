@@ -26,8 +26,7 @@ usage: bash benchmarks/run.sh SUBCOMMAND [ARGS]
                      run's own wall, where the import time goes (python -X importtime), the process wall with the
                      fast exit against the interpreter's teardown (alternating, twice each), and the timeline from
                      the process's creation to the first iteration (benchmarks/startup_timeline.py), twice with and
-                     twice without Warp's runtime started in a thread. Reproduces: the 1-iteration figure of
-                     "Stylization", start-up.
+                     twice without the CUDA warm-up. Reproduces: the 1-iteration figure of "Stylization", start-up.
   quality            `evaluate` on the runs of `stylize` (first 10 views, one ruler). Reproduces: "Stylization",
                      the quality row.
   demo               the CPU demo with empty kernel and weight caches (`python -m tlvg_warp stylize`).
@@ -170,9 +169,9 @@ start_cuda_warmup(sys.argv[1:]); from tlvg_warp.cli import main; sys.exit(main()
       /usr/bin/time -f "1-iteration stylize, $e exit: process wall %e s" python3 "${cmd[@]}" stylize $FERN --iterations 1 \
         --out "$R/one" --overwrite --quiet 2>&1 | tail -n 1
     done
-    for w in "" --no-warp-thread "" --no-warp-thread; do  # from the process's creation to the first iteration, mark by
-      # mark, with and without Warp's runtime started beside the VGG's and the inputs' loading
-      echo "== timeline ${w:-with Warp started in a thread}"
+    for w in "" --no-warmup "" --no-warmup; do  # from the process's creation to the first iteration, mark by mark,
+      # with and without the CUDA context made beside the imports
+      echo "== timeline ${w:-with the warm-up}"
       python3 benchmarks/startup_timeline.py $w $FERN --iterations 1 --out "$R/one" --overwrite --quiet 2>&1 | tail -n 17
     done;;
   quality)

@@ -2,12 +2,9 @@
 was created (Linux: /proc/self/stat's start time against CLOCK_BOOTTIME, 10 ms resolution), so that the
 interpreter's own start-up and the imports are counted and the process's exit is not.
 
-    python benchmarks/startup_timeline.py [--no-warmup] [--no-warp-thread] [STYLIZE ARGS ...]
-        e.g. --scene fern.spz --iterations 1
+    python benchmarks/startup_timeline.py [--no-warmup] [STYLIZE ARGS ...]    e.g. --scene fern.spz --iterations 1
 
 --no-warmup: without the CUDA context made in a thread beside the imports (tlvg_warp/warmup.py).
---no-warp-thread: without Warp's runtime started in a thread beside the VGG's and the inputs' loading
-(launch.init_warp_in_background): Warp starts at its first use, as before.
 
 Marks: the script's first line, `import tlvg_warp.cli`, `import torch`, the VGG loaded, the job resolved (config,
 device and VGG), the inputs assembled, Warp's runtime up (wp.init), the painting's targets prepared, the run built,
@@ -51,15 +48,12 @@ def wrap(owner, attr: str, before: str | None, after: str | None, sync=None):
     setattr(owner, attr, wrapped)
 
 
-def main(argv: list[str], warmup: bool = True, warp_thread: bool = True) -> int:
+def main(argv: list[str], warmup: bool = True) -> int:
     from tlvg_warp.warmup import start_cuda_warmup
 
     if warmup:  # as `python -m tlvg_warp` does (tlvg_warp/__main__.py)
         start_cuda_warmup(argv)
     import tlvg_warp.cli as cli
-    if not warp_thread:
-        import tlvg_warp.launch as launch
-        launch.init_warp_in_background = lambda: None  # the job imports it when it runs: this one is found
     mark("import tlvg_warp.cli")
     import torch
     mark("import torch")
@@ -97,6 +91,4 @@ def main(argv: list[str], warmup: bool = True, warp_thread: bool = True) -> int:
 if __name__ == "__main__":
     import sys
     args = sys.argv[1:]
-    flags = ("--no-warmup", "--no-warp-thread")
-    raise SystemExit(main(["stylize", *(a for a in args if a not in flags)], warmup="--no-warmup" not in args,
-                          warp_thread="--no-warp-thread" not in args))
+    raise SystemExit(main(["stylize", *(a for a in args if a != "--no-warmup")], warmup="--no-warmup" not in args))

@@ -38,7 +38,7 @@ def init_warp() -> None:
     global _initialized
     if _initialized:
         return
-    with _init_lock:  # a call during init_warp_in_background's waits for it instead of starting Warp twice
+    with _init_lock:  # two threads' first uses start Warp once
         if _initialized:
             return
         if os.environ.get("TLVG_WARP_VERBOSE", "") == "":  # no banner, no per-module load lines
@@ -53,21 +53,6 @@ def init_warp() -> None:
                 return
         wp.init()
         _initialized = True
-
-
-def init_warp_in_background() -> threading.Thread:
-    """Start Warp's runtime (``init_warp``) in a daemon thread and return it. On a GPU, ``wp.init`` spends a few
-    tenths of a second in the CUDA driver (which releases the interpreter lock); a job starts it here before it
-    loads the VGG and its inputs, so the two overlap, and the first ``init_warp`` of the pipeline waits for it.
-    Only where a CUDA driver is present (without one, ``init_warp`` redirects file descriptor 2 while Warp starts,
-    which must not happen beside the main thread's output). An error in the thread is left for that first
-    foreground call to raise, where it says which command failed."""
-    def start() -> None:
-        with contextlib.suppress(Exception):
-            init_warp()
-    t = threading.Thread(target=start, name="warp-init", daemon=True)
-    t.start()
-    return t
 
 
 def cuda_driver_present() -> bool:

@@ -107,9 +107,6 @@ class StylizeJob:
         dist = Dist.from_env(str(dev))  # torchrun: one rank per GPU, data-parallel over the views of a step
         if dist.world > 1:
             dev = torch.device(dist.device)
-        elif dev.type == "cuda":  # one GPU: Warp's runtime starts beside the VGG's and the inputs' loading
-            from ..launch import init_warp_in_background
-            init_warp_in_background()
         t_vgg = time.perf_counter()
         vgg = load_vgg(cfg.vgg_weights, dev)  # InputError (how to get the weights) before anything is written
         t_vgg = time.perf_counter() - t_vgg
