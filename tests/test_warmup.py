@@ -73,7 +73,7 @@ def test_a_gpu_command_ends_without_the_teardown_and_keeps_its_output(tmp_path):
     code = ("import atexit, sys\nfrom tlvg_warp.warmup import leave\n"
             "atexit.register(lambda: open(sys.argv[1], 'w').close())\n"
             "print('written', end='')\nleave(3, [sys.argv[2]])\n")
-    env = {k: v for k, v in os.environ.items() if k not in ("CUDA_VISIBLE_DEVICES", "PYTHONUNBUFFERED")}
+    env = {k: v for k, v in os.environ.items() if k not in ("CUDA_VISIBLE_DEVICES", "PYTHONUNBUFFERED", "WORLD_SIZE")}
     for command, teardown in (("stylize", False), ("evaluate", True)):
         marker = tmp_path / command
         r = subprocess.run([sys.executable, "-c", code, str(marker), command], capture_output=True, text=True, env=env)
@@ -104,6 +104,7 @@ def test_leave_maps_main_results_to_exit_codes(monkeypatch):
         raise Exited
     monkeypatch.setattr(warmup.os, "_exit", record)
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
     for result in (None, 0, 2):
         with pytest.raises(Exited):
             warmup.leave(result, ["stylize"])
@@ -111,6 +112,10 @@ def test_leave_maps_main_results_to_exit_codes(monkeypatch):
     with pytest.raises(SystemExit) as e:
         warmup.leave(2, ["evaluate"])
     assert e.value.code == 2
+    monkeypatch.setenv("WORLD_SIZE", "2")  # a torchrun rank: torch's teardown leaves its process group
+    with pytest.raises(SystemExit) as e:
+        warmup.leave(0, ["stylize"])
+    assert e.value.code == 0 and codes == [0, 0, 2]
 
 
 def test_two_first_uses_start_warp_once(monkeypatch):

@@ -59,15 +59,16 @@ def retain_primary_context(index: int) -> bool:
 
 
 def leave(code, argv: list[str]) -> NoReturn:
-    """End the process with ``code`` (what ``main`` returned). After a GPU command (``wants_gpu``), once Python's
-    streams are flushed, ``os._exit``: the interpreter's teardown would otherwise spend a large part of a second
-    unloading Warp's CUDA modules and freeing torch's and Warp's device memory one object at a time, which the
-    driver does at once when the process ends. Nothing is lost: every output file is written, closed and renamed
-    before ``main`` returns (the output writers' threads are joined), and no exit handler of this package, torch
-    or Warp writes a file. Other commands end normally, and so does a process that a profiler, tracer or coverage
-    tool watches (it writes its results at the end)."""
+    """End the process with ``code`` (what ``main`` returned). After a GPU command (``wants_gpu``) in a single
+    process, once Python's streams are flushed, ``os._exit``: the interpreter's teardown (its modules and objects
+    freed one at a time, torch's and Warp's GPU memory among them) took 0.7-0.8 s after a 1-iteration stylize on a
+    GPU, and the driver frees a process's memory at once when it ends (docs/performance.md, "Stylization"). Nothing
+    is lost: every output file is written, closed and renamed before ``main`` returns (the output writers' threads
+    are joined), and no exit handler of this package, torch or Warp writes a file. Other commands end normally, and
+    so do a rank of a torchrun job (WORLD_SIZE > 1: its process group is left to torch's own teardown) and a
+    process that a profiler, tracer or coverage tool watches (it writes its results at the end)."""
     code = 0 if code is None else code if isinstance(code, int) else 1
-    if wants_gpu(argv) and not watched():
+    if wants_gpu(argv) and os.environ.get("WORLD_SIZE", "1") in ("", "1") and not watched():
         with contextlib.suppress(Exception):
             sys.stdout.flush()
         with contextlib.suppress(Exception):
