@@ -73,7 +73,7 @@ def cases(net):
 
 @pytest.mark.parametrize("case,metrics", [
     ("sticker", ("consistency_k1", "consistency_k5", "content")),
-    ("unstylized", ("style_gram", "style_nnfm", "stroke_scales")),
+    ("unstylized", ("style_gram", "style_nnfm", "stroke_scales", "tone_inside")),
     ("blurred", ("detail", "detail_inside", "spill")),  # 3x wider splats also paint the empty background
     ("holed", ("holes_1x", "holes_2x", "consistency_k1")),
 ])
@@ -432,3 +432,36 @@ def test_detail_is_the_views_luma_residual_over_the_paintings():
     assert M.detail(view, 0.004) == pytest.approx(res2.mean() / 0.004, rel=1e-4)
     assert M.detail(view, 0.004, inside) == pytest.approx(res2[inside].mean() / 0.004, rel=1e-4)
     assert np.isfinite(M.detail(view, 0.0))
+
+
+def test_tone_distance_is_the_wasserstein_distance_of_luminance_in_closed_form():
+    """tone_inside: the 1-D Wasserstein distance between luminance distributions. Closed forms: a grey image against
+    itself shifted by c is c away; uniform luminance on [0, a] against [0, b] is |b - a| / 2 away (the percentiles
+    differ by q |b - a|, q's mean 1/2 on the symmetric grid); pixels outside the scene do not count."""
+    rng = np.random.default_rng(3)
+    y = rng.uniform(0.2, 0.6, (60, 80)).astype(np.float32)
+    grey = np.repeat(y[..., None], 3, axis=2)  # luma of (y, y, y) is y
+    assert M.tone_distance(grey + 0.15, M.tones(grey)) == pytest.approx(0.15, abs=1e-5)
+    ramp = np.linspace(0.0, 1.0, 100_001, dtype=np.float64)
+    a, b = 0.4, 0.9
+    ua = np.repeat((a * ramp)[None, :, None], 3, axis=2).astype(np.float32)
+    ub = np.repeat((b * ramp)[None, :, None], 3, axis=2).astype(np.float32)
+    assert M.tone_distance(ub, M.tones(ua)) == pytest.approx((b - a) / 2, abs=1e-4)
+    inside = np.zeros(y.shape, bool)
+    inside[10:50, 20:70] = True
+    outside_changed = grey.copy()
+    outside_changed[~inside] = 1.0  # a white background around the scene
+    ref = M.tones(grey, inside)
+    assert M.tone_distance(outside_changed, ref, inside) == pytest.approx(0.0, abs=1e-7)
+    assert M.tone_distance(outside_changed, ref) > 0.05  # the whole view would count the background
+
+
+def test_tone_distance_reads_an_image_paler_and_flatter_than_the_painting_as_farther():
+    """The case the metric was added for: the painting's own pixels are nearer its tones than a paler, flatter
+    copy (contrast halved around a lighter mean), which the Gram distance over texture alone need not see."""
+    p = builtin_painting().numpy().astype(np.float32)
+    ref = M.tones(p)
+    pale = np.clip(0.5 * (p - p.mean()) + p.mean() + 0.2, 0.0, 1.0)
+    assert M.tone_distance(p, ref) < 1e-6 < M.tone_distance(pale, ref)
+    # at least the gap of the two percentile grids' means (the triangle inequality), here about the lift of 0.2
+    assert M.tone_distance(pale, ref) >= abs(M.tones(pale).mean() - ref.mean()) - 1e-9 > 0.1

@@ -37,6 +37,7 @@ STROKE_QUANTILES = np.linspace(0.02, 0.98, 49)  # distributions compared at thes
 # paintings, a decade of energy spread is worth ~4x a coherence spread; this weight makes the two comparable.
 STROKE_ENERGY_WEIGHT = 0.25
 STROKE_EPS = 1e-3  # in units of the standardized luminance's squared gradient: flat pixels do not blow up log10
+TONE_QUANTILES = np.linspace(0.01, 0.99, 99)  # luminance distributions compared at these percentiles
 BOOTSTRAP = 2000  # resamples; the interval's own Monte Carlo error is ~1 % of its width
 NNFM_CHUNK = 4096  # render cells per product in style_nnfm
 SEED = 0  # fixed: a run's interval never depends on what else is scored
@@ -78,6 +79,9 @@ METRICS = {m.key: m for m in (
     Metric("detail", "Detail: high-frequency luminance energy vs the painting's", "ratio (1 = painting)", True),
     Metric("detail_inside", "Detail inside the scene: as detail, over the pixels the un-stylized scene covers, "
            "its outline excluded", "ratio (1 = painting)", True),
+    Metric("tone_inside", "Tone distance inside the scene: the luminance distribution of the pixels the "
+           "un-stylized scene covers (its outline excluded, as detail_inside) against the painting's",
+           "1-D Wasserstein of luminance, 0…1", False),
     Metric("holes_1x", "Holes at training size", "fraction of covered pixels", False),
     Metric("holes_2x", "Holes at 2x resolution", "fraction of covered pixels", False),
     Metric("spill", "Spill: painted where the un-stylized scene is empty (splats frayed or strayed)",
@@ -108,6 +112,7 @@ ANCHOR_TO_BEAT = {
     "style_nnfm_inside": UNSTYLIZED,
     "detail": UNSTYLIZED,
     "detail_inside": UNSTYLIZED,
+    "tone_inside": UNSTYLIZED,
     "content": STICKER,
     "consistency_k1": STICKER,
     "consistency_k5": STICKER,
@@ -256,6 +261,22 @@ def interior(alpha: np.ndarray, shape: tuple) -> np.ndarray:
     covered = (cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA) >= ALPHA_MIN).astype(np.uint8)
     r = int(round(4 * HF_SIGMA))
     return cv2.erode(covered, np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0  # border: OpenCV's default, no erosion
+
+
+def tones(img: np.ndarray, inside: np.ndarray | None = None) -> np.ndarray:
+    """The percentiles TONE_QUANTILES of the luminance of ``img`` [H,W,3] over the pixels of ``inside`` [H,W] (bool;
+    every pixel when None or empty)."""
+    y = luma(img)
+    if inside is not None and inside.any():
+        y = y[inside]
+    return np.quantile(y, TONE_QUANTILES)
+
+
+def tone_distance(view: np.ndarray, painting_tones: np.ndarray, inside: np.ndarray | None = None) -> float:
+    """The 1-D Wasserstein distance (the mean gap of matching percentiles) between the luminance of ``view``'s
+    pixels inside the scene and the painting's (``painting_tones``: :func:`tones` of the painting): a render
+    paler, darker or flatter than the painting is farther, whatever its texture and hue."""
+    return float(np.abs(tones(view, inside) - painting_tones).mean())
 
 
 def luma(img: np.ndarray) -> np.ndarray:
