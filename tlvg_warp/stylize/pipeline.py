@@ -630,8 +630,8 @@ class Stylize(Phase):
         ``image_names`` terms, then (with VGG on) the style term's features [768, Nc] flat (the match reads
         and caches per view, so it stays outside), and with ``style_color`` the RGB ones after them. From the
         render's colour [H,W,3], alpha [H,W] and depth [H,W] and the view's constants: coverage [H,W,1], stroke
-        field [H,W,2], the stroke hinge's weight [H,W,1] (``make_stroke_weights``), photo features [768,Nc], content scale [], inverse depth [H,W], Lab target statistics [4],
-        the colour target's covered tone [] (``tone_hold``; 0 where it is off). The deep term as Gram distances
+        field [H,W,2], the stroke hinge's weight [H,W,1] (``make_stroke_weights``), photo features [768,Nc],
+        content scale [], inverse depth [H,W], Lab target statistics [4], the colour target's covered tone [] (``tone_hold``; 0 where it is off). The deep term as Gram distances
         (``deep_in_terms``) is the last of the terms; its other kind's conv4 features [1536, Nc/4] come last.
         One tensor in terms of tensors only, so that on CUDA the call replays as one graph each way (``in_graph``:
         inside it the VGG pass and the field terms run as plain calls, not graphs of their own, and the Lab term
