@@ -229,6 +229,50 @@ def test_tone_hold_is_a_hinge_beyond_its_margin(demo):
     assert float(found["mirrored"][3].sum()) * pull < 0  # a darker render is pulled lighter
 
 
+
+def test_tone_hold_per_cell_holds_each_cells_covered_mean(demo):
+    """loss.tone_cells: the hinge per cell of a grid (rows x round(rows * W / H) columns, each pixel in the cell
+    of its integer position), each cell's covered mean luminance against its recoloured photo's, weighted by the
+    cell's covered fraction; checked against a float64 loop over the cells. A render that keeps the view's mean
+    but swaps its light and dark masses passes the one-cell hold and not the per-cell one."""
+    from tlvg_warp.stylize.pipeline import cell_tones, tone_hold_loss
+
+    luma = torch.tensor([0.299, 0.587, 0.114], dtype=torch.float64)
+    rows = 3
+    run, cfg, tg = _stylize_run(demo, StubFeatures(), **{"loss.w_tone_hold": 1.0, "loss.tone_margin": 0.01,
+                                                        "loss.tone_cells": rows})
+    sty = run.phase("stylize")
+    sty.setup(run)
+    view = _view(run, 1)
+    img, cov = _shown(demo, run, view)
+    h, w = cov.shape[:2]
+    cols = max(1, round(rows * w / h))
+    y, yt, wc = img @ luma, tg.recolored[1].double() @ luma, cov[..., 0]
+    num = den = 0.0
+    for i in range(rows):
+        for j in range(cols):
+            ri = [r for r in range(h) if r * rows // h == i]
+            cj = [c for c in range(w) if c * cols // w == j]
+            k = wc[ri][:, cj]
+            if float(k.sum()) == 0:
+                continue
+            m, t = float((y[ri][:, cj] * k).sum() / k.sum()), float((yt[ri][:, cj] * k).sum() / k.sum())
+            weight = float(k.sum()) / (len(ri) * len(cj))
+            num += weight * max(0.0, abs(m - t) - 0.01) ** 2
+            den += weight
+    term = sty.terms(run, view)["tone_hold"]
+    assert num > 0  # the demo's render is off its target somewhere: the hold has something to hold
+    assert float(term.detach()) == pytest.approx(num / den, rel=TERM_TOL, abs=1e-12)
+    assert term.requires_grad
+    # light and dark masses swapped, the mean kept: one cell sees nothing, the grid sees the swap
+    left = torch.zeros(8, 16, 1, dtype=torch.float64)  # 2 rows of cells: 2 x 4 cells of 4 x 4 pixels
+    left[:, :8] = 0.8
+    left[:, 8:] = 0.2
+    swapped, full = left.flip(1), torch.ones(8, 16, 1, dtype=torch.float64)
+    one = tone_hold_loss(swapped, full, cell_tones(left, full, 0)[0], 0.02, 0)
+    grid = tone_hold_loss(swapped, full, cell_tones(left, full, 2)[0], 0.02, 2)
+    assert float(one) == 0.0 and float(grid) == pytest.approx((0.6 - 0.02) ** 2)
+
 class OctaveStub(StubFeatures):
     """The stub with a scale: average pooling over blocks of 4 / scale pixels, so features at half the scale are
     the image's 8x8 block means (a closed form for the coarse style term). ``scales`` keeps the scales asked for."""

@@ -53,6 +53,10 @@ class StyleLoss:
     # the strokes as dark and light around that tone (ours; 0: off)
     tone_margin: float = 0.0  # the tone hold as a hinge: (|Ȳ − Ȳ_target| − margin)² beyond the margin, 0 within it, so
     # the strokes may move the covered tone by up to this much and a scene whose tone holds is not touched (ours)
+    tone_cells: int = 0  # the tone hold per cell of a grid this many rows high (square-ish cells), each cell's covered
+    # mean against its colour target's, weighted by how much of the cell the scene covers: the view's light and dark
+    # masses stay where they were (lego's dark tracks beside its light body) while strokes vary the luminance inside
+    # each cell; 0: the whole view's mean alone (ours)
     w_content: float = 0.01  # VGG feature MSE vs the original photo of the view, RGB (reference code)
     content_on: str = "rgb"  # what the content term compares: rgb (the render's and the photo's RGB features) |
     # luminance (their luminance features: with luminance_only the style term's own VGG pass serves it, one image a
@@ -147,7 +151,7 @@ class StyleLoss:
              "silhouette_where": ("of", "all", "empty"),
              "field_canvas": ("in", 0, 1),
              "fast_refresh": (">=", 1), "fast_cache": ("of", "match", "projection"),
-             "strength": (">=", 0), "tone_margin": (">=", 0), "palette_colours": (">=", 1),
+             "strength": (">=", 0), "tone_margin": (">=", 0), "tone_cells": (">=", 0), "palette_colours": (">=", 1),
              "swd_projections": (">=", 1),
              "color_swd_projections": (">=", 1), "color_swd_space": ("of", "rgb", "chroma"),
              **{w: (">=", 0) for w in ("w_style", "w_style_coarse", "w_style_deep", "w_style_gram", "w_style_color",

@@ -107,7 +107,8 @@ def comparison_caption(cfg, iterations: int, alignment: float) -> str:
     lum = (f"luminance_only=True ({cfg.loss.luminance_grad} gradient)" if cfg.loss.luminance_only
            else "luminance_only=False") + f", content on {cfg.loss.content_on}"
     extra = (f", conv4 {cfg.loss.deep_loss} term x{cfg.loss.w_style_deep:g}" if cfg.loss.w_style_deep else "") + (
-        f", tone hold x{cfg.loss.w_tone_hold:g} (margin {cfg.loss.tone_margin:g})" if cfg.loss.w_tone_hold else "")
+        f", tone hold x{cfg.loss.w_tone_hold:g} (margin {cfg.loss.tone_margin:g}"
+        + (f", {cfg.loss.tone_cells} rows of cells)" if cfg.loss.tone_cells else ")") if cfg.loss.w_tone_hold else "")
     controls = ((f"strength {cfg.loss.strength:g}, " if cfg.loss.strength != 1 else "")
                 + (f"stroke scale {cfg.stroke_scale:g}, " if cfg.stroke_scale != 1 else "")
                 + ("keep colours, " if cfg.keep_colors else ""))

@@ -42,6 +42,7 @@ from functools import partial
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from .. import runs
 from ..distributed import Dist
@@ -152,6 +153,32 @@ def tone_hinge(tone: torch.Tensor, target: torch.Tensor, margin: float) -> torch
     """(|Ȳ − Ȳ_target| − margin)² beyond the margin, 0 within it: the covered mean luminance may move with the
     strokes by up to ``margin`` from its colour target's, no further (a dark object stays dark)."""
     return torch.relu((tone - target).abs() - margin) ** 2
+
+
+def cell_tones(y: torch.Tensor, coverage: torch.Tensor, cells: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The covered mean luminance of ``y`` [H,W,C] (first channel) per cell of a grid ``cells`` rows high with
+    square-ish cells (``round(cells * W / H)`` columns; each pixel in one cell), weighted by the coverage [H,W,1]:
+    (means [r,c], each cell's covered fraction [r,c]). ``cells`` 0: one cell, the whole view (``covered_mean``) with
+    weight 1. Sums by two matrix products with 0/1 cell maps: deterministic, unlike a pooling's backward on CUDA."""
+    if cells == 0:
+        return covered_mean(y, coverage), coverage.new_ones(())
+    h, w = coverage.shape[:2]
+    rows, cols = cells, max(1, round(cells * w / h))
+    r = F.one_hot(torch.arange(h, device=y.device) * rows // h, rows).to(y.dtype).T  # [r,H]
+    c = F.one_hot(torch.arange(w, device=y.device) * cols // w, cols).to(y.dtype)  # [W,c]
+    area = (r.sum(1, keepdim=True) * c.sum(0, keepdim=True))  # [r,c] pixels per cell
+    cov = r @ coverage[..., 0] @ c  # [r,c]
+    return (r @ (y[..., 0] * coverage[..., 0]) @ c) / cov.clamp_min(1e-12), cov / area
+
+
+def tone_hold_loss(y: torch.Tensor, coverage: torch.Tensor, target: torch.Tensor, margin: float,
+                   cells: int = 0) -> torch.Tensor:
+    """The tone hold: ``tone_hinge`` of each cell's covered mean luminance (``cell_tones``) against its colour
+    target's (``target``: [] or [r,c]), averaged with the cells' covered fractions as weights. ``cells`` 0 holds the
+    whole view's mean; more cells hold the light and dark masses of the view where they were (a dark track stays
+    dark beside a light body) while strokes vary the luminance within each cell."""
+    tones, weight = cell_tones(y, coverage, cells)
+    return (tone_hinge(tones, target, margin) * weight).sum() / weight.sum().clamp_min(1e-12)
 
 
 def detail_hinge(energy: torch.Tensor, target: float) -> torch.Tensor:
@@ -526,13 +553,14 @@ class Stylize(Phase):
     @torch.no_grad()
     def make_tone_targets(self) -> list:
         """Per view the recoloured photo's mean luminance over the pixels the un-stylized scene covers, as a device
-        scalar (image_terms' argument); zeros where the tone hold is off."""
+        scalar, or per cell [r,c] with ``loss.tone_cells`` (image_terms' argument); zeros where the hold is off."""
         from ..losses import luminance  # lazy: imports Warp
 
         cov = self.tg.coverage
         if not self.on["tone_hold"]:
             return [torch.zeros((), dtype=c.dtype, device=c.device) for c in cov]
-        return [covered_mean(luminance(r.to(c)), c) for r, c in zip(self.tg.recolored, cov)]
+        cells = self.cfg.loss.tone_cells
+        return [cell_tones(luminance(r.to(c)), c, cells)[0] for r, c in zip(self.tg.recolored, cov)]
 
     @torch.no_grad()
     def make_stroke_weights(self) -> list:
@@ -631,7 +659,8 @@ class Stylize(Phase):
         and caches per view, so it stays outside), and with ``style_color`` the RGB ones after them. From the
         render's colour [H,W,3], alpha [H,W] and depth [H,W] and the view's constants: coverage [H,W,1], stroke
         field [H,W,2], the stroke hinge's weight [H,W,1] (``make_stroke_weights``), photo features [768,Nc],
-        content scale [], inverse depth [H,W], Lab target statistics [4], the colour target's covered tone [] (``tone_hold``; 0 where it is off). The deep term as Gram distances
+        content scale [], inverse depth [H,W], Lab target statistics [4], the colour target's covered tone [] or per
+        cell [r,c] (``tone_hold``, ``loss.tone_cells``; 0 where it is off). The deep term as Gram distances
         (``deep_in_terms``) is the last of the terms; its other kind's conv4 features [1536, Nc/4] come last.
         One tensor in terms of tensors only, so that on CUDA the call replays as one graph each way (``in_graph``:
         inside it the VGG pass and the field terms run as plain calls, not graphs of their own, and the Lab term
@@ -689,7 +718,7 @@ class Stylize(Phase):
             out.append(orient)
         if on["tone_hold"]:  # the covered mean luminance held within tone_margin of the colour target's
             y = inputs["y"] if inputs["y"] is not None else luminance(img_y)
-            out.append(tone_hinge(covered_mean(y, coverage), tone_target, self.cfg.loss.tone_margin))
+            out.append(tone_hold_loss(y, coverage, tone_target, self.cfg.loss.tone_margin, self.cfg.loss.tone_cells))
         if self.deep_in_terms:  # each conv4 layer's Gram distance to the painting's (image_names ends with it)
             out.append(layered_gram_loss(deep, self.deep_grams))
         feats = [] if a is None else [a.reshape(-1)] + ([a_rgb.reshape(-1)] if on["style_color"] else [])
