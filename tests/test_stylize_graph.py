@@ -31,7 +31,9 @@ def _run(inputs, device, *over, config="tlvg.yaml"):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("config, extra", [("tlvg.yaml", ()), ("abcgs.yaml", ()),  # abcgs: RGB FAST, alpha unread
-                                           ("tlvg.yaml", ("loss.w_tone_hold=100", "loss.tone_margin=0"))])
+                                           ("tlvg.yaml", ("loss.w_tone_hold=100", "loss.tone_margin=0")),
+                                           ("tlvg.yaml", ("loss.w_tone_hold=100", "loss.tone_margin=0",
+                                                          "loss.tone_cells=4"))])
 def test_stylize_terms_as_one_cuda_graph_match_eager(inputs, monkeypatch, config, extra):
     """Every logged term of three stylize steps (three views: the graph's per-view constants change between calls)
     equals the eager run's within float32 round-off, and so do the Gaussians after them (the graph's gradient with

@@ -42,7 +42,6 @@ from functools import partial
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from .. import runs
 from ..distributed import Dist
@@ -155,6 +154,13 @@ def tone_hinge(tone: torch.Tensor, target: torch.Tensor, margin: float) -> torch
     return torch.relu((tone - target).abs() - margin) ** 2
 
 
+def cell_map(n: int, cells: int, like: torch.Tensor) -> torch.Tensor:
+    """[n, cells] 0/1: pixel i in cell i * cells // n (comparisons only: nothing a CUDA graph's capture cannot
+    record, no host read)."""
+    i = torch.arange(n, device=like.device)[:, None] * cells // n
+    return (i == torch.arange(cells, device=like.device)[None, :]).to(like.dtype)
+
+
 def cell_tones(y: torch.Tensor, coverage: torch.Tensor, cells: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The covered mean luminance of ``y`` [H,W,C] (first channel) per cell of a grid ``cells`` rows high with
     square-ish cells (``round(cells * W / H)`` columns; each pixel in one cell), weighted by the coverage [H,W,1]:
@@ -164,8 +170,8 @@ def cell_tones(y: torch.Tensor, coverage: torch.Tensor, cells: int) -> tuple[tor
         return covered_mean(y, coverage), coverage.new_ones(())
     h, w = coverage.shape[:2]
     rows, cols = cells, max(1, round(cells * w / h))
-    r = F.one_hot(torch.arange(h, device=y.device) * rows // h, rows).to(y.dtype).T  # [r,H]
-    c = F.one_hot(torch.arange(w, device=y.device) * cols // w, cols).to(y.dtype)  # [W,c]
+    r = cell_map(h, rows, y).T  # [r,H]
+    c = cell_map(w, cols, y)  # [W,c]
     area = (r.sum(1, keepdim=True) * c.sum(0, keepdim=True))  # [r,c] pixels per cell
     cov = r @ coverage[..., 0] @ c  # [r,c]
     return (r @ (y[..., 0] * coverage[..., 0]) @ c) / cov.clamp_min(1e-12), cov / area
