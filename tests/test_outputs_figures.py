@@ -152,7 +152,10 @@ def test_caption_names_the_terms_that_are_on():
     cfg = load_config(configs / "tlvg.yaml")
     on = comparison_caption(cfg, 3000, 0.9)
     off = comparison_caption(load_config(configs / "tlvg_light.yaml"), 3000, 0.9)
-    assert f"tone hold x{cfg.loss.w_tone_hold:g} (margin {cfg.loss.tone_margin:g})" in on
+    hold = f"tone hold x{cfg.loss.w_tone_hold:g} (margin {cfg.loss.tone_margin:g}"
+    assert f"{hold}, {cfg.loss.tone_cells} rows of cells)" in on
+    whole = comparison_caption(load_config(configs / "tlvg.yaml", ["loss.tone_cells=0"]), 3000, 0.9)
+    assert f"{hold})," in whole  # the hold over the whole view: no cells named
     assert f"conv4 gram term x{cfg.loss.w_style_deep:g}" in on
     assert "tone hold" not in off and "conv4" not in off
     assert "3000 iterations" in on and "0.900" in on
