@@ -229,7 +229,6 @@ def test_tone_hold_is_a_hinge_beyond_its_margin(demo):
     assert float(found["mirrored"][3].sum()) * pull < 0  # a darker render is pulled lighter
 
 
-
 def test_tone_hold_per_cell_holds_each_cells_covered_mean(demo):
     """loss.tone_cells: the hinge per cell of a grid (rows x round(rows * W / H) columns, each pixel in the cell
     of its integer position), each cell's covered mean luminance against its recoloured photo's, weighted by the
@@ -272,6 +271,7 @@ def test_tone_hold_per_cell_holds_each_cells_covered_mean(demo):
     one = tone_hold_loss(swapped, full, cell_tones(left, full, 0)[0], 0.02, 0)
     grid = tone_hold_loss(swapped, full, cell_tones(left, full, 2)[0], 0.02, 2)
     assert float(one) == 0.0 and float(grid) == pytest.approx((0.6 - 0.02) ** 2)
+
 
 class OctaveStub(StubFeatures):
     """The stub with a scale: average pooling over blocks of 4 / scale pixels, so features at half the scale are

@@ -722,7 +722,8 @@ class Stylize(Phase):
                        else lab_chroma_loss(lab_in, target_stats=lab_stats))
         if on["orient"]:
             out.append(orient)
-        if on["tone_hold"]:  # the covered mean luminance held within tone_margin of the colour target's
+        if on["tone_hold"]:  # the covered mean luminance (per cell with tone_cells) held within tone_margin of the
+            # colour target's
             y = inputs["y"] if inputs["y"] is not None else luminance(img_y)
             out.append(tone_hold_loss(y, coverage, tone_target, self.cfg.loss.tone_margin, self.cfg.loss.tone_cells))
         if self.deep_in_terms:  # each conv4 layer's Gram distance to the painting's (image_names ends with it)
