@@ -271,6 +271,13 @@ def test_tone_hold_per_cell_holds_each_cells_covered_mean(demo):
     one = tone_hold_loss(swapped, full, cell_tones(left, full, 0)[0], 0.02, 0)
     grid = tone_hold_loss(swapped, full, cell_tones(left, full, 2)[0], 0.02, 2)
     assert float(one) == 0.0 and float(grid) == pytest.approx((0.6 - 0.02) ** 2)
+    # more rows than the view has pixels: one pixel a cell, no empty cell (an empty one's weight would be 0/0)
+    y = swapped.clone().requires_grad_(True)
+    tones, weight = cell_tones(y, full, 100)
+    assert tones.shape == (8, 16) and torch.equal(tones.detach(), swapped[..., 0]) and torch.all(weight == 1)
+    loss = tone_hold_loss(y, full, cell_tones(left, full, 100)[0], 0.02, 100)
+    assert float(loss.detach()) == pytest.approx((0.6 - 0.02) ** 2)
+    assert torch.isfinite(torch.autograd.grad(loss, y)[0]).all()
 
 
 class OctaveStub(StubFeatures):

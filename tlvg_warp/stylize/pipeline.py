@@ -163,13 +163,15 @@ def cell_map(n: int, cells: int, like: torch.Tensor) -> torch.Tensor:
 
 def cell_tones(y: torch.Tensor, coverage: torch.Tensor, cells: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The covered mean luminance of ``y`` [H,W,C] (first channel) per cell of a grid ``cells`` rows high with
-    square-ish cells (``round(cells * W / H)`` columns; each pixel in one cell), weighted by the coverage [H,W,1]:
-    (means [r,c], each cell's covered fraction [r,c]). ``cells`` 0: one cell, the whole view (``covered_mean``) with
-    weight 1. Sums by two matrix products with 0/1 cell maps: deterministic, unlike a pooling's backward on CUDA."""
+    square-ish cells (``round(cells * W / H)`` columns; each pixel in one cell; no more rows or columns than the view
+    has pixels), weighted by the coverage [H,W,1]: (means [r,c], each cell's covered fraction [r,c]). ``cells`` 0:
+    one cell, the whole view (``covered_mean``) with weight 1. Sums by two matrix products with 0/1 cell maps:
+    deterministic, unlike a pooling's backward on CUDA."""
     if cells == 0:
         return covered_mean(y, coverage), coverage.new_ones(())
     h, w = coverage.shape[:2]
-    rows, cols = cells, max(1, round(cells * w / h))
+    rows = min(cells, h)  # no empty cell: a cell of no pixels has no mean (0/0 in its weight)
+    cols = min(w, max(1, round(rows * w / h)))
     r = cell_map(h, rows, y).T  # [r,H]
     c = cell_map(w, cols, y)  # [W,c]
     area = (r.sum(1, keepdim=True) * c.sum(0, keepdim=True))  # [r,c] pixels per cell
