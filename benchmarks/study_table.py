@@ -21,7 +21,7 @@ METRICS = [("flow_alignment", "higher"), ("flow_energy", "higher"), ("stroke_sca
            ("style_gram_inside", "lower"), ("style_nnfm", "lower"), ("style_nnfm_inside", "lower"),
            ("content", "lower"), ("consistency_k1", "lower"), ("detail", "higher"), ("detail_inside", "higher"),
            ("holes_1x", "lower"), ("holes_2x", "lower"), ("spill", "lower"), ("chroma_noise", "lower"),
-           ("tone_inside", "lower")]
+           ("tone_inside", "lower"), ("colour_inside", "lower")]
 
 
 def load(study: Path):
@@ -112,7 +112,7 @@ def target_rows(study: Path, data: dict, order, me: str, ablation: str | None):
 
 PAIRED = ["flow_alignment", "flow_energy", "stroke_scales", "style_gram", "style_gram_inside", "style_nnfm",
           "style_nnfm_inside", "detail", "detail_inside", "chroma_noise", "consistency_k1", "holes_2x", "spill",
-          "content", "tone_inside"]  # stroke_scales: no VGG
+          "content", "tone_inside", "colour_inside"]  # stroke_scales: no VGG
 FRACTIONS = {"holes_1x", "holes_2x", "spill"}  # shares of the view's pixels: printed as percentages
 
 

@@ -7,6 +7,7 @@ pasted in screen space on every view (sticker), the un-stylized scene, the genui
 3x wider (blurred, and spilling into the empty background), and with half of the Gaussians made transparent (holes)."""
 import math
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -73,7 +74,7 @@ def cases(net):
 
 @pytest.mark.parametrize("case,metrics", [
     ("sticker", ("consistency_k1", "consistency_k5", "content")),
-    ("unstylized", ("style_gram", "style_nnfm", "stroke_scales", "tone_inside")),
+    ("unstylized", ("style_gram", "style_nnfm", "stroke_scales", "tone_inside", "colour_inside")),
     ("blurred", ("detail", "detail_inside", "spill")),  # 3x wider splats also paint the empty background
     ("holed", ("holes_1x", "holes_2x", "consistency_k1")),
 ])
@@ -454,6 +455,49 @@ def test_tone_distance_is_the_wasserstein_distance_of_luminance_in_closed_form()
     ref = M.tones(grey, inside)
     assert M.tone_distance(outside_changed, ref, inside) == pytest.approx(0.0, abs=1e-7)
     assert M.tone_distance(outside_changed, ref) > 0.05  # the whole view would count the background
+
+
+def test_colour_distance_is_the_sliced_wasserstein_distance_of_lab_chroma():
+    """colour_inside: along each direction θ of the Lab a,b plane, the 1-D Wasserstein distance of the projected
+    chroma, averaged. Closed form: chroma shifted by (d, 0) is d x mean |cos θ| away. Oracle: SciPy's
+    wasserstein_distance of the projections (the percentile grid leaves out 1% at each end, hence the tolerance),
+    with OpenCV's Lab conversion computed here independently. Pixels outside the scene do not count."""
+    from scipy.stats import wasserstein_distance
+
+    rng = np.random.default_rng(5)
+    ab = rng.normal(0.0, 20.0, (200_000, 2))
+    angles = np.arange(16) * np.pi / 16
+    d = 7.5
+    assert np.abs(M.chroma_quantiles(ab + [d, 0.0]) - M.chroma_quantiles(ab)).mean() == pytest.approx(
+        d * np.abs(np.cos(angles)).mean(), rel=1e-9)
+    view = rng.uniform(0.0, 1.0, (90, 120, 3)).astype(np.float32)
+    painting = builtin_painting().numpy().astype(np.float32)
+    lab = lambda im: cv2.cvtColor(im, cv2.COLOR_RGB2Lab)[..., 1:].reshape(-1, 2).astype(np.float64)  # noqa: E731
+    u = np.stack([np.cos(angles), np.sin(angles)])
+    pv, pp = lab(view) @ u, lab(painting) @ u
+    oracle = np.mean([wasserstein_distance(pv[:, k], pp[:, k]) for k in range(len(angles))])
+    assert M.colour_distance(view, M.colours(painting)) == pytest.approx(oracle, rel=0.03)
+    inside = np.zeros(view.shape[:2], bool)
+    inside[20:70, 30:100] = True
+    changed = view.copy()
+    changed[~inside] = (1.0, 0.0, 0.0)  # a red background around the scene
+    assert M.colour_distance(changed, M.colours(view, inside), inside) == pytest.approx(0.0, abs=1e-9)
+    assert M.colour_distance(changed, M.colours(view, inside)) > 1.0  # the whole view would count it
+
+
+def test_colour_distance_reads_a_blend_of_two_hues_as_farther_than_the_hues_rearranged():
+    """The case the metric was added for: a painting of blue and yellow against a render that blends them into one
+    hue (what a smooth colour map gives a uniform floor) and against one that places the same two hues elsewhere.
+    The blend is far, the rearrangement is at 0: the distance reads the palette, not where each colour sits."""
+    blue, yellow = np.array([0.1, 0.2, 0.7], np.float32), np.array([0.9, 0.8, 0.2], np.float32)
+    painting = np.empty((64, 96, 3), np.float32)
+    painting[:, :48], painting[:, 48:] = blue, yellow
+    stripes = np.empty_like(painting)
+    stripes[0::2], stripes[1::2] = yellow, blue  # the same pixels of each hue, in rows
+    blend = np.broadcast_to((blue + yellow) / 2, painting.shape).copy()
+    ref = M.colours(painting)
+    assert M.colour_distance(stripes, ref) == pytest.approx(0.0, abs=1e-9)
+    assert M.colour_distance(blend, ref) > 20.0  # Lab units: the two hues' chroma lie about 100 apart
 
 
 def test_tone_distance_reads_an_image_paler_and_flatter_than_the_painting_as_farther():

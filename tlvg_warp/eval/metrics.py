@@ -38,6 +38,10 @@ STROKE_QUANTILES = np.linspace(0.02, 0.98, 49)  # distributions compared at thes
 STROKE_ENERGY_WEIGHT = 0.25
 STROKE_EPS = 1e-3  # in units of the standardized luminance's squared gradient: flat pixels do not blow up log10
 TONE_QUANTILES = np.linspace(0.01, 0.99, 99)  # luminance distributions compared at these percentiles
+# Chroma distributions (Lab a,b) are compared along these directions of the a,b plane, each at TONE_QUANTILES: a
+# sliced Wasserstein distance, so a blend of two hues (blue and yellow read as one teal) is far from a painting made of
+# both, wherever on the canvas each sits
+COLOUR_ANGLES = np.arange(16) * np.pi / 16
 BOOTSTRAP = 2000  # resamples; the interval's own Monte Carlo error is ~1 % of its width
 NNFM_CHUNK = 4096  # render cells per product in style_nnfm
 SEED = 0  # fixed: a run's interval never depends on what else is scored
@@ -82,6 +86,9 @@ METRICS = {m.key: m for m in (
     Metric("tone_inside", "Tone distance inside the scene: the luminance distribution of the pixels the "
            "un-stylized scene covers (its outline excluded, as detail_inside) against the painting's",
            "1-D Wasserstein of luminance, 0…1", False),
+    Metric("colour_inside", "Colour distance inside the scene: the Lab a,b chroma of the pixels the un-stylized "
+           "scene covers (its outline excluded, as detail_inside) against the painting's, sliced over 16 directions",
+           "sliced 1-D Wasserstein of Lab a,b, Lab units", False),
     Metric("holes_1x", "Holes at training size", "fraction of covered pixels", False),
     Metric("holes_2x", "Holes at 2x resolution", "fraction of covered pixels", False),
     Metric("spill", "Spill: painted where the un-stylized scene is empty (splats frayed or strayed)",
@@ -113,6 +120,7 @@ ANCHOR_TO_BEAT = {
     "detail": UNSTYLIZED,
     "detail_inside": UNSTYLIZED,
     "tone_inside": UNSTYLIZED,
+    "colour_inside": UNSTYLIZED,
     "content": STICKER,
     "consistency_k1": STICKER,
     "consistency_k5": STICKER,
@@ -277,6 +285,29 @@ def tone_distance(view: np.ndarray, painting_tones: np.ndarray, inside: np.ndarr
     pixels inside the scene and the painting's (``painting_tones``: :func:`tones` of the painting): a render
     paler, darker or flatter than the painting is farther, whatever its texture and hue."""
     return float(np.abs(tones(view, inside) - painting_tones).mean())
+
+
+def colours(img: np.ndarray, inside: np.ndarray | None = None) -> np.ndarray:
+    """[len(COLOUR_ANGLES), len(TONE_QUANTILES)]: the percentiles of the Lab a,b chroma of ``img`` [H,W,3] projected
+    on each of COLOUR_ANGLES, over the pixels of ``inside`` [H,W] (bool; every pixel when None or empty)."""
+    ab = lab_ab(img)
+    ab = ab[inside] if inside is not None and inside.any() else ab.reshape(-1, 2)  # [P,2]
+    return chroma_quantiles(ab)
+
+
+def chroma_quantiles(ab: np.ndarray) -> np.ndarray:
+    """:func:`colours` of chroma samples ``ab`` [P,2] (Lab a,b)."""
+    directions = np.stack([np.cos(COLOUR_ANGLES), np.sin(COLOUR_ANGLES)])  # [2,K]
+    return np.quantile(ab.astype(np.float64) @ directions, TONE_QUANTILES, axis=0).T  # [K,Q]
+
+
+def colour_distance(view: np.ndarray, painting_colours: np.ndarray, inside: np.ndarray | None = None) -> float:
+    """The sliced 1-D Wasserstein distance (the mean gap of matching percentiles along each direction of the a,b
+    plane) between the chroma of ``view``'s pixels inside the scene and the painting's (``painting_colours``:
+    :func:`colours` of the painting), in Lab units: the colour twin of :func:`tone_distance`. A render tinted one
+    blended hue, or paler in chroma than the painting, is farther, whatever its texture; where on the canvas a hue
+    sits does not count."""
+    return float(np.abs(colours(view, inside) - painting_colours).mean())
 
 
 def luma(img: np.ndarray) -> np.ndarray:

@@ -91,7 +91,8 @@ def common_field(net, base_color: np.ndarray, painting: np.ndarray, style_cells_
 
 def _painting_side(net, painting: np.ndarray, eval_height: int, pretrained: bool) -> dict:
     p_eval = M.resize_to_height(painting, eval_height)
-    out = {"strokes": M.stroke_descriptor(painting), "hf": M.hf_energy(M.luma(p_eval)), "tones": M.tones(p_eval)}
+    out = {"strokes": M.stroke_descriptor(painting), "hf": M.hf_energy(M.luma(p_eval)), "tones": M.tones(p_eval),
+           "colours": M.colours(p_eval)}
     if pretrained:
         out |= M.vgg_feats(net, p_eval)
         work = resize_style(painting)  # the field's working size (SPEC §3: height 256)
@@ -210,6 +211,7 @@ def score_views(views: list, alpha2x: list, refs: Refs, net) -> dict:
         per["detail"].append(M.detail(ev, ps["hf"]))
         per["detail_inside"].append(M.detail(ev, ps["hf"], inside))
         per["tone_inside"].append(M.tone_distance(ev, ps["tones"], inside))
+        per["colour_inside"].append(M.colour_distance(ev, ps["colours"], inside))
         per["holes_1x"].append(M.holes(v["alpha"], refs.base[i]["alpha"]))
         per["holes_2x"].append(M.holes(alpha2x[i], refs.alpha2x[i]))
         per["spill"].append(M.spill(v["alpha"], refs.base[i]["alpha"]))
