@@ -164,6 +164,12 @@ def test_caption_names_the_terms_that_are_on():
     assert "palette=arf," in comparison_caption(load_config(configs / "tlvg.yaml", ["palette_map=arf"]), 3000, 0.9)
     focused = comparison_caption(load_config(configs / "tlvg.yaml", ["palette_focus=0.2"]), 3000, 0.9)
     assert f"palette=sliced (smoothed {cfg.palette_smooth:g}, focus 0.2)," in focused
+    # the start's jitter, which sets how flecked a picture is: its mode and size, none when off
+    assert f", luminance jitter x{cfg.stroke_jitter:g}, style=" in on
+    flecks = comparison_caption(load_config(configs / "tlvg.yaml", ["stroke_jitter_mode=palette", "stroke_jitter=1"]),
+                                3000, 0.9)
+    assert ", palette jitter x1, style=" in flecks and "jitter" not in comparison_caption(
+        load_config(configs / "tlvg.yaml", ["stroke_jitter=0"]), 3000, 0.9)
     # the controls a user sets, so that runs made with them can be told apart; a neutral one is left out
     assert on.startswith(f"stroke scale {cfg.stroke_scale:g}, config:") and "strength" not in on
     cfg.loss.strength, cfg.keep_colors = 0.5, True

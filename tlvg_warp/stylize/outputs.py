@@ -115,7 +115,8 @@ def comparison_caption(cfg, iterations: int, alignment: float) -> str:
     palette = ("none" if cfg.keep_colors else cfg.palette_map
                + (f" (smoothed {cfg.palette_smooth:g}" + (f", focus {cfg.palette_focus:g}" if cfg.palette_focus else "")
                   + ")" if cfg.palette_map == "sliced" and cfg.palette_smooth else ""))
-    return (f"{controls}config: palette={palette}, style={cfg.loss.style_loss}, {lum}{extra}, "
+    jitter = f", {cfg.stroke_jitter_mode} jitter x{cfg.stroke_jitter:g}" if cfg.stroke_jitter else ""
+    return (f"{controls}config: palette={palette}{jitter}, style={cfg.loss.style_loss}, {lum}{extra}, "
             f"lock_xyz={cfg.geometry.lock_xyz}, max_travel={cfg.geometry.max_travel:g}, "
             f"colour_floor={cfg.colour_floor}, w_align={cfg.loss.w_align}, field={cfg.loss.field_mapping}; "
             f"{iterations} iterations; alignment to its training field {alignment:.3f}")
