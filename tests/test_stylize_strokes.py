@@ -47,6 +47,42 @@ def test_palette_jitter_moves_each_colour_by_a_painting_pixel_minus_its_mean():
     assert torch.allclose(dc.double()[:, 0] * SH_C0, delta, atol=1e-6)
 
 
+def test_palette_tone_jitter_draws_from_the_splats_own_tone_band():
+    """Oracle (float64, numpy, written apart): the painting's pixels sorted by luminance and cut into bands of equal
+    count; each offset / amount + its band's mean must be a pixel of the band that holds the splat's luminance. A
+    painting of dark blues and bright yellows and whites: bright splats take yellow or white offsets only, so their
+    luminance moves far less than under the global palette jitter, which also draws the dark blues."""
+    from tlvg_warp.stylize.pipeline import jitter_palette_tone_
+
+    rng = np.random.default_rng(0)
+    dark = np.array([[0.05, 0.1, 0.4], [0.1, 0.15, 0.3]])
+    bright = np.array([[0.95, 0.85, 0.2], [0.95, 0.95, 0.95]])
+    px = np.concatenate([dark[rng.integers(0, 2, 300)], bright[rng.integers(0, 2, 300)]])  # [600,3]
+    px += rng.normal(0, 0.01, px.shape)
+    painting = torch.from_numpy(px.reshape(20, 30, 3)).float()
+    colours = rng.uniform(0, 1, (4000, 3))  # [N,3] the splats' colours before
+    dc = torch.from_numpy((colours - 0.5) / SH_C0).float()[:, None, :]  # [N,1,3]
+    before = 0.5 + SH_C0 * dc.double()[:, 0].numpy()
+    delta = jitter_palette_tone_(dc, painting, 0.5, seed=2, bins=4).numpy()  # [N,3]
+    assert np.allclose(0.5 + SH_C0 * dc.double()[:, 0].numpy() - before, delta, atol=1e-6)  # moved by the offsets
+
+    p64 = painting.double().reshape(-1, 3).numpy()
+    lum = p64 @ LUMA.numpy()
+    srt = p64[np.argsort(lum, kind="stable")]
+    bands = np.array_split(srt, 4)  # 150 pixels each
+    tops = [b[-1] @ LUMA.numpy() for b in bands[:-1]]  # the largest luminance of bands 0-2
+    for i in range(0, 4000, 97):
+        y = before[i] @ LUMA.numpy()
+        b = int(np.searchsorted(np.array([bands[k][0] @ LUMA.numpy() for k in range(1, 4)]), y, side="right"))
+        picked = delta[i] / 0.5 + bands[b].mean(0)
+        assert np.abs(bands[b] - picked).sum(1).min() < 1e-6, (i, b)  # a pixel of the splat's own band
+        assert b == 0 or y >= tops[b - 1] - 1e-9
+    bright_splat = before @ LUMA.numpy() > 0.7
+    tone = (delta @ LUMA.numpy())[bright_splat]
+    global_tone = (jitter_palette_(dc.clone(), painting, 0.5, seed=2).numpy() @ LUMA.numpy())[bright_splat]
+    assert bright_splat.sum() > 100 and tone.std() < 0.15 * global_tone.std()
+
+
 def test_stylize_jitters_luminance_at_the_phase_start():
     """With the colour learning rate at 0, the DC colours a run ends with differ from the same run without jitter by
     the offsets alone: equal on R, G, B, nonzero for every Gaussian, and absent when the jitter is off. (That it is

@@ -257,8 +257,9 @@ class StylizeConfig:
     # the painting's stroke contrast (its luminance high-pass std), chroma unchanged: each splat (already shaped along
     # the field) reads as a stroke of its own tone, as a painter varies the paint per stroke; 0: off
     stroke_jitter_mode: str = "luminance"  # luminance (above) | palette: the offset is this x (a random pixel of the
-    # painting minus its mean colour), so strokes take the painting's colours, as its dabs of yellow in the blue
-    # (keep_colors sets luminance)
+    # painting minus its mean colour), so strokes take the painting's colours, as its dabs of yellow in the blue |
+    # palette_tone: the pixel is drawn from the painting's pixels of the splat's own luminance (16 bands of equal
+    # count) and the offset is taken from their mean, so a splat keeps its tone (keep_colors sets luminance)
     keep_colors: bool = False  # keep the scene's own colours: no palette transfer, style on luminance only
     colour_floor: bool = False  # after every step, SH-0 colour channels below 0 are lifted to 0 (ours). The renderer
     # clamps a channel there and passes it no gradient, so a channel pushed under 0 stays dead for the rest of the run
@@ -297,7 +298,7 @@ class StylizeConfig:
     RULES = {"iterations": (">=", 1), "fit_iterations": (">=", 0), "style_height": (">=", 0),
              "stroke_scale": (">", 0), "style_max_cells": (">=", 0), "refine_radius": (">=", 0),
              "stroke_jitter": (">=", 0),
-             "stroke_jitter_mode": ("of", "luminance", "palette"),
+             "stroke_jitter_mode": ("of", "luminance", "palette", "palette_tone"),
              "palette_map": ("of", "arf", "arf_rank", "sliced", "tone"),
              "palette_floor": (">=", 0), "palette_where": ("of", "all", "covered"),
              "palette_smooth": ("in", 0, 1), "palette_focus": ("in", 0, 1), "post_chroma_blur": ("in", 0, 0.1),

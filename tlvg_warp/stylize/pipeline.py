@@ -291,6 +291,34 @@ def jitter_palette_(sh_dc: torch.Tensor, painting: torch.Tensor, amount: float, 
     return _shift_dc_(sh_dc, amount * (px[pick] - px.mean(0)))
 
 
+def jitter_palette_tone_(sh_dc: torch.Tensor, painting: torch.Tensor, amount: float, seed: int,
+                         bins: int = 16) -> torch.Tensor:
+    """Moves every Gaussian's DC colour [N,1,3] by ``amount`` x (one random pixel of ``painting`` [H,W,3] from the
+    splat's tone band minus that band's mean colour), in place; returns the offsets [N,3] in colour units. The bands
+    split the painting's pixels by luminance into ``bins`` of equal count; a splat falls in the band of its own
+    luminance. So a splat keeps its tone and takes the hues the painting has at that tone: a bright floor that the
+    smoothed palette made one blend of pale yellow and pale blue breaks into flecks of both, not into dark blue."""
+    from ..losses.color import LUMA  # lazy: the losses package imports Warp
+
+    gen = torch.Generator().manual_seed(int(seed))
+    px = painting.detach().reshape(-1, 3).double().cpu()  # [P,3]
+    luma = torch.tensor(LUMA, dtype=torch.float64)
+    order = torch.argsort(px @ luma)
+    px = px[order]  # [P,3] by luminance
+    lum = px @ luma  # [P] ascending
+    bins = max(1, min(int(bins), px.shape[0]))
+    edges = torch.linspace(0, px.shape[0], bins + 1, dtype=torch.float64).round().long()  # [bins+1]: band b's pixels
+    # are px[edges[b]:edges[b+1]]
+    sums = torch.cat([torch.zeros(1, 3, dtype=torch.float64), px.cumsum(0)])  # [P+1,3]
+    means = (sums[edges[1:]] - sums[edges[:-1]]) / (edges[1:] - edges[:-1])[:, None]  # [bins,3]
+    colour = 0.5 + SH_C0 * sh_dc.detach()[:, 0].double().cpu()  # [N,3]
+    band = torch.searchsorted(lum[edges[1:-1]], (colour @ luma).contiguous(), right=True)  # [N] in [0, bins)
+    count = edges[band + 1] - edges[band]  # [N]
+    u = torch.rand(band.shape[0], generator=gen, dtype=torch.float64)  # [N]
+    pick = edges[band] + (u * count).long().minimum(count - 1)  # [N] one pixel of each splat's band
+    return _shift_dc_(sh_dc, amount * (px[pick] - means[band]))
+
+
 def inverse_depth(depth: torch.Tensor) -> torch.Tensor:
     """1/z where something was rendered (depth > 0), 0 elsewhere."""
     return torch.where(depth > 0, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
@@ -598,6 +626,8 @@ class Stylize(Phase):
         k, seed = self.cfg.stroke_jitter, self.cfg.seed
         if k > 0 and self.cfg.stroke_jitter_mode == "palette":
             jitter_palette_(p.sh_dc, self.tg.style_work, k, seed)
+        elif k > 0 and self.cfg.stroke_jitter_mode == "palette_tone":
+            jitter_palette_tone_(p.sh_dc, self.tg.style_work, k, seed)
         elif k > 0:  # the painting's stroke contrast at the views' height
             jitter_luminance_(p.sh_dc, k * painting_detail(self.tg.style_work, view_h) ** 0.5, seed)
 
