@@ -296,8 +296,8 @@ def jitter_palette_tone_(sh_dc: torch.Tensor, painting: torch.Tensor, amount: fl
     """Moves every Gaussian's DC colour [N,1,3] by ``amount`` x (one random pixel of ``painting`` [H,W,3] from the
     splat's tone band minus that band's mean colour), in place; returns the offsets [N,3] in colour units. The bands
     split the painting's pixels by luminance into ``bins`` of equal count; a splat falls in the band of its own
-    luminance. So a splat keeps its tone and takes the hues the painting has at that tone: a bright floor that the
-    smoothed palette made one blend of pale yellow and pale blue breaks into flecks of both, not into dark blue."""
+    luminance. So a splat keeps its tone and takes a hue the painting has at that tone (a bright floor flecks of its
+    pale yellows and pale blues, not of its dark blue), where ``jitter_palette_`` draws from the whole painting."""
     from ..losses.color import LUMA  # lazy: the losses package imports Warp
 
     gen = torch.Generator().manual_seed(int(seed))
